@@ -1,0 +1,30 @@
+# Two commands do all the set-up: `make demo` and `make test`. Both create .venv when missing.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: env demo test bench clean
+
+env: $(STAMP)
+
+# Reinstall only when the dependency list changes, so a second call is fast.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	# torch first, pinned, so nothing later can pull a CUDA build.
+	$(PY) -m pip install --quiet "torch==2.13.0"
+	$(PY) -m pip install --quiet -e ".[test,cluster]"
+	touch $(STAMP)
+
+demo: env
+	$(VENV)/bin/cadsplat demo
+
+test: env
+	$(PY) -m pytest -n 2 --timeout=900 -q
+
+bench: env
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -1,0 +1,371 @@
+"""The capture format: a directory with a nerfstudio-compatible `transforms.json` (SPEC "Capture").
+
+We write a superset of nerfstudio's format (so other 3DGS/NeRF tools read our captures) and read
+nerfstudio datasets (per-frame or shared intrinsics, OpenCV distortion) and the Blender
+NeRF-synthetic variant (`camera_angle_x`). `transform_matrix` is camera-to-world with OpenGL camera
+axes as nerfstudio defines it; in memory every pose is OpenCV (`Camera.c2w`).
+
+Writes build the whole capture in a hidden sibling directory and rename it into place, so a
+capture is either complete, with the sha256 of every file in its manifest, or absent.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
+from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_file
+from calibration.so3 import project_to_so3
+
+TRANSFORMS = "transforms.json"
+
+
+class CaptureError(ValueError):
+    """A capture that cannot be read as it is; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class CaptureFrame:
+    """One view: image path (relative to the capture root), its camera (OpenCV c2w, with distortion)."""
+
+    file_path: str
+    camera: Camera
+    camera_id: str
+    timestamp_ns: int | None = None
+    mask_path: str | None = None
+
+
+@dataclass(frozen=True)
+class Capture:
+    root: Path
+    frames: tuple[CaptureFrame, ...]
+    meta: dict = field(default_factory=dict)
+    missing: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def has_masks(self) -> bool:
+        return all(f.mask_path for f in self.frames)
+
+    def camera(self, i: int, *, undistorted: bool = True) -> Camera:
+        cam = self.frames[i].camera
+        return cam.pinhole() if undistorted else cam
+
+    def image(self, i: int, *, undistort: bool = True) -> np.ndarray:
+        """RGB float32 [H, W, 3] in [0, 1], undistorted to the pinhole camera by default."""
+        frame = self.frames[i]
+        img = read_image(self.root / frame.file_path)[..., :3]
+        self._check_size(frame, img)
+        return undistort_image(frame.camera, img)[0] if undistort else img
+
+    def mask(self, i: int, *, undistort: bool = True) -> np.ndarray | None:
+        """Object mask bool [H, W] from masks/ (or the image's alpha channel); None when the capture has none."""
+        frame = self.frames[i]
+        if frame.mask_path:
+            m = read_image(self.root / frame.mask_path)
+            m = m[..., 0] if m.ndim == 3 else m
+        else:
+            img = read_image(self.root / frame.file_path)
+            if img.ndim != 3 or img.shape[2] != 4:
+                return None
+            m = img[..., 3]
+        self._check_size(frame, m)
+        m = (m > 0.5).astype(np.uint8)
+        if undistort:
+            m = undistort_image(frame.camera, m, nearest=True)[0]
+        return m.astype(bool)
+
+    def background(self, camera_id: str, *, undistort: bool = True) -> np.ndarray | None:
+        """The empty-rig frame of `camera_id` (RGB float32), or None when the capture has none."""
+        rel = self.meta.get("background", {}).get(camera_id)
+        if rel is None:
+            return None
+        img = read_image(self.root / rel)[..., :3]
+        frame = next(f for f in self.frames if f.camera_id == camera_id)
+        return undistort_image(frame.camera, img)[0] if undistort else img
+
+    def _check_size(self, frame: CaptureFrame, img: np.ndarray) -> None:
+        h, w = img.shape[:2]
+        if (w, h) != (frame.camera.width, frame.camera.height):
+            raise CaptureError(f"{frame.file_path}: image is {w}x{h} but transforms.json says {frame.camera.width}x{frame.camera.height}")
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Decode an image file to float32 in [0, 1]: [H, W] gray, or [H, W, 3|4] RGB(A). Truncated or corrupt files raise CaptureError."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: file is missing") from None
+    if data.size == 0:
+        raise CaptureError(f"{path}: file is empty")
+    if path.suffix.lower() == ".png" and not _png_complete(data):
+        raise CaptureError(f"{path}: PNG is truncated (no IEND chunk)")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CaptureError(f"{path}: not a readable image (corrupt or unsupported format)")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = img[..., ::-1]
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., [2, 1, 0, 3]]
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    return np.ascontiguousarray(img, dtype=np.float32) / np.float32(scale)
+
+
+def _png_complete(data: np.ndarray) -> bool:
+    return data.size >= 12 and bytes(data[-8:-4]) == b"IEND"
+
+
+def _intrinsics(src: dict, fallback: dict, where: str, image_size) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """K, w, h, dist from a frame dict with the top-level dict as fallback (nerfstudio's sharing rule)."""
+
+    def get(key):
+        return src.get(key, fallback.get(key))
+
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        w, h = image_size()
+    w, h = int(round(float(w))), int(round(float(h)))
+    fl_x, fl_y = get("fl_x"), get("fl_y")
+    if fl_x is None:
+        angle_x = get("camera_angle_x")
+        if angle_x is None:
+            raise CaptureError(f"{where}: no focal length (neither fl_x nor camera_angle_x)")
+        fl_x = 0.5 * w / math.tan(0.5 * float(angle_x))
+    if fl_y is None:
+        angle_y = get("camera_angle_y")
+        fl_y = 0.5 * h / math.tan(0.5 * float(angle_y)) if angle_y is not None and get("fl_x") is None else fl_x
+    cx = get("cx")
+    cy = get("cy")
+    cx = w / 2.0 if cx is None else float(cx)
+    cy = h / 2.0 if cy is None else float(cy)
+    k = np.array([[float(fl_x), 0.0, cx], [0.0, float(fl_y), cy], [0.0, 0.0, 1.0]])
+    if get("dist") is not None:
+        dist = np.array(get("dist"), dtype=np.float64)
+    else:
+        k1, k2, p1, p2, k3 = (float(get(n) or 0.0) for n in ("k1", "k2", "p1", "p2", "k3"))
+        dist = np.array([k1, k2, p1, p2, k3]) if k3 else np.array([k1, k2, p1, p2])
+        if not np.any(dist):
+            dist = np.zeros(0)
+    if not (np.all(np.isfinite(k)) and np.all(np.isfinite(dist))):
+        raise CaptureError(f"{where}: intrinsics or distortion contain NaN or inf")
+    return k, w, h, dist
+
+
+def _pose(matrix, where: str) -> np.ndarray:
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4):
+        raise CaptureError(f"{where}: transform_matrix must be 4x4, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise CaptureError(f"{where}: transform_matrix contains NaN or inf")
+    r = m[:3, :3]
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+        raise CaptureError(f"{where}: transform_matrix rotation is not rigid (scaled, sheared or reflected)")
+    m[:3, :3] = project_to_so3(r)
+    return c2w_opengl_to_opencv(m)
+
+
+def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing: bool = False) -> Capture:
+    """Read a capture directory (or a transforms.json path).
+
+    verify: check every sha256 the manifest records. allow_missing: frames whose image file is
+    absent are dropped and listed in `Capture.missing` instead of raising.
+    """
+    path = Path(path)
+    tf_path = path if path.is_file() else path / TRANSFORMS
+    root = tf_path.parent
+    if not tf_path.exists():
+        raise CaptureError(f"{tf_path}: no transforms.json here; is this a capture directory?")
+    try:
+        doc = json.loads(tf_path.read_text())
+    except json.JSONDecodeError as e:
+        raise CaptureError(f"{tf_path}: invalid JSON ({e.msg} at line {e.lineno})") from None
+    frames_doc = doc.get("frames")
+    if not isinstance(frames_doc, list) or not frames_doc:
+        raise CaptureError(f"{tf_path}: has no frames")
+    meta = doc.get("cadsplat", {})
+    digests = meta.get("sha256", {})
+    frames: list[CaptureFrame] = []
+    missing: list[str] = []
+    for i, fd in enumerate(frames_doc):
+        rel = fd.get("file_path")
+        if not rel:
+            raise CaptureError(f"{tf_path}: frame {i} has no file_path")
+        rel = _resolve_image_path(root, rel)
+        where = f"{tf_path.name} frame {i} ({rel})"
+        if not (root / rel).exists():
+            missing.append(rel)
+            continue
+        k, w, h, dist = _intrinsics(fd, doc, where, lambda: _image_size(root / rel))
+        c2w = _pose(fd.get("transform_matrix"), where)
+        frames.append(
+            CaptureFrame(
+                file_path=rel,
+                camera=Camera(k, w, h, dist, c2w),
+                camera_id=str(fd.get("camera_id", Path(rel).stem)),
+                timestamp_ns=fd.get("timestamp_ns"),
+                mask_path=fd.get("mask_path"),
+            )
+        )
+    if missing and not allow_missing:
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        raise CaptureError(
+            f"{tf_path}: lists {len(frames_doc)} frames but {len(missing)} image files are missing ({shown}); "
+            f"read with allow_missing to load the {len(frames)} present"
+        )
+    if not frames:
+        raise CaptureError(f"{tf_path}: none of its {len(frames_doc)} image files exist")
+    for f in frames:
+        if f.mask_path and not (root / f.mask_path).exists():
+            raise CaptureError(f"{root / f.mask_path}: mask file is missing")
+    if verify:
+        for rel, digest in digests.items():
+            p = root / rel
+            if not p.exists():
+                raise CaptureError(f"{p}: listed in the manifest but missing")
+            if sha256_file(p) != digest:
+                raise CaptureError(f"{p}: sha256 does not match the manifest (file changed or corrupt)")
+    return Capture(root=root, frames=tuple(frames), meta=meta, missing=tuple(missing))
+
+
+def _resolve_image_path(root: Path, rel: str) -> str:
+    """Blender NeRF-synthetic lists paths without extension ("./train/r_0")."""
+    rel = os.path.normpath(rel)
+    if Path(rel).suffix == "" and not (root / rel).exists():
+        for ext in (".png", ".jpg", ".jpeg"):
+            if (root / (rel + ext)).exists():
+                return rel + ext
+    return rel
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    img = read_image(path)
+    return img.shape[1], img.shape[0]
+
+
+@dataclass
+class FrameData:
+    """A view to write: `image` RGB [H, W, 3] (uint8/uint16, or float in [0, 1]), optional `mask` bool [H, W]."""
+
+    name: str
+    image: np.ndarray
+    camera: Camera
+    camera_id: str
+    timestamp_ns: int | None = None
+    mask: np.ndarray | None = None
+
+
+def capture_document(frames: Sequence[CaptureFrame], meta: dict) -> dict:
+    """The transforms.json content for `frames` (nerfstudio keys + ours)."""
+    out = []
+    for f in frames:
+        cam = f.camera
+        d = np.zeros(5)
+        d[: min(5, cam.dist.size)] = cam.dist[:5]
+        entry = {
+            "file_path": f.file_path,
+            "transform_matrix": c2w_opencv_to_opengl(cam.c2w).tolist(),
+            "fl_x": cam.K[0, 0],
+            "fl_y": cam.K[1, 1],
+            "cx": cam.K[0, 2],
+            "cy": cam.K[1, 2],
+            "w": cam.width,
+            "h": cam.height,
+            "k1": d[0],
+            "k2": d[1],
+            "p1": d[2],
+            "p2": d[3],
+            "camera_id": f.camera_id,
+        }
+        if cam.dist.size > 4:
+            entry["dist"] = cam.dist.tolist()
+        if f.timestamp_ns is not None:
+            entry["timestamp_ns"] = int(f.timestamp_ns)
+        if f.mask_path:
+            entry["mask_path"] = f.mask_path
+        out.append(entry)
+    return {"camera_model": "OPENCV", "frames": out, "cadsplat": meta}
+
+
+def write_capture(
+    root: str | os.PathLike,
+    frames: Sequence[FrameData],
+    *,
+    backgrounds: dict[str, np.ndarray] | None = None,
+    meta: dict | None = None,
+) -> Capture:
+    """Write a new capture directory atomically and return it as read back (verified).
+
+    The capture is assembled in a hidden sibling directory, every file fsynced, then renamed into
+    place; an existing `root` is never overwritten.
+    """
+    root = Path(root)
+    if root.exists():
+        raise CaptureError(f"{root}: already exists; captures are never overwritten")
+    if not frames:
+        raise CaptureError(f"{root}: a capture needs at least one frame")
+    names = [f.name for f in frames]
+    if len(set(names)) != len(names):
+        raise CaptureError(f"{root}: frame names must be unique")
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".incoming", dir=root.parent))
+    try:
+        digests: dict[str, str] = {}
+        written: list[CaptureFrame] = []
+        (tmp / "images").mkdir()
+        for f in frames:
+            h, w = f.image.shape[:2]
+            if (w, h) != (f.camera.width, f.camera.height):
+                raise CaptureError(f"{f.name}: image is {w}x{h} but its camera says {f.camera.width}x{f.camera.height}")
+            rel = f"images/{f.name}.png"
+            digests[rel] = atomic_write_bytes(tmp / rel, encode_png(f.image))
+            mask_rel = None
+            if f.mask is not None:
+                (tmp / "masks").mkdir(exist_ok=True)
+                mask_rel = f"masks/{f.name}.png"
+                digests[mask_rel] = atomic_write_bytes(tmp / mask_rel, encode_png(np.asarray(f.mask, bool).astype(np.uint8) * 255))
+            written.append(CaptureFrame(rel, f.camera, f.camera_id, f.timestamp_ns, mask_rel))
+        meta = {"units": "m", **(meta or {})}
+        if backgrounds:
+            (tmp / "background").mkdir()
+            meta["background"] = {}
+            for cam_id, img in backgrounds.items():
+                rel = f"background/{cam_id}.png"
+                digests[rel] = atomic_write_bytes(tmp / rel, encode_png(img))
+                meta["background"][cam_id] = rel
+        meta["sha256"] = digests
+        atomic_write_json(tmp / TRANSFORMS, capture_document(written, meta))
+        for sub in ("images", "masks", "background"):
+            if (tmp / sub).exists():
+                fsync_dir(tmp / sub)
+        os.rename(tmp, root)
+        fsync_dir(root.parent)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return read_capture(root)
+
+
+def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
+    """Undistorted images [V, H, W, 3] float32, masks [V, H, W] bool (None without masks) and pinhole cameras."""
+    idx = list(range(len(capture))) if indices is None else list(indices)
+    for i in idx:
+        if not 0 <= i < len(capture):
+            raise CaptureError(f"{capture.root}: view {i} does not exist (capture has {len(capture)} views)")
+    images = np.stack([capture.image(i) for i in idx])
+    masks = [capture.mask(i) for i in idx]
+    mask_arr = None if any(m is None for m in masks) else np.stack(masks)
+    return images, mask_arr, [capture.camera(i) for i in idx]

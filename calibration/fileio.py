@@ -1,0 +1,92 @@
+"""Atomic, verified file writes: temp file + fsync + rename, and sha256 digests.
+
+Every file the appliance writes goes through here so a crash or a full disk never leaves a
+half-written file under its final name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """Make a rename or a new entry in `path` durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
+    """Write `data` to `path` atomically; returns its sha256. The parent directory must exist."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    fsync_dir(path.parent)
+    return sha256_bytes(data)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"cannot write {type(o).__name__} to JSON")
+
+
+def atomic_write_json(path: str | os.PathLike, obj) -> str:
+    """Write `obj` as indented JSON atomically; returns its sha256."""
+    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=False)
+    return atomic_write_bytes(path, (text + "\n").encode())
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """uint8/uint16 [H, W] or [H, W, 3|4] (RGB order) or float in [0, 1] (-> uint8) to lossless PNG bytes."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.dtype.kind == "f":
+        img = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = img[..., ::-1]
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., [2, 1, 0, 3]]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def atomic_write_png(path: str | os.PathLike, image: np.ndarray) -> str:
+    """Write an image (see `encode_png`) atomically; returns its sha256."""
+    return atomic_write_bytes(path, encode_png(image))

@@ -1,0 +1,1 @@
+"""The `cadsplat` CLI, kiosk, services and deployment files."""

@@ -1,0 +1,1 @@
+"""Twins in MuJoCo: deformed meshes, collision geometry, MJCF, Gaussians that follow rigid bodies, exploded views."""

@@ -1,0 +1,23 @@
+"""Shared test fixtures: where the shared real-data folder lives, and a skip when it is absent."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shared_data() -> Path:
+    """`../shared/data` beside the checkout (CI has it; a user's fresh clone does not)."""
+    return Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def require_shared(*parts: str) -> Path:
+    """Path under the shared data folder, or skip the test with the reason a user would accept."""
+    path = shared_data().joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"needs the shared real-data folder ({path} is absent in a fresh clone)")
+    return path
