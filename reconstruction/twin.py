@@ -1,0 +1,434 @@
+"""The twin format (SPEC "Twin"): a directory a simulator, a viewer and `cadsplat render` all read.
+
+```
+twin.json               model id, Sim(3) init + refined, per-camera camera-to-object poses, preset,
+                        choices (what the run chose and why), timings_s, losses, versions
+splats.ply              Inria 3DGS layout, deformed means, object frame (opens in 3DGS viewers)
+splats_canonical.npz    canonical means, face index, barycentrics, part label, part names
+deformation.pt          the deformation field's config + weights (torch state dict)
+mesh_cad.glb            the retrieved CAD mesh (object frame, metres), one node per part
+mesh_deformed.glb       the CAD vertices moved by the field, one node per part
+renders/*.png           RGBA renders of the training views
+```
+The whole directory is written beside its destination and renamed into place, so a twin is
+either complete or absent.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir
+from calibration.sim3 import Sim3
+
+TWIN_JSON = "twin.json"
+SPLATS_PLY = "splats.ply"
+CANONICAL_NPZ = "splats_canonical.npz"
+DEFORMATION_PT = "deformation.pt"
+MESH_CAD_GLB = "mesh_cad.glb"
+MESH_DEFORMED_GLB = "mesh_deformed.glb"
+FORMAT_VERSION = 1
+
+
+class TwinError(ValueError):
+    """A twin directory that cannot be read as it is; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class TwinCamera:
+    """One training view of a twin: its image, intrinsics and the refined camera-to-object pose (OpenCV)."""
+
+    file_path: str
+    camera_id: str
+    K: np.ndarray
+    width: int
+    height: int
+    c2w_object_opencv: np.ndarray
+
+    @property
+    def camera(self) -> Camera:
+        return Camera(self.K, self.width, self.height, np.zeros(0), self.c2w_object_opencv)
+
+    def to_dict(self) -> dict:
+        return {
+            "file_path": self.file_path,
+            "camera_id": self.camera_id,
+            "K": np.asarray(self.K).tolist(),
+            "width": int(self.width),
+            "height": int(self.height),
+            "c2w_object_opencv": np.asarray(self.c2w_object_opencv).tolist(),
+        }
+
+    @staticmethod
+    def from_dict(d: dict) -> "TwinCamera":
+        return TwinCamera(
+            d["file_path"], str(d.get("camera_id", Path(d["file_path"]).stem)), np.array(d["K"], np.float64),
+            int(d["width"]), int(d["height"]), np.array(d["c2w_object_opencv"], np.float64),
+        )
+
+
+@dataclass
+class MeshParts:
+    """A triangle mesh split into named parts: `vertices` [V, 3], `faces` [F, 3], `face_part` [F] int."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_part: np.ndarray
+    part_names: list[str]
+
+
+@dataclass
+class Twin:
+    """A reconstructed, CAD-registered twin. Splat arrays are float32 in the object frame (metres).
+
+    means [N, 3] (deformed), quats [N, 4] wxyz, log_scales [N, 3], opacity_logits [N], sh [N, K, 3]
+    (K = (sh_degree + 1)^2, DC in the 3DGS convention: colour = 0.5 + C0 * sh[:, 0]),
+    means_canonical [N, 3], face_index [N] int, barycentrics [N, 3], part_label [N] int.
+    """
+
+    model_id: str
+    sim3_rig_to_object_init: Sim3
+    sim3_rig_to_object: Sim3
+    cameras: list[TwinCamera]
+    preset: str
+    choices: dict
+    timings_s: dict
+    losses: dict
+    means: np.ndarray
+    quats: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+    sh_degree: int
+    means_canonical: np.ndarray
+    face_index: np.ndarray
+    barycentrics: np.ndarray
+    part_label: np.ndarray
+    part_names: list[str]
+    pose_mode: str = "global"
+    versions: dict = field(default_factory=dict)
+    root: Path | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.means)
+        k = (int(self.sh_degree) + 1) ** 2
+        shapes = {
+            "means": (self.means, (n, 3)), "quats": (self.quats, (n, 4)), "log_scales": (self.log_scales, (n, 3)),
+            "opacity_logits": (self.opacity_logits, (n,)), "sh": (self.sh, (n, k, 3)),
+            "means_canonical": (self.means_canonical, (n, 3)), "face_index": (self.face_index, (n,)),
+            "barycentrics": (self.barycentrics, (n, 3)), "part_label": (self.part_label, (n,)),
+        }
+        for name, (arr, shape) in shapes.items():
+            if np.shape(arr) != shape:
+                raise TwinError(f"twin {name} has shape {np.shape(arr)}, expected {shape}")
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "means_canonical", "barycentrics"):
+            arr = np.asarray(getattr(self, name), np.float32)
+            if not np.all(np.isfinite(arr)):
+                raise TwinError(f"twin {name} contains NaN or inf")
+            setattr(self, name, arr)
+        for name in ("face_index", "part_label"):
+            setattr(self, name, np.asarray(getattr(self, name), np.int64))
+        if n and (self.part_label.min() < 0 or self.part_label.max() >= len(self.part_names)):
+            raise TwinError("twin part_label indexes outside part_names")
+
+    @property
+    def num_splats(self) -> int:
+        return len(self.means)
+
+    @property
+    def mesh_deformed_path(self) -> Path | None:
+        return None if self.root is None else self.root / MESH_DEFORMED_GLB
+
+    @property
+    def mesh_cad_path(self) -> Path | None:
+        return None if self.root is None else self.root / MESH_CAD_GLB
+
+    @property
+    def deformation_path(self) -> Path | None:
+        return None if self.root is None else self.root / DEFORMATION_PT
+
+    def load_mesh_cad(self) -> MeshParts:
+        return read_parts_glb(self._need(MESH_CAD_GLB))
+
+    def load_mesh_deformed(self) -> MeshParts:
+        return read_parts_glb(self._need(MESH_DEFORMED_GLB))
+
+    def _need(self, name: str) -> Path:
+        if self.root is None or not (self.root / name).exists():
+            raise TwinError(f"twin has no {name} (it was never saved, or the file is missing)")
+        return self.root / name
+
+
+# ---------------------------------------------------------------------------------------- PLY
+
+def ply_columns(sh_degree: int) -> list[str]:
+    """Column names of the Inria 3DGS PLY for `sh_degree`, in file order."""
+    k = (sh_degree + 1) ** 2
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+
+
+def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=None) -> bytes:
+    """Binary little-endian PLY in the Inria 3DGS layout.
+
+    f_rest is channel-major as Inria writes it: all R coefficients of degrees >= 1, then G, then B.
+    """
+    from plyfile import PlyData, PlyElement
+
+    n, k, _ = sh.shape
+    degree = int(round(np.sqrt(k))) - 1
+    if (degree + 1) ** 2 != k:
+        raise ValueError(f"SH coefficient count {k} is not a square")
+    normals = np.zeros((n, 3), np.float32) if normals is None else normals
+    rest = np.asarray(sh[:, 1:, :], np.float32).transpose(0, 2, 1).reshape(n, -1)
+    cols = np.concatenate(
+        [means, normals, sh[:, 0, :], rest, np.asarray(opacity_logits).reshape(n, 1), log_scales, quats], 1
+    ).astype(np.float32)
+    names = ply_columns(degree)
+    rec = np.empty(n, dtype=[(c, "f4") for c in names])
+    for i, c in enumerate(names):
+        rec[c] = cols[:, i]
+    buf = io.BytesIO()
+    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<").write(buf)
+    return buf.getvalue()
+
+
+def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """An Inria-layout 3DGS PLY -> means, normals, quats, log_scales, opacity_logits, sh [N, K, 3], sh_degree."""
+    from plyfile import PlyData
+
+    try:
+        v = PlyData.read(str(path))["vertex"]
+    except (OSError, ValueError, KeyError) as e:
+        raise TwinError(f"{path}: not a readable 3DGS PLY ({e})") from None
+    names = [p.name for p in v.properties]
+    n_rest = sum(1 for c in names if c.startswith("f_rest_"))
+    k = 1 + n_rest // 3
+    degree = int(round(np.sqrt(k))) - 1
+    if (degree + 1) ** 2 != k or 3 * (k - 1) != n_rest:
+        raise TwinError(f"{path}: {n_rest} f_rest columns do not form a whole SH degree")
+    missing = [c for c in ply_columns(degree) if c not in names]
+    if missing:
+        raise TwinError(f"{path}: missing 3DGS columns {', '.join(missing[:4])}")
+
+    def cols(*cs):
+        return np.stack([np.asarray(v[c], np.float32) for c in cs], 1)
+
+    n = len(v["x"])
+    sh = np.zeros((n, k, 3), np.float32)
+    sh[:, 0] = cols("f_dc_0", "f_dc_1", "f_dc_2")
+    if k > 1:
+        sh[:, 1:] = cols(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
+    return {
+        "means": cols("x", "y", "z"),
+        "normals": cols("nx", "ny", "nz"),
+        "sh": sh,
+        "sh_degree": degree,
+        "opacity_logits": np.asarray(v["opacity"], np.float32),
+        "log_scales": cols("scale_0", "scale_1", "scale_2"),
+        "quats": cols("rot_0", "rot_1", "rot_2", "rot_3"),
+    }
+
+
+# ---------------------------------------------------------------------------------------- GLB
+
+def parts_glb_bytes(parts: MeshParts) -> bytes:
+    """GLB with one node per part, named after the part (empty parts are left out)."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for p, name in enumerate(parts.part_names):
+        sel = np.flatnonzero(parts.face_part == p)
+        if sel.size == 0:
+            continue
+        sub = trimesh.Trimesh(parts.vertices, parts.faces[sel], process=False)
+        sub.remove_unreferenced_vertices()
+        scene.add_geometry(sub, node_name=name, geom_name=name)
+    return scene.export(file_type="glb")
+
+
+def read_parts_glb(path: str | os.PathLike) -> MeshParts:
+    """A GLB written by `parts_glb_bytes` (or any GLB: one part per node) -> MeshParts."""
+    import trimesh
+
+    try:
+        scene = trimesh.load(str(path), force="scene", process=False)
+    except Exception as e:  # trimesh raises many types on bad files
+        raise TwinError(f"{path}: not a readable GLB ({e})") from None
+    verts, faces, labels, names = [], [], [], []
+    offset = 0
+    for node in scene.graph.nodes_geometry:
+        transform, geom_name = scene.graph[node]
+        mesh = scene.geometry[geom_name]
+        v = trimesh.transform_points(mesh.vertices, transform)
+        verts.append(v)
+        faces.append(np.asarray(mesh.faces) + offset)
+        labels.append(np.full(len(mesh.faces), len(names)))
+        names.append(str(node))
+        offset += len(v)
+    if not names:
+        raise TwinError(f"{path}: GLB holds no triangle meshes")
+    return MeshParts(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels), names)
+
+
+# ---------------------------------------------------------------------------------------- twin dir
+
+def _twin_document(twin: Twin) -> dict:
+    return {
+        "format": "cadsplat-twin",
+        "format_version": FORMAT_VERSION,
+        "model_id": twin.model_id,
+        "sim3_rig_to_object_init": twin.sim3_rig_to_object_init.to_dict(),
+        "sim3_rig_to_object": twin.sim3_rig_to_object.to_dict(),
+        "pose_mode": twin.pose_mode,
+        "cameras": [c.to_dict() for c in twin.cameras],
+        "num_splats": twin.num_splats,
+        "sh_degree": int(twin.sh_degree),
+        "part_names": list(twin.part_names),
+        "preset": twin.preset,
+        "choices": twin.choices,
+        "timings_s": twin.timings_s,
+        "losses": twin.losses,
+        "versions": twin.versions,
+    }
+
+
+def splat_normals(quats: np.ndarray) -> np.ndarray:
+    """Local z axis of each splat (the disk normal) [N, 3] from quats [N, 4] wxyz."""
+    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
+    w, x, y, z = q.T
+    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1).astype(np.float32)
+
+
+def save_twin(
+    twin: Twin,
+    out_dir: str | os.PathLike,
+    *,
+    deformation_state: dict | None = None,
+    mesh_cad: MeshParts | None = None,
+    mesh_deformed: MeshParts | None = None,
+    renders: dict[str, np.ndarray] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write `twin` as a directory, atomically (built beside `out_dir`, then renamed into place).
+
+    deformation_state: what `DeformationField.export_state()` returns (saved with torch.save).
+    renders: image name -> RGBA float [H, W, 4]. An existing `out_dir` is replaced only with `overwrite`.
+    Returns `out_dir`; `twin.root` points there afterwards.
+    """
+    out = Path(out_dir)
+    if out.exists() and not overwrite:
+        raise TwinError(f"{out}: already exists; pass overwrite to replace the twin")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
+    try:
+        atomic_write_bytes(
+            tmp / SPLATS_PLY,
+            splats_to_ply_bytes(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, splat_normals(twin.quats)),
+        )
+        buf = io.BytesIO()
+        np.savez_compressed(
+            buf, means_canonical=twin.means_canonical, face_index=twin.face_index, barycentrics=twin.barycentrics,
+            part_label=twin.part_label, part_names=np.array(twin.part_names, dtype=str),
+        )
+        atomic_write_bytes(tmp / CANONICAL_NPZ, buf.getvalue())
+        if deformation_state is not None:
+            import torch
+
+            buf = io.BytesIO()
+            torch.save(deformation_state, buf)
+            atomic_write_bytes(tmp / DEFORMATION_PT, buf.getvalue())
+        if mesh_cad is not None:
+            atomic_write_bytes(tmp / MESH_CAD_GLB, parts_glb_bytes(mesh_cad))
+        if mesh_deformed is not None:
+            atomic_write_bytes(tmp / MESH_DEFORMED_GLB, parts_glb_bytes(mesh_deformed))
+        if renders:
+            (tmp / "renders").mkdir()
+            for name, rgba in renders.items():
+                atomic_write_bytes(tmp / "renders" / f"{Path(name).stem}.png", encode_png(rgba))
+            fsync_dir(tmp / "renders")
+        atomic_write_json(tmp / TWIN_JSON, _twin_document(twin))
+        fsync_dir(tmp)
+        old = None
+        if out.exists():
+            old = out.parent / f".{out.name}.replaced"
+            shutil.rmtree(old, ignore_errors=True)
+            os.rename(out, old)
+        os.rename(tmp, out)
+        fsync_dir(out.parent)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    twin.root = out
+    return out
+
+
+def load_twin(path: str | os.PathLike) -> Twin:
+    """Read a twin directory written by `save_twin`."""
+    root = Path(path)
+    doc_path = root / TWIN_JSON
+    if not doc_path.exists():
+        raise TwinError(f"{root}: no {TWIN_JSON} here; is this a twin directory?")
+    try:
+        doc = json.loads(doc_path.read_text())
+    except json.JSONDecodeError as e:
+        raise TwinError(f"{doc_path}: invalid JSON ({e.msg} at line {e.lineno})") from None
+    if doc.get("format") != "cadsplat-twin":
+        raise TwinError(f"{doc_path}: not a cadsplat twin document")
+    for name in (SPLATS_PLY, CANONICAL_NPZ):
+        if not (root / name).exists():
+            raise TwinError(f"{root / name}: file is missing")
+    ply = read_splats_ply(root / SPLATS_PLY)
+    with np.load(root / CANONICAL_NPZ) as z:
+        canon = {k: z[k] for k in z.files}
+    return Twin(
+        model_id=doc["model_id"],
+        sim3_rig_to_object_init=Sim3.from_dict(doc["sim3_rig_to_object_init"]),
+        sim3_rig_to_object=Sim3.from_dict(doc["sim3_rig_to_object"]),
+        cameras=[TwinCamera.from_dict(c) for c in doc["cameras"]],
+        preset=doc.get("preset", ""),
+        choices=doc.get("choices", {}),
+        timings_s=doc.get("timings_s", {}),
+        losses=doc.get("losses", {}),
+        means=ply["means"],
+        quats=ply["quats"],
+        log_scales=ply["log_scales"],
+        opacity_logits=ply["opacity_logits"],
+        sh=ply["sh"],
+        sh_degree=ply["sh_degree"],
+        means_canonical=canon["means_canonical"],
+        face_index=canon["face_index"],
+        barycentrics=canon["barycentrics"],
+        part_label=canon["part_label"],
+        part_names=[str(s) for s in canon["part_names"]],
+        pose_mode=doc.get("pose_mode", "global"),
+        versions=doc.get("versions", {}),
+        root=root,
+    )
+
+
+def software_versions() -> dict:
+    """Versions recorded in twin.json so a twin can be traced to the code that made it."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"format": FORMAT_VERSION}
+    for pkg in ("cadsplat", "torch", "numpy"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out

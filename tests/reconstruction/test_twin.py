@@ -1,0 +1,116 @@
+"""The twin format: save/load round trip, the Inria PLY columns read back with plyfile, GLB parts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from calibration.camera import look_at_c2w
+from calibration.sim3 import Sim3
+from calibration.so3 import axis_angle_to_matrix
+from reconstruction.twin import (
+    MeshParts,
+    Twin,
+    TwinCamera,
+    TwinError,
+    load_twin,
+    ply_columns,
+    read_parts_glb,
+    save_twin,
+    splat_normals,
+)
+
+
+def make_twin(n: int = 50, degree: int = 2, seed: int = 0) -> Twin:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    cam = TwinCamera("images/a.png", "cam0", np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]), 64, 48,
+                     look_at_c2w(np.array([0.5, 0.0, 0.2]), np.zeros(3)))
+    return Twin(
+        model_id="m1",
+        sim3_rig_to_object_init=Sim3(2.0, axis_angle_to_matrix(np.array([0.1, 0.2, 0.3])), np.array([1.0, 2, 3])),
+        sim3_rig_to_object=Sim3(2.1, np.eye(3), np.array([0.5, 0, 0])),
+        cameras=[cam],
+        preset="cpu",
+        choices={"num_splats": {"value": n, "why": "test"}},
+        timings_s={"stage1": 1.5},
+        losses={"mask": 0.01},
+        means=rng.normal(size=(n, 3)),
+        quats=q,
+        log_scales=rng.normal(size=(n, 3)) - 5,
+        opacity_logits=rng.normal(size=n),
+        sh=rng.normal(size=(n, k, 3)),
+        sh_degree=degree,
+        means_canonical=rng.normal(size=(n, 3)),
+        face_index=rng.integers(0, 12, n),
+        barycentrics=rng.dirichlet([1, 1, 1], n),
+        part_label=rng.integers(0, 2, n),
+        part_names=["body", "lid"],
+    )
+
+
+def test_round_trip_and_every_ply_column(tmp_path):
+    twin = make_twin()
+    mesh = MeshParts(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]),
+                     np.array([0, 1]), ["body", "lid"])
+    out = save_twin(twin, tmp_path / "twin", deformation_state={"w": np.ones(3)}, mesh_cad=mesh, mesh_deformed=mesh,
+                    renders={"a.png": np.ones((4, 5, 4), np.float32)})
+    back = load_twin(out)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "means_canonical", "barycentrics"):
+        np.testing.assert_allclose(getattr(back, name), getattr(twin, name), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(back.face_index, twin.face_index)
+    np.testing.assert_array_equal(back.part_label, twin.part_label)
+    assert back.part_names == ["body", "lid"] and back.sh_degree == 2 and back.model_id == "m1"
+    np.testing.assert_allclose(back.sim3_rig_to_object_init.matrix(), twin.sim3_rig_to_object_init.matrix(), atol=1e-12)
+    np.testing.assert_allclose(back.cameras[0].c2w_object_opencv, twin.cameras[0].c2w_object_opencv)
+    assert back.cameras[0].camera.width == 64
+    assert (out / "renders" / "a.png").exists() and (out / "deformation.pt").exists()
+
+    # Every column, read with plyfile directly, in the Inria order and meaning.
+    v = PlyData.read(str(out / "splats.ply"))["vertex"]
+    names = [p.name for p in v.properties]
+    assert names == ply_columns(2)
+    assert len(names) == 3 + 3 + 3 + 24 + 1 + 3 + 4
+    assert all(p.val_dtype in ("f4", "float32") for p in v.properties)
+    n = twin.num_splats
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), twin.means, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v["nx"], v["ny"], v["nz"]], 1), splat_normals(twin.quats), atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"f_dc_{c}"] for c in range(3)], 1), twin.sh[:, 0], atol=1e-6)
+    # Channel-major f_rest: index c * (K - 1) + (j - 1) holds coefficient j of channel c.
+    for c in range(3):
+        for j in range(1, 9):
+            np.testing.assert_allclose(v[f"f_rest_{c * 8 + j - 1}"], twin.sh[:, j, c], atol=1e-6)
+    np.testing.assert_allclose(v["opacity"], twin.opacity_logits, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"scale_{i}"] for i in range(3)], 1), twin.log_scales, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), twin.quats, atol=1e-6)
+    assert len(v["x"]) == n
+
+    parts = read_parts_glb(out / "mesh_deformed.glb")
+    assert sorted(parts.part_names) == ["body", "lid"]
+    assert len(parts.faces) == 2
+    assert back.load_mesh_cad().faces.shape == (2, 3)
+
+
+def test_existing_twin_is_kept_unless_overwrite(tmp_path):
+    twin = make_twin()
+    save_twin(twin, tmp_path / "t")
+    with pytest.raises(TwinError, match="already exists"):
+        save_twin(make_twin(seed=1), tmp_path / "t")
+    np.testing.assert_allclose(load_twin(tmp_path / "t").means, twin.means, atol=1e-6)
+    other = make_twin(seed=1)
+    save_twin(other, tmp_path / "t", overwrite=True)
+    np.testing.assert_allclose(load_twin(tmp_path / "t").means, other.means, atol=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]
+
+
+def test_bad_inputs_are_one_sentence(tmp_path):
+    with pytest.raises(TwinError, match="no twin.json"):
+        load_twin(tmp_path)
+    t = make_twin()
+    with pytest.raises(TwinError, match="NaN"):
+        Twin(**{**t.__dict__, "means": np.full((50, 3), np.nan)})
+    with pytest.raises(TwinError, match="shape"):
+        Twin(**{**t.__dict__, "sh": np.zeros((50, 4, 3))})
