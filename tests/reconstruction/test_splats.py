@@ -1,0 +1,158 @@
+"""Splats on the CAD surface: area-uniform sampling, normal-aligned quats, disk scales, hard meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.stats import chisquare
+
+from calibration.camera import look_at_c2w
+from calibration.so3 import quat_to_matrix, rotation_between
+from reconstruction.splats import (
+    DISK_FLATTENING,
+    face_areas_normals,
+    init_splats,
+    knn_indices,
+    normals_to_quats,
+    project_colors,
+    rgb_to_sh_dc,
+    sample_surface,
+)
+from tests.conftest import require_shared
+
+
+def box():
+    m = trimesh.creation.box(extents=[0.1, 0.2, 0.4])
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def test_sampling_is_area_uniform_chi_square():
+    # Faces of very different areas; the counts per face must follow the area distribution.
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(40, 3))
+    f = np.array([rng.choice(40, 3, replace=False) for _ in range(30)])
+    areas, _ = face_areas_normals(v, f)
+    _, fi, bary = sample_surface(v, f, 200_000, np.random.default_rng(0))
+    counts = np.bincount(fi, minlength=len(f))
+    stat, p = chisquare(counts, areas / areas.sum() * len(fi))
+    assert p > 1e-3, (stat, p)
+    assert np.all(bary >= -1e-12) and np.allclose(bary.sum(1), 1)
+    # Uniform inside a triangle too: each barycentric coordinate has mean 1/3, P(b0 < 1/2) = 3/4.
+    np.testing.assert_allclose(bary.mean(0), 1 / 3, atol=0.005)
+    assert abs((bary[:, 0] < 0.5).mean() - 0.75) < 0.005
+
+
+def test_points_lie_on_their_face():
+    v, f = box()
+    pts, fi, bary = sample_surface(v, f, 500, np.random.default_rng(0))
+    np.testing.assert_allclose(pts, np.einsum("nk,nkd->nd", bary, v[f[fi]]), atol=1e-12)
+
+
+def test_quats_align_local_z_to_normals_including_minus_z():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(1000, 3))
+    n = np.concatenate([n, [[0, 0, -1.0], [0, 0, 1.0], [1e-9, 0, -1.0], [0, 1e-13, -1]]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    q = normals_to_quats(n)
+    assert np.all(np.isfinite(q))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1, atol=1e-12)
+    r = quat_to_matrix(q)
+    np.testing.assert_allclose(r[:, :, 2], n, atol=1e-7)
+    # Shortest arc: the same rotation as calibration.so3.rotation_between where that is unique.
+    np.testing.assert_allclose(r[:1000], rotation_between(np.tile([0, 0, 1.0], (1000, 1)), n[:1000]), atol=1e-9)
+
+
+def test_disk_scales_from_three_neighbours():
+    # A regular grid with spacing h: the 3 nearest neighbours are at distance h (4 such), so scale = h.
+    h = 0.01
+    g = np.stack(np.meshgrid(np.arange(20) * h, np.arange(20) * h), -1).reshape(-1, 2)
+    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
+    from reconstruction.splats import disk_log_scales
+
+    s = disk_log_scales(v)
+    corner = np.isin(g[:, 0], [0, 19 * h]) & np.isin(g[:, 1], [0, 19 * h])  # only 2 neighbours at h
+    np.testing.assert_allclose(np.exp(s[~corner, 0]), h, rtol=1e-9)
+    np.testing.assert_allclose(np.exp(s[~corner, 2]), h * DISK_FLATTENING, rtol=1e-9)
+    np.testing.assert_allclose(np.exp(s[corner, 0]), h * (2 + np.sqrt(2)) / 3, rtol=1e-9)
+    # Coincident points never give -inf.
+    assert np.all(np.isfinite(disk_log_scales(np.zeros((10, 3)))))
+
+
+def test_init_box_with_12_faces_and_parts():
+    v, f = box()
+    assert len(f) == 12
+    part = (np.arange(12) >= 6).astype(int)
+    s = init_splats(v, f, 2000, sh_degree=2, face_part=part, seed=0)
+    assert s.means.dtype == np.float32 and s.sh.shape == (2000, 9, 3) and s.sh_degree == 2
+    np.testing.assert_array_equal(s.part_label, part[s.face_index])
+    np.testing.assert_allclose(s.opacity_logits, 0)  # opacity 0.5
+    np.testing.assert_allclose(s.sh, 0)  # neutral grey without images
+    # Box normals point outwards from the centre.
+    centre = v.mean(0)
+    assert np.all(np.einsum("nd,nd->n", s.normals, s.means - centre) > 0)
+    for arr in (s.means, s.quats, s.log_scales, s.sh):
+        assert np.all(np.isfinite(arr))
+
+
+def test_degenerate_and_zero_area_faces_are_never_sampled():
+    v, f = box()
+    v = np.concatenate([v, [[0, 0, 0], [1, 1, 1], [2, 2, 2]]])
+    bad = np.array([[0, 0, 1], [8, 9, 10], [3, 3, 3]])  # repeated vertex, collinear, a point
+    f2 = np.concatenate([bad, f])
+    areas, normals = face_areas_normals(v, f2)
+    np.testing.assert_array_equal(areas[:3], 0)
+    assert np.all(np.isfinite(normals))
+    s = init_splats(v, f2, 3000, sh_degree=1, seed=0)
+    assert s.face_index.min() >= 3
+    with pytest.raises(ValueError, match="zero surface area"):
+        init_splats(v, bad, 10, sh_degree=0)
+
+
+def test_millimetre_mesh_scales_with_units():
+    v, f = box()
+    s_m = init_splats(v, f, 3000, sh_degree=0, seed=3)
+    s_mm = init_splats(v * 1000, f, 3000, sh_degree=0, seed=3)
+    np.testing.assert_allclose(s_mm.means, s_m.means * 1000, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(s_mm.log_scales - s_m.log_scales, np.log(1000), atol=1e-4)
+    np.testing.assert_allclose(s_mm.quats, s_m.quats, atol=1e-6)
+
+
+def test_thin_object_scissors():
+    path = require_shared("objects", "ycb", "037_scissors", "textured.obj")
+    mesh = trimesh.load(path, force="mesh", process=False)
+    s = init_splats(mesh.vertices, mesh.faces, 20_000, sh_degree=1, seed=0)
+    for arr in (s.means, s.quats, s.log_scales, s.normals):
+        assert np.all(np.isfinite(arr))
+    # Splats are disks far smaller than the object (a few millimetres on a ~0.2 m object).
+    assert np.exp(s.log_scales[:, 0]).max() < 0.01
+    r = quat_to_matrix(s.quats)
+    np.testing.assert_allclose(r[:, :, 2], s.normals, atol=1e-5)
+
+
+def test_project_colors_picks_visible_side():
+    # A two-sided plate seen from +z: top splats get the image colour, the hidden bottom stays grey.
+    n = 400
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.05, 0.05, size=(n, 2))
+    top = np.concatenate([xy, np.full((n, 1), 0.001)], 1)
+    bottom = np.concatenate([xy, np.full((n, 1), -0.001)], 1)
+    means = np.concatenate([top, bottom])
+    normals = np.concatenate([np.tile([0, 0, 1.0], (n, 1)), np.tile([0, 0, -1.0], (n, 1))])
+    c2w = look_at_c2w(np.array([0, 0, 0.5]), np.zeros(3), up=np.array([0, 1.0, 0]))
+    viewmat = np.linalg.inv(c2w)
+    K = np.array([[200.0, 0, 32], [0, 200, 32], [0, 0, 1]])
+    img = np.zeros((1, 64, 64, 3), np.float32)
+    img[..., 0] = 1.0
+    rgb = project_colors(means, normals, img, np.ones((1, 64, 64), bool), viewmat[None], K[None])
+    np.testing.assert_allclose(rgb[:n], [[1, 0, 0]] * n)
+    np.testing.assert_allclose(rgb[n:], 0.5)
+    np.testing.assert_allclose(rgb_to_sh_dc(np.array([0.5])), 0)
+
+
+def test_knn_excludes_self():
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    idx = knn_indices(pts, 20)
+    assert idx.shape == (100, 20)
+    assert not np.any(idx == np.arange(100)[:, None])
+    assert knn_indices(pts[:5], 20).shape == (5, 4)
