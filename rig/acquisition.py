@@ -1,0 +1,250 @@
+"""Synchronized acquisition: trigger -> a frame from every camera -> validated -> committed or quarantined.
+
+Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
+capture in the store), `quarantined` (kept with its reason), `refused` (disk below its threshold:
+no capture is taken), `late` (the trigger waited longer than the part stays in view), `dropped`
+(a duplicate or too-soon trigger) or `failed` (not even a quarantine entry could be written).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from calibration.capture import FrameData
+from rig.camera import CameraDriver, CameraError, CameraSettings, Frame
+from rig.store import CaptureStore, StoreError, is_enospc
+from rig.triggers import TriggerEvent, TriggerFilter, TriggerSource
+
+OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed")
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """What makes a capture valid. Frames of one capture must lie within `sync_tolerance_ns` of
+    each other; a frame is black below `black_level` mean intensity and saturated above
+    `saturated_fraction` clipped pixels."""
+
+    sync_tolerance_ns: int = 5_000_000
+    black_level: float = 0.02
+    saturated_fraction: float = 0.5
+    grab_timeout_s: float = 2.0
+    max_trigger_age_ns: int = 2_000_000_000
+
+
+@dataclass(frozen=True)
+class Outcome:
+    status: str
+    trigger: TriggerEvent
+    capture_id: str = ""
+    reason: str = ""
+    latency_ns: int = 0
+
+
+def brightness(image: np.ndarray) -> tuple[float, float]:
+    """Mean intensity in [0, 1] and fraction of clipped pixels (any channel at 255) of uint8 [H, W, 3].
+
+    A 1/16 subsample: validation runs on every frame and this is plenty to tell black from lit.
+    """
+    sub = np.asarray(image)[::4, ::4]
+    clipped = sub >= 255
+    return float(sub.mean()) / 255.0, float(clipped.any(axis=-1).mean() if sub.ndim == 3 else clipped.mean())
+
+
+def validate_frames(frames: dict[str, Frame], camera_ids: Sequence[str], sizes: dict[str, tuple[int, int]], th: Thresholds) -> list[str]:
+    """Problems that make a capture invalid (empty list: valid). `sizes`: camera_id -> (width, height)."""
+    problems = []
+    missing = [c for c in camera_ids if c not in frames]
+    if missing:
+        problems.append(f"no frame from {', '.join(missing)}")
+    for cid, f in frames.items():
+        img = np.asarray(f.image)
+        w, h = sizes[cid]
+        if img.dtype != np.uint8 or img.shape != (h, w, 3):
+            problems.append(f"{cid} frame is {img.dtype} {img.shape}, expected uint8 ({h}, {w}, 3)")
+            continue
+        mean, clipped = brightness(img)
+        if mean < th.black_level:
+            problems.append(f"{cid} frame is black (mean {mean:.3f})")
+        elif clipped > th.saturated_fraction:
+            problems.append(f"{cid} frame is saturated ({100 * clipped:.0f}% clipped)")
+    if len(frames) > 1:
+        ts = [f.timestamp_ns for f in frames.values()]
+        spread = max(ts) - min(ts)
+        if spread > th.sync_tolerance_ns:
+            problems.append(f"frames are {spread / 1e6:.2f} ms apart, beyond the {th.sync_tolerance_ns / 1e6:.2f} ms sync tolerance")
+    return problems
+
+
+def agree_photometry(cameras: Sequence[CameraDriver], settings: CameraSettings) -> CameraSettings:
+    """Lock every camera to one exposure, gain and white balance so all views agree photometrically.
+
+    Fixed values are applied as they are; otherwise each camera converges once and the median of
+    what they chose is locked on all of them.
+    """
+    if settings.locked:
+        applied = [cam.configure(settings) for cam in cameras]
+        return applied[0]
+    chosen = [cam.configure(settings) for cam in cameras]
+    med = lambda xs: int(np.median([x for x in xs if x is not None])) if any(x is not None for x in xs) else None  # noqa: E731
+    locked = replace(
+        settings,
+        exposure_us=med([s.exposure_us for s in chosen]),
+        iso=med([s.iso for s in chosen]),
+        white_balance_k=med([s.white_balance_k for s in chosen]),
+    )
+    for cam in cameras:
+        cam.configure(locked)
+    return locked
+
+
+@dataclass
+class Acquisition:
+    """Turns triggers into stored captures. `cameras` must be open (see `open_cameras`)."""
+
+    cameras: Sequence[CameraDriver]
+    store: CaptureStore
+    rig_id: str = "rig"
+    calibration_id: str = "uncalibrated"
+    thresholds: Thresholds = field(default_factory=Thresholds)
+    trigger_filter: TriggerFilter = field(default_factory=TriggerFilter)
+    settings: CameraSettings | None = None
+    clock: Callable[[], int] = time.monotonic_ns
+    counts: dict = field(default_factory=lambda: dict.fromkeys(OUTCOMES, 0))
+
+    def __post_init__(self) -> None:
+        ids = [c.camera_id for c in self.cameras]
+        if len(set(ids)) != len(ids) or not ids:
+            raise ValueError(f"camera ids must be unique and at least one camera is needed, got {ids}")
+        self._pool = ThreadPoolExecutor(max_workers=len(self.cameras), thread_name_prefix="grab")
+        self._next_seq = 0
+
+    # ---- one trigger ---------------------------------------------------------------------------
+
+    def handle(self, event: TriggerEvent) -> Outcome:
+        """Filter one trigger and, if it passes, capture it. Always returns (and counts) one outcome."""
+        verdict = self.trigger_filter.check(event)
+        if not verdict.accept:
+            return self._count(Outcome("dropped", event, reason=verdict.reason))
+        age = self.clock() - event.timestamp_ns
+        if age > self.thresholds.max_trigger_age_ns:
+            return self._count(Outcome("late", event, reason=f"trigger waited {age / 1e9:.2f} s, longer than the part stays in view"))
+        if not self.store.disk_ok():
+            return self._count(Outcome("refused", event, reason=self.store.alarm))
+        return self._count(self.capture(event))
+
+    def capture(self, event: TriggerEvent) -> Outcome:
+        seq = event.seq if event.seq is not None else self._next_seq
+        self._next_seq = seq + 1
+        frames, errors = self._grab_all(seq)
+        capture_id = self.store.reserve_id()
+        cams = {c.camera_id: c for c in self.cameras}
+        data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
+        spread = int(np.ptp([f.timestamp_ns for f in frames.values()])) if frames else 0
+        meta = {
+            "rig_id": self.rig_id,
+            "calibration_id": self.calibration_id,
+            "trigger": event.to_dict(),
+            "sync_spread_ns": spread,
+            "camera_settings": {cid: f.settings for cid, f in sorted(frames.items())},
+        }
+        sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
+        problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
+        problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
+        if problems:
+            return self._quarantine(event, capture_id, "; ".join(problems), data, meta)
+        try:
+            self.store.commit(capture_id, data, meta)
+        except (OSError, ValueError, StoreError) as e:
+            what = "disk full while writing" if is_enospc(e) else "write failed"
+            return self._quarantine(event, capture_id, f"{what}: {e}", data, meta)
+        return Outcome("committed", event, capture_id, latency_ns=self.clock() - event.timestamp_ns)
+
+    def _quarantine(self, event: TriggerEvent, capture_id: str, reason: str, data: list[FrameData], meta: dict) -> Outcome:
+        try:
+            self.store.quarantine(capture_id, reason, data, meta, {"trigger": event.to_dict()})
+        except StoreError as e:
+            return Outcome("failed", event, capture_id, f"{reason}; and {e}")
+        return Outcome("quarantined", event, capture_id, reason, self.clock() - event.timestamp_ns)
+
+    def _grab_all(self, seq: int) -> tuple[dict[str, Frame], dict[str, str]]:
+        """Arm every camera, then grab from all at once. A camera that failed before is reopened first."""
+        errors: dict[str, str] = {}
+        for cam in self.cameras:
+            try:
+                if not cam.health().ok:
+                    self._reopen(cam)
+                cam.arm(seq)
+            except CameraError as e:
+                errors[cam.camera_id] = str(e)
+        live = [c for c in self.cameras if c.camera_id not in errors]
+        futures = {c.camera_id: self._pool.submit(c.grab, self.thresholds.grab_timeout_s) for c in live}
+        frames = {}
+        for cid, fut in futures.items():
+            try:
+                frames[cid] = fut.result()
+            except CameraError as e:
+                errors[cid] = str(e)
+            except Exception as e:  # noqa: BLE001 - a driver bug must quarantine the capture, not kill the rig
+                errors[cid] = f"driver error: {type(e).__name__}: {e}"
+        return frames, errors
+
+    def _reopen(self, cam: CameraDriver) -> None:
+        try:
+            cam.close()
+        except CameraError:
+            pass
+        cam.open()
+        cam.configure(self.settings or CameraSettings(cam.camera.width, cam.camera.height))
+
+    def _count(self, out: Outcome) -> Outcome:
+        self.counts[out.status] += 1
+        return out
+
+    # ---- the loop ------------------------------------------------------------------------------
+
+    @property
+    def taken(self) -> int:
+        """Captures taken: committed or quarantined."""
+        return self.counts["committed"] + self.counts["quarantined"]
+
+    def run(
+        self,
+        source: TriggerSource,
+        stop: threading.Event,
+        *,
+        max_captures: int | None = None,
+        on_outcome: Callable[[Outcome], None] | None = None,
+        on_idle: Callable[[], None] | None = None,
+        poll_s: float = 0.1,
+    ) -> None:
+        """Handle triggers until `stop` is set or `max_captures` are taken. A capture in flight always completes."""
+        while not stop.is_set() and (max_captures is None or self.taken < max_captures):
+            ev = source.get(timeout=poll_s)
+            if ev is None:
+                if on_idle is not None:
+                    on_idle()
+                continue
+            out = self.handle(ev)
+            if on_outcome is not None:
+                on_outcome(out)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+        for cam in self.cameras:
+            try:
+                cam.close()
+            except CameraError:
+                pass
+
+
+def open_cameras(cameras: Sequence[CameraDriver], settings: CameraSettings) -> CameraSettings:
+    """Open every camera and lock them to one photometric setting; returns the setting in force."""
+    for cam in cameras:
+        cam.open()
+    return agree_photometry(cameras, settings)

@@ -1,0 +1,214 @@
+"""The capture store: complete, verified captures or a quarantined entry with its reason; nothing else.
+
+Layout under the store root:
+
+    captures/<id>/       complete captures (calibration.capture format, sha256 of every file)
+    quarantine/<id>/     incomplete or invalid captures, each with `reason.json`
+    .incoming/           captures being written; never read by anyone else
+    store.json           the capture counter (ids are never reused, even across crashes)
+
+A capture is assembled under `.incoming/<id>` by `calibration.capture.write_capture` (every file
+fsynced, read back and verified), then renamed into `captures/` and both directories fsynced. A
+crash at any point leaves either nothing under `captures/` or the complete capture; whatever is
+left in `.incoming/` is moved to `quarantine/` with a reason the next time the store opens.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import errno
+import json
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+from calibration.capture import Capture, CaptureError, FrameData, read_capture, write_capture
+from calibration.fileio import atomic_write_json, fsync_dir
+
+CAPTURES, QUARANTINE, INCOMING, STATE = "captures", "quarantine", ".incoming", "store.json"
+REASON = "reason.json"
+_ID = re.compile(r"^(\d{6,})-\d{8}T\d{6}Z")
+
+
+class StoreError(RuntimeError):
+    """The store cannot take a capture (disk full, unwritable); one plain sentence."""
+
+
+@dataclass(frozen=True)
+class StoredCapture:
+    """Where a capture ended up: `status` is "committed" or "quarantined" (then `reason` says why)."""
+
+    capture_id: str
+    path: Path
+    status: str
+    reason: str = ""
+
+
+def disk_free_bytes(path: Path) -> int:
+    return shutil.disk_usage(path).free
+
+
+def is_enospc(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+class CaptureStore:
+    """A directory of captures that never holds a half-written one and never reuses an id.
+
+    `min_free_bytes`: below this much free disk, `disk_ok()` is False and acquisition stops taking
+    captures (stored ones are untouched). `free_bytes` is injectable for tests.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        *,
+        min_free_bytes: int = 1 << 30,
+        free_bytes: Callable[[Path], int] = disk_free_bytes,
+    ) -> None:
+        self.root = Path(root)
+        self.min_free_bytes = int(min_free_bytes)
+        self._free_bytes = free_bytes
+        for sub in (CAPTURES, QUARANTINE, INCOMING):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self.alarm = ""
+        self._next = self._load_counter()
+        self.recovered: list[StoredCapture] = self._recover_incoming()
+
+    # ---- ids ---------------------------------------------------------------------------------
+
+    def _load_counter(self) -> int:
+        """Next counter: the persisted one, but never below any id already on disk (state file lost or stale)."""
+        persisted = 0
+        try:
+            persisted = int(json.loads((self.root / STATE).read_text())["next_counter"])
+        except (FileNotFoundError, ValueError, KeyError, TypeError):
+            pass
+        seen = [int(m.group(1)) for sub in (CAPTURES, QUARANTINE, INCOMING) for p in (self.root / sub).iterdir() if (m := _ID.match(p.name.lstrip(".")))]
+        return max([persisted, *(n + 1 for n in seen)])
+
+    def reserve_id(self) -> str:
+        """A new capture id: the counter is persisted (atomically, fsynced) before the id is used."""
+        n = self._next
+        atomic_write_json(self.root / STATE, {"next_counter": n + 1})
+        self._next = n + 1
+        return f"{n:06d}-{dt.datetime.now(dt.timezone.utc):%Y%m%dT%H%M%SZ}"
+
+    # ---- disk --------------------------------------------------------------------------------
+
+    def disk_free(self) -> int:
+        return int(self._free_bytes(self.root))
+
+    def disk_ok(self) -> bool:
+        """True when there is room for another capture; otherwise sets `alarm` (cleared once space is back)."""
+        free = self.disk_free()
+        if free < self.min_free_bytes:
+            self.alarm = f"disk nearly full: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; captures stopped"
+            return False
+        self.alarm = ""
+        return True
+
+    # ---- writing -----------------------------------------------------------------------------
+
+    def commit(self, capture_id: str, frames: Sequence[FrameData], meta: dict) -> StoredCapture:
+        """Write, verify and publish a capture. On failure nothing appears under captures/ and the error is raised."""
+        incoming = self.root / INCOMING / capture_id
+        final = self.root / CAPTURES / capture_id
+        if final.exists():
+            raise StoreError(f"capture id {capture_id} is already in the store; ids are never reused")
+        try:
+            write_capture(incoming, frames, meta={**meta, "capture_id": capture_id})
+            os.rename(incoming, final)
+            fsync_dir(final.parent)
+            fsync_dir(incoming.parent)
+        except BaseException as e:
+            shutil.rmtree(incoming, ignore_errors=True)
+            if is_enospc(e):
+                self.alarm = f"disk full while writing capture {capture_id}; captures stopped until space is freed"
+            raise
+        return StoredCapture(capture_id, final, "committed")
+
+    def quarantine(self, capture_id: str, reason: str, frames: Sequence[FrameData] = (), meta: dict | None = None, detail: dict | None = None) -> StoredCapture:
+        """Keep what there is of a bad capture, with its reason, under quarantine/<id>.
+
+        The frames are written when the disk allows; the reason file always is (it is a few
+        hundred bytes). Raises StoreError only when not even the reason can be written.
+        """
+        staging = self.root / INCOMING / capture_id
+        final = self._free_name(self.root / QUARANTINE / capture_id)
+        record = {"capture_id": capture_id, "reason": reason, "time_utc": _now_utc(), **(detail or {})}
+        shutil.rmtree(staging, ignore_errors=True)
+        if frames:
+            try:
+                write_capture(staging, frames, meta={**(meta or {}), "capture_id": capture_id, "quarantined": reason})
+            except (OSError, CaptureError) as e:
+                shutil.rmtree(staging, ignore_errors=True)
+                record["frames_not_saved"] = f"{len(frames)} frames could not be written: {e}"
+        try:
+            staging.mkdir(exist_ok=True)
+            atomic_write_json(staging / REASON, record)
+            os.rename(staging, final)
+            fsync_dir(final.parent)
+            fsync_dir(staging.parent)
+        except OSError as e:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise StoreError(f"could not quarantine capture {capture_id} ({reason}): {e.strerror or e}") from e
+        return StoredCapture(capture_id, final, "quarantined", reason)
+
+    # ---- recovery and reading ----------------------------------------------------------------
+
+    def _recover_incoming(self) -> list[StoredCapture]:
+        """Move whatever a crash left in .incoming/ to quarantine/ with a reason."""
+        out = []
+        incoming = self.root / INCOMING
+        for p in sorted(incoming.iterdir()):
+            name = p.name.lstrip(".")
+            m = _ID.match(name)
+            capture_id = m.group(0) if m else name
+            if p.is_file():
+                p.unlink()  # an atomic write's temp file: never published under a real name
+                continue
+            final = self._free_name(self.root / QUARANTINE / capture_id)
+            record = {
+                "capture_id": capture_id,
+                "reason": "left in .incoming/ by an interrupted write (crash, kill or power loss); never committed",
+                "time_utc": _now_utc(),
+                "files": sorted(str(f.relative_to(p)) for f in p.rglob("*") if f.is_file()),
+            }
+            atomic_write_json(p / REASON, record)
+            os.rename(p, final)
+            out.append(StoredCapture(capture_id, final, "quarantined", record["reason"]))
+        for leftover in self.root.glob(f".{STATE}.*.tmp"):
+            leftover.unlink()
+        if out:
+            fsync_dir(self.root / QUARANTINE)
+            fsync_dir(incoming)
+        return out
+
+    def _free_name(self, path: Path) -> Path:
+        k = 1
+        out = path
+        while out.exists():
+            out = path.with_name(f"{path.name}.{k}")
+            k += 1
+        return out
+
+    def capture_ids(self) -> list[str]:
+        return sorted(p.name for p in (self.root / CAPTURES).iterdir() if p.is_dir() and not p.name.startswith("."))
+
+    def quarantined_ids(self) -> list[str]:
+        return sorted(p.name for p in (self.root / QUARANTINE).iterdir() if p.is_dir())
+
+    def quarantine_reason(self, capture_id: str) -> str:
+        return json.loads((self.root / QUARANTINE / capture_id / REASON).read_text())["reason"]
+
+    def read(self, capture_id: str) -> Capture:
+        """A stored capture, every sha256 verified."""
+        return read_capture(self.root / CAPTURES / capture_id, verify=True)
+
+
+def _now_utc() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")

@@ -1,0 +1,186 @@
+"""Simulated cameras behind the driver protocol, so the whole appliance runs without hardware.
+
+- `SyntheticRig` + `SyntheticCamera`: the synthetic rig renderer (rig/synthetic.py) as N drivers.
+  Each trigger brings a new part down the conveyor: its pose in the rig frame is a deterministic
+  function of the trigger's seq, and all views of one trigger come from one render.
+- `PatternCamera`: a test-pattern camera (a per-camera gradient with a bar that moves with seq).
+  Costs almost nothing to make, so benchmarks measure acquisition and the store, not rendering.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera, look_at_c2w
+from rig.camera import CameraError, CameraSettings, Frame, Health, register_driver
+
+GOLDEN_ANGLE_DEG = 137.50776405
+
+
+def conveyor_pose(seq: int, *, lateral_m: float = 0.01) -> np.ndarray:
+    """Rig-from-object [4, 4] of the part that trigger `seq` photographs: a new yaw each part
+    (golden-angle steps, so successive parts never repeat) and a small lateral offset on the belt."""
+    yaw = np.deg2rad((seq * GOLDEN_ANGLE_DEG) % 360.0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    m = np.eye(4)
+    m[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    m[1, 3] = lateral_m * np.sin(seq * 1.7)
+    return m
+
+
+class SyntheticRig:
+    """The synthetic rig renderer shared by its camera drivers; renders all views of a trigger once.
+
+    `cameras` are the rig's cameras (OpenCV c2w in the rig frame); `scene` is a
+    `rig.synthetic.SyntheticScene` (anything with its `render`). `jitter_ns` spreads the views'
+    exposure times, to exercise the sync tolerance.
+    """
+
+    def __init__(self, scene, cameras: list[Camera], *, noise_std: float = 0.01, jitter_ns: int = 200_000, seed: int = 0) -> None:
+        self.scene = scene
+        self.cameras = list(cameras)
+        self.noise_std = noise_std
+        self.jitter_ns = int(jitter_ns)
+        self.seed = seed
+        self._lock = threading.Lock()
+        self._seq: int | None = None
+        self._images: np.ndarray | None = None
+        self._t0 = 0
+
+    @classmethod
+    def from_mesh(cls, mesh_path: str | Path, n_views: int, *, width: int = 640, height: int = 480, radius: float = 0.6, fov_deg: float = 40.0, **kw) -> "SyntheticRig":
+        from rig.synthetic import SyntheticScene, ring_rig
+
+        cameras = ring_rig(n_views, radius=radius, width=width, height=height, fov_deg=fov_deg)
+        return cls(SyntheticScene.from_mesh(mesh_path), cameras, **kw)
+
+    def views(self, seq: int) -> tuple[np.ndarray, int]:
+        """RGB uint8 [V, H, W, 3] of trigger `seq` and the host time it was exposed (rendered once per seq)."""
+        with self._lock:
+            if self._seq != seq:
+                obj_from_rig = np.linalg.inv(conveyor_pose(seq))
+                cams_obj = [c.with_c2w(obj_from_rig @ c.c2w) for c in self.cameras]
+                self._t0 = time.monotonic_ns()
+                rgb, _ = self.scene.render(cams_obj, noise_std=self.noise_std, seed=self.seed + seq)
+                self._images, self._seq = np.asarray(rgb), seq
+            return self._images, self._t0
+
+    def drivers(self, prefix: str = "cam") -> list["SyntheticCamera"]:
+        return [SyntheticCamera(f"{prefix}{i:02d}", self, i) for i in range(len(self.cameras))]
+
+
+@register_driver("synthetic")
+class SyntheticCamera:
+    """View `index` of a `SyntheticRig`."""
+
+    def __init__(self, camera_id: str, rig: SyntheticRig, index: int) -> None:
+        self.camera_id = camera_id
+        self.rig = rig
+        self.index = index
+        self._seq: int | None = None
+        self._open = False
+        self._frames = 0
+        self._settings = CameraSettings(rig.cameras[index].width, rig.cameras[index].height)
+
+    @property
+    def camera(self) -> Camera:
+        return self.rig.cameras[self.index]
+
+    def open(self) -> None:
+        self._open = True
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        cam = self.camera
+        if (settings.width, settings.height) != (cam.width, cam.height):
+            raise CameraError(f"{self.camera_id}: the synthetic rig renders {cam.width}x{cam.height}, not {settings.width}x{settings.height}")
+        # A renderer's "exposure" is fixed: report it locked, identical across views.
+        self._settings = CameraSettings(cam.width, cam.height, exposure_us=10_000, iso=100, white_balance_k=5500, focus=settings.focus, sync="software")
+        return self._settings
+
+    def arm(self, seq: int) -> None:
+        self._seq = seq
+
+    def grab(self, timeout_s: float) -> Frame:
+        if not self._open or self._seq is None:
+            raise CameraError(f"{self.camera_id}: grab before open and arm")
+        images, t0 = self.rig.views(self._seq)
+        self._frames += 1
+        jitter = (self.index * 7919) % (2 * self.rig.jitter_ns + 1) - self.rig.jitter_ns if self.rig.jitter_ns else 0
+        return Frame(self.camera_id, images[self.index], t0 + jitter, _settings_dict(self._settings))
+
+    def close(self) -> None:
+        self._open = False
+
+    def health(self) -> Health:
+        return Health(self.camera_id, self._open, "synthetic view" if self._open else "closed", self._frames)
+
+
+@register_driver("pattern")
+class PatternCamera:
+    """A test-pattern camera: a per-camera colour gradient with a bar at a seq-dependent column.
+
+    `camera` is a pinhole on a ring around the rig origin (`index` of `n` views), so its captures
+    are valid captures. It exposes when armed, as a frame-synced sensor does on its trigger edge;
+    `time_ns` is the clock its timestamps come from.
+    """
+
+    def __init__(self, camera_id: str, *, index: int = 0, n: int = 1, width: int = 640, height: int = 480, time_ns=time.monotonic_ns) -> None:
+        self.camera_id = camera_id
+        self.index = index
+        az = 2 * np.pi * index / max(n, 1)
+        eye = np.array([0.5 * np.cos(az), 0.5 * np.sin(az), 0.3])
+        self._camera = Camera.from_fov(np.deg2rad(50.0), width, height, look_at_c2w(eye, np.zeros(3)))
+        self._time_ns = time_ns
+        self._base: np.ndarray | None = None
+        self._seq: int | None = None
+        self._exposed_ns = 0
+        self._open = False
+        self._frames = 0
+        self._settings = CameraSettings(width, height)
+
+    @property
+    def camera(self) -> Camera:
+        return self._camera
+
+    def open(self) -> None:
+        w, h = self._camera.width, self._camera.height
+        u = np.linspace(40, 215, w, dtype=np.float32)[None, :]
+        v = np.linspace(40, 215, h, dtype=np.float32)[:, None]
+        hue = (self.index * 53) % 160
+        self._base = np.stack(np.broadcast_arrays(u + 0 * v, v + 0 * u, np.full((h, w), 40 + hue, np.float32)), -1).astype(np.uint8)
+        self._open = True
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        if (settings.width, settings.height) != (self._camera.width, self._camera.height):
+            self._camera = self._camera.scaled(settings.width, settings.height)
+            self.open()
+        self._settings = CameraSettings(settings.width, settings.height, settings.exposure_us or 10_000, settings.iso or 100, settings.white_balance_k or 5500, settings.focus, settings.sync)
+        return self._settings
+
+    def arm(self, seq: int) -> None:
+        self._seq = seq
+        self._exposed_ns = self._time_ns()
+
+    def grab(self, timeout_s: float) -> Frame:
+        if not self._open or self._seq is None:
+            raise CameraError(f"{self.camera_id}: grab before open and arm")
+        img = self._base.copy()
+        w = img.shape[1]
+        x = (self._seq * 37) % max(w - 16, 1)
+        img[:, x : x + 16] = 230
+        self._frames += 1
+        return Frame(self.camera_id, img, self._exposed_ns, _settings_dict(self._settings))
+
+    def close(self) -> None:
+        self._open = False
+
+    def health(self) -> Health:
+        return Health(self.camera_id, self._open, "test pattern" if self._open else "closed", self._frames)
+
+
+def _settings_dict(s: CameraSettings) -> dict:
+    return {"exposure_us": s.exposure_us, "iso": s.iso, "white_balance_k": s.white_balance_k, "focus": s.focus, "sync": s.sync}

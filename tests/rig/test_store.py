@@ -1,0 +1,95 @@
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import numpy as np
+import pytest
+
+import calibration.capture as capture_mod
+from calibration.camera import Camera
+from calibration.capture import FrameData
+from rig.store import CAPTURES, INCOMING, QUARANTINE, STATE, CaptureStore
+from tests.rig.conftest import assert_store_sound
+
+
+def _frames(n: int = 2, seed: int = 0) -> list[FrameData]:
+    rng = np.random.default_rng(seed)
+    cam = Camera.from_fov(1.0, 32, 24)
+    return [FrameData(f"cam{i}", rng.integers(0, 255, (24, 32, 3), dtype=np.uint8), cam, f"cam{i}", 1000 + i) for i in range(n)]
+
+
+def test_commit_is_verified_and_carries_ids(store_root):
+    store = CaptureStore(store_root, min_free_bytes=0)
+    cid = store.reserve_id()
+    out = store.commit(cid, _frames(), {"rig_id": "line-3", "calibration_id": "cal-7", "trigger": {"seq": 4}})
+    assert out.status == "committed" and out.path == store_root / CAPTURES / cid
+    cap = store.read(cid)
+    assert cap.meta["rig_id"] == "line-3" and cap.meta["calibration_id"] == "cal-7" and cap.meta["trigger"]["seq"] == 4
+    assert len(cap.meta["sha256"]) == 2 and [f.timestamp_ns for f in cap.frames] == [1000, 1001]
+    assert_store_sound(store_root, [cid])
+
+
+def test_ids_are_never_reused_even_when_the_state_file_is_lost(store_root):
+    store = CaptureStore(store_root, min_free_bytes=0)
+    a = store.reserve_id()  # reserved, never committed (a crash right after reserving)
+    b = store.reserve_id()
+    store.commit(b, _frames(), {})
+    assert a[:6] == "000000" and b[:6] == "000001"
+    again = CaptureStore(store_root)
+    assert again.reserve_id()[:6] == "000002"  # the persisted counter survives a restart
+    again.quarantine(again.reserve_id(), "test")  # 000003, quarantined
+    (store_root / STATE).unlink()
+    c = CaptureStore(store_root).reserve_id()
+    assert c[:6] == "000004"  # state lost: rebuilt from every id on disk, stored or quarantined
+
+
+def test_restart_moves_leftover_incoming_to_quarantine_with_a_reason(store_root):
+    store = CaptureStore(store_root, min_free_bytes=0)
+    cid = store.reserve_id()
+    half = store_root / INCOMING / f".{cid}.abc123.incoming" / "images"
+    half.mkdir(parents=True)
+    (half / "cam0.png").write_bytes(b"\x89PNG truncated")
+    (store_root / INCOMING / ".tmpfile.tmp").write_bytes(b"x")
+    again = CaptureStore(store_root, min_free_bytes=0)
+    assert [r.capture_id for r in again.recovered] == [cid]
+    assert again.quarantined_ids() == [cid]
+    reason = json.loads((store_root / QUARANTINE / cid / "reason.json").read_text())
+    assert "interrupted write" in reason["reason"] and reason["files"] == ["images/cam0.png"]
+    assert not any((store_root / INCOMING).iterdir())
+    assert_store_sound(store_root, [])
+
+
+def test_enospc_while_writing_leaves_nothing_half_written(store_root, monkeypatch):
+    store = CaptureStore(store_root, min_free_bytes=0)
+    real = capture_mod.atomic_write_bytes
+    calls = {"n": 0}
+
+    def full_disk(path, data):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(capture_mod, "atomic_write_bytes", full_disk)
+    cid = store.reserve_id()
+    with pytest.raises(OSError) as e:
+        store.commit(cid, _frames(3), {})
+    assert e.value.errno == errno.ENOSPC and "disk full" in store.alarm
+    assert store.capture_ids() == []
+    q = store.quarantine(cid, "disk full while writing", _frames(3), {})
+    assert q.status == "quarantined" and store.quarantine_reason(cid) == "disk full while writing"
+    assert_store_sound(store_root, [])
+
+
+def test_low_disk_stops_captures_and_clears_when_space_returns(store_root):
+    free = {"bytes": 10 << 30}
+    store = CaptureStore(store_root, min_free_bytes=2 << 30, free_bytes=lambda p: free["bytes"])
+    cid = store.reserve_id()
+    store.commit(cid, _frames(), {})
+    free["bytes"] = 1 << 30
+    assert not store.disk_ok() and "below the 2.15 GB threshold" in store.alarm
+    assert store.capture_ids() == [cid]  # stored captures untouched
+    free["bytes"] = 5 << 30
+    assert store.disk_ok() and store.alarm == ""
