@@ -257,7 +257,7 @@ class SerialTrigger(TriggerSource):
             self.last_error = f"serial port {self.url} lost: {e}"
             self.stats["reconnects"] += 1
             self._close()
-            self._buf, self._skipping = b"", True  # the line in flight is incomplete
+            self._buf = b""  # the line in flight is incomplete; a tail read after reconnecting fails the anchored pattern
             self._backoff()
             return
         if data:
