@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from calibration.capture import read_capture
-from rig.acquisition import Acquisition, Thresholds, open_cameras
+from rig.acquisition import Acquisition, Thresholds, agree_photometry
 from rig.camera import CameraSettings
 from rig.store import CAPTURES, INCOMING, CaptureStore
 from rig.synthetic_driver import PatternCamera
@@ -19,7 +19,9 @@ def pattern_cameras(n: int = 3, width: int = 64, height: int = 48) -> list[Patte
 
 def make_acquisition(root: Path, cameras=None, **kw) -> Acquisition:
     cameras = cameras if cameras is not None else pattern_cameras()
-    settings = open_cameras(cameras, CameraSettings(cameras[0].camera.width, cameras[0].camera.height))
+    for cam in cameras:
+        cam.open()
+    settings = agree_photometry(cameras, CameraSettings(cameras[0].camera.width, cameras[0].camera.height))
     store = kw.pop("store", None) or CaptureStore(root, min_free_bytes=0)
     kw.setdefault("thresholds", Thresholds(sync_tolerance_ns=50_000_000))
     return Acquisition(cameras, store, settings=settings, **kw)
