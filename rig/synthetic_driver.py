@@ -1,8 +1,8 @@
 """Simulated cameras behind the driver protocol, so the whole appliance runs without hardware.
 
 - `SyntheticRig` + `SyntheticCamera`: the synthetic rig renderer (rig/synthetic.py) as N drivers.
-  Each trigger brings a new part down the conveyor: its pose in the rig frame is a deterministic
-  function of the trigger's seq, and all views of one trigger come from one render.
+  Each trigger brings a new part down the conveyor: its placement on the belt is a deterministic
+  function of the trigger's seq (`conveyor_placement`), and all views of a trigger come from one render.
 - `PatternCamera`: a test-pattern camera (a per-camera gradient with a bar that moves with seq).
   Costs almost nothing to make, so benchmarks measure acquisition and the store, not rendering.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -19,25 +20,43 @@ from calibration.camera import Camera, look_at_c2w
 from rig.camera import CameraError, CameraSettings, Frame, Health, register_driver
 
 GOLDEN_ANGLE_DEG = 137.50776405
+_FILL = 0.8  # fraction of the shorter image side the part's bounding sphere spans
 
 
-def conveyor_pose(seq: int, *, lateral_m: float = 0.01) -> np.ndarray:
-    """Rig-from-object [4, 4] of the part that trigger `seq` photographs: a new yaw each part
-    (golden-angle steps, so successive parts never repeat) and a small lateral offset on the belt."""
-    yaw = np.deg2rad((seq * GOLDEN_ANGLE_DEG) % 360.0)
-    c, s = np.cos(yaw), np.sin(yaw)
-    m = np.eye(4)
-    m[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    m[1, 3] = lateral_m * np.sin(seq * 1.7)
-    return m
+def conveyor_placement(seq: int, *, lateral_m: float = 0.01) -> tuple[float, tuple[float, float]]:
+    """Yaw (deg) and belt offset (m) of the part that trigger `seq` photographs: a new yaw for each
+    part (golden-angle steps, so successive parts never repeat) and a small lateral offset."""
+    return (seq * GOLDEN_ANGLE_DEG) % 360.0, (0.0, lateral_m * float(np.sin(seq * 1.7)))
+
+
+def procedural_part(size_m: tuple[float, float, float] = (0.08, 0.05, 0.03), texels: int = 256):
+    """A box with a checker-and-gradient texture (each face its own UV patch): a part to render when no mesh ships."""
+    import trimesh
+
+    from rig.render_mujoco import TexturedMesh
+
+    tm = trimesh.creation.box(extents=size_m)
+    tm.unmerge_vertices()
+    v = np.asarray(tm.vertices)
+    n = np.asarray(tm.face_normals)
+    uv = np.zeros((len(v), 2))
+    for f, face in enumerate(np.asarray(tm.faces)):
+        axis = int(np.argmax(np.abs(n[f])))
+        a, b = [k for k in range(3) if k != axis]
+        uv[face] = (v[face][:, [a, b]] / np.asarray(size_m)[[a, b]] + 0.5) * 0.9 + 0.05
+    y, x = np.mgrid[0:texels, 0:texels]
+    checker = ((x // 32 + y // 32) % 2).astype(np.float32)
+    tex = np.stack([60 + 150 * x / texels, 60 + 120 * checker, 200 - 140 * y / texels], -1).astype(np.uint8)
+    return TexturedMesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64), uv, tex)
 
 
 class SyntheticRig:
     """The synthetic rig renderer shared by its camera drivers; renders all views of a trigger once.
 
-    `cameras` are the rig's cameras (OpenCV c2w in the rig frame); `scene` is a
-    `rig.synthetic.SyntheticScene` (anything with its `render`). `jitter_ns` spreads the views'
-    exposure times, to exercise the sync tolerance.
+    `cameras` are the rig's cameras (OpenCV c2w in the rig frame: origin on the belt, z up);
+    `scene` is a `rig.synthetic.SyntheticScene` without backdrop (the belt moves with the part).
+    All rendering happens on one thread, the one MuJoCo's GL context belongs to. `jitter_ns`
+    spreads the views' exposure times, to exercise the sync tolerance.
     """
 
     def __init__(self, scene, cameras: list[Camera], *, noise_std: float = 0.01, jitter_ns: int = 200_000, seed: int = 0) -> None:
@@ -47,30 +66,47 @@ class SyntheticRig:
         self.jitter_ns = int(jitter_ns)
         self.seed = seed
         self._lock = threading.Lock()
+        self._gl = ThreadPoolExecutor(max_workers=1, thread_name_prefix="synthetic-render")
         self._seq: int | None = None
         self._images: np.ndarray | None = None
         self._t0 = 0
 
     @classmethod
-    def from_mesh(cls, mesh_path: str | Path, n_views: int, *, width: int = 640, height: int = 480, radius: float = 0.6, fov_deg: float = 40.0, **kw) -> "SyntheticRig":
-        from rig.synthetic import SyntheticScene, ring_rig
+    def from_mesh(cls, mesh, n_views: int, *, width: int = 640, height: int = 480, fov_deg: float = 45.0, elevations_deg=(15.0, 40.0), **kw) -> "SyntheticRig":
+        """A ring rig sized to the part. `mesh`: a mesh file path or a `TexturedMesh`."""
+        from rig.synthetic import SyntheticScene, load_textured_mesh, ring_rig
 
-        cameras = ring_rig(n_views, radius=radius, width=width, height=height, fov_deg=fov_deg)
-        return cls(SyntheticScene.from_mesh(mesh_path), cameras, **kw)
+        if isinstance(mesh, (str, Path)):
+            mesh = load_textured_mesh(mesh, texture_size=512)
+        lo, hi = mesh.bounds
+        fov_short = 2 * np.arctan(np.tan(np.radians(fov_deg) / 2) * min(width, height) / width)
+        radius = mesh.radius / np.sin(_FILL * fov_short / 2)
+        cameras = ring_rig(n_views, radius=radius, elevations_deg=elevations_deg, target=(0.0, 0.0, (hi[2] - lo[2]) / 2), width=width, height=height, fov_deg=fov_deg)
+        return cls(SyntheticScene(mesh, backdrop=False), cameras, **kw)
+
+    def sim3_rig_to_object(self, seq: int):
+        from rig.synthetic import conveyor_sim3
+
+        yaw, offset = conveyor_placement(seq)
+        return conveyor_sim3(self.scene.mesh, yaw, offset)
 
     def views(self, seq: int) -> tuple[np.ndarray, int]:
         """RGB uint8 [V, H, W, 3] of trigger `seq` and the host time it was exposed (rendered once per seq)."""
         with self._lock:
             if self._seq != seq:
-                obj_from_rig = np.linalg.inv(conveyor_pose(seq))
-                cams_obj = [c.with_c2w(obj_from_rig @ c.c2w) for c in self.cameras]
+                sim3 = self.sim3_rig_to_object(seq)
+                cams_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in self.cameras]
                 self._t0 = time.monotonic_ns()
-                rgb, _ = self.scene.render(cams_obj, noise_std=self.noise_std, seed=self.seed + seq)
+                rgb, _ = self._gl.submit(self.scene.render, cams_obj, noise_std=self.noise_std, seed=self.seed + seq).result()
                 self._images, self._seq = np.asarray(rgb), seq
             return self._images, self._t0
 
     def drivers(self, prefix: str = "cam") -> list["SyntheticCamera"]:
         return [SyntheticCamera(f"{prefix}{i:02d}", self, i) for i in range(len(self.cameras))]
+
+    def close(self) -> None:
+        self._gl.submit(self.scene.close).result()
+        self._gl.shutdown()
 
 
 @register_driver("synthetic")
