@@ -117,14 +117,23 @@ def camera_to_mujoco(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return gl[:3, 3].copy(), matrix_to_quat(gl[:3, :3]), intrinsic, np.array([camera.width, camera.height], np.float64)
 
 
-def distortion_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """cv2.remap maps [H, W] float32 that resample a pinhole image (same K) into `camera`'s distorted image."""
+def distortion_render_plan(camera: Camera) -> tuple[Camera, np.ndarray, np.ndarray]:
+    """How to make `camera`'s distorted image: a pinhole camera (same focal lengths, canvas grown to
+    cover every distorted pixel's ray) and cv2.remap maps [H, W] float32 from that canvas."""
     u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     uv = np.stack([u.ravel(), v.ravel()], 1)
     k_inv = np.linalg.inv(camera.K)
     xy = undistort_normalized(uv @ k_inv[:2, :2].T + k_inv[:2, 2], camera.dist)
-    src = xy @ camera.K[:2, :2].T + camera.K[:2, 2] - 0.5  # cv2 pixel centres are integers
-    return src[:, 0].reshape(u.shape).astype(np.float32), src[:, 1].reshape(u.shape).astype(np.float32)
+    src = xy @ camera.K[:2, :2].T + camera.K[:2, 2]
+    lo = np.floor(src.min(0)).astype(int) - 1
+    hi = np.ceil(src.max(0)).astype(int) + 1
+    lo = np.maximum(lo, [-2 * camera.width, -2 * camera.height])  # wild distortion models must not ask for huge canvases
+    hi = np.minimum(hi, [3 * camera.width, 3 * camera.height])
+    k = camera.K.copy()
+    k[:2, 2] -= lo
+    canvas = Camera(k, int(hi[0] - lo[0]), int(hi[1] - lo[1]), np.zeros(0), camera.c2w)
+    src = src - lo - 0.5  # cv2 pixel centres are integers
+    return canvas, src[:, 0].reshape(u.shape).astype(np.float32), src[:, 1].reshape(u.shape).astype(np.float32)
 
 
 class SyntheticScene:
@@ -188,7 +197,7 @@ class SyntheticScene:
 
         light: one light for all views or one per view. noise_std: Gaussian sensor noise, in units
         of full scale (0.01 = 2.55 grey levels), seeded by `seed`. Distorted cameras get a
-        distorted image (rendered pinhole, then warped), as a real camera would deliver it.
+        distorted image (rendered pinhole on a canvas that covers it, then warped), as a real camera would deliver it.
         object_visible=False renders the empty rig (the background frame); its masks are empty.
         """
         cams = list(cameras_object)
@@ -200,25 +209,29 @@ class SyntheticScene:
         lights = [light or self.default_light()] * len(cams) if light is None or isinstance(light, Light) else list(light)
         if len(lights) != len(cams):
             raise ValueError(f"got {len(lights)} lights for {len(cams)} cameras")
-        renderer = self._renderer(w, h)
         option = mujoco.MjvOption()
         option.geomgroup[_OBJECT_GROUP] = int(object_visible)
         rng = np.random.default_rng(seed)
         images = np.empty((len(cams), h, w, 3), np.uint8)
         masks = np.empty((len(cams), h, w), bool)
         for i, (cam, lt) in enumerate(zip(cams, lights)):
-            self._set_camera(cam.pinhole())
+            target = cam
+            if not cam.is_pinhole:
+                target, mx, my = distortion_render_plan(cam)
+            renderer = self._renderer(target.width, target.height)
+            self._set_camera(target)
             self._set_light(lt)
             mujoco.mj_forward(self.model, self.data)
             renderer.update_scene(self.data, camera=0, scene_option=option)
             rgb = renderer.render().astype(np.float32) / 255.0
-            renderer.enable_segmentation_rendering()
-            renderer.update_scene(self.data, camera=0, scene_option=option)
-            seg = renderer.render()
-            renderer.disable_segmentation_rendering()
-            mask = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] == self._object_geom)
+            mask = np.zeros((target.height, target.width), bool)
+            if object_visible:
+                renderer.enable_segmentation_rendering()
+                renderer.update_scene(self.data, camera=0, scene_option=option)
+                seg = renderer.render()
+                renderer.disable_segmentation_rendering()
+                mask = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] == self._object_geom)
             if not cam.is_pinhole:
-                mx, my = distortion_maps(cam)
                 rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 mask = cv2.remap(mask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE) > 0
             if noise_std > 0:

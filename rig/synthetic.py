@@ -72,7 +72,7 @@ def ring_rig(
     target = np.asarray(target, np.float64)
     up = np.asarray(up, np.float64)
     up = up / np.linalg.norm(up)
-    e1 = np.cross(up, [0.0, 1.0, 0.0] if abs(up[1]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 = np.cross([0.0, 1.0, 0.0] if abs(up[1]) < 0.9 else [0.0, 0.0, 1.0], up)  # up = z gives e1 = x, e2 = y
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
     counts = [len(c) for c in np.array_split(np.arange(n_views), len(elevations_deg))]
@@ -236,7 +236,7 @@ def synth_dataset(
         _write(out_dir / "heldout", "orbit", heldout_rig, held, {**meta, "calibration_id": f"synthetic-seed{seed}"})
 
     gt = {
-        "mesh": str(mesh_path),
+        "mesh": _mesh_reference(mesh_path, out_dir),
         "mesh_name": mesh_path.parent.name if mesh_path.stem == "textured" else mesh_path.stem,
         "mesh_sha256": mesh_sha,
         "units": "m",
@@ -263,6 +263,15 @@ def synth_dataset(
     }
     atomic_write_json(out_dir / "gt.json", gt)
     return gt
+
+
+def _mesh_reference(mesh_path: Path, out_dir: Path) -> str:
+    """The mesh path relative to gt.json's directory when it lives beside it (a relocatable sample), else absolute."""
+    mesh_abs, out_abs = mesh_path.resolve(), out_dir.resolve()
+    try:
+        return os.path.relpath(mesh_abs, out_abs) if out_abs.parent in mesh_abs.parents or out_abs in mesh_abs.parents else str(mesh_abs)
+    except ValueError:
+        return str(mesh_abs)
 
 
 def _write(root: Path, prefix: str, cameras: Sequence[Camera], shots, meta: dict) -> None:
