@@ -1,0 +1,169 @@
+"""The job store: one SQLite file recording every capture's way to a twin, step by step.
+
+A job is one capture. Its steps run in order; each finished step's outputs are recorded, so after
+a crash or power loss the service resumes at the first unfinished step and never redoes a finished
+one. A step found "running" at start-up was interrupted: it goes back to "pending" (its outputs
+are written atomically, so nothing half-done is trusted). SQLite in WAL mode with synchronous=FULL
+makes every state change durable before the call returns.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+STEPS: tuple[str, ...] = ("register", "reconstruct", "export")
+# What an operator reads: one status per job.
+JOB_STATUSES = ("queued", "running", "done", "failed")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    capture_id TEXT NOT NULL UNIQUE,
+    capture_path TEXT NOT NULL,
+    status TEXT NOT NULL DEFAULT 'queued',
+    attempts INTEGER NOT NULL DEFAULT 0,
+    error TEXT NOT NULL DEFAULT '',
+    created REAL NOT NULL,
+    updated REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS steps (
+    job_id INTEGER NOT NULL REFERENCES jobs(id),
+    step TEXT NOT NULL,
+    status TEXT NOT NULL DEFAULT 'pending',
+    started REAL,
+    finished REAL,
+    output TEXT NOT NULL DEFAULT '{}',
+    PRIMARY KEY (job_id, step)
+);
+"""
+
+
+@dataclass(frozen=True)
+class Job:
+    id: int
+    capture_id: str
+    capture_path: str
+    status: str
+    attempts: int
+    error: str
+    steps: dict[str, dict]
+
+    @property
+    def next_step(self) -> str | None:
+        return next((s for s in STEPS if self.steps[s]["status"] != "done"), None)
+
+    @property
+    def current_step(self) -> str:
+        """The step in progress (or the last one, when the job has ended)."""
+        return self.next_step or STEPS[-1]
+
+
+class JobStore:
+    """Jobs and their steps in `path` (SQLite). Safe to reopen after any crash."""
+
+    def __init__(self, path: str | Path, *, max_attempts: int = 3) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_attempts = max_attempts
+        self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.executescript(_SCHEMA)
+        self.recovered = self._recover()
+
+    def close(self) -> None:
+        self._db.close()
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield self._db
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def _recover(self) -> int:
+        """Interrupted steps go back to pending; their jobs back to queued. Returns how many."""
+        with self._tx() as db:
+            n = db.execute("UPDATE steps SET status='pending', started=NULL WHERE status='running'").rowcount
+            db.execute("UPDATE jobs SET status='queued', updated=? WHERE status='running'", (time.time(),))
+        return n
+
+    def add(self, capture_id: str, capture_path: str | Path) -> bool:
+        """Enqueue a capture once; returns False when it already has a job."""
+        now = time.time()
+        with self._tx() as db:
+            cur = db.execute(
+                "INSERT OR IGNORE INTO jobs (capture_id, capture_path, created, updated) VALUES (?, ?, ?, ?)",
+                (capture_id, str(capture_path), now, now),
+            )
+            if cur.rowcount == 0:
+                return False
+            db.executemany("INSERT INTO steps (job_id, step) VALUES (?, ?)", [(cur.lastrowid, s) for s in STEPS])
+        return True
+
+    def count(self, status: str | None = None) -> int:
+        if status is None:
+            return self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0]
+        return self._db.execute("SELECT COUNT(*) FROM jobs WHERE status=?", (status,)).fetchone()[0]
+
+    def get(self, job_id: int) -> Job:
+        row = self._db.execute("SELECT id, capture_id, capture_path, status, attempts, error FROM jobs WHERE id=?", (job_id,)).fetchone()
+        if row is None:
+            raise KeyError(f"no job {job_id}")
+        steps = {
+            s: {"status": st, "started": a, "finished": b, "output": json.loads(o)}
+            for s, st, a, b, o in self._db.execute("SELECT step, status, started, finished, output FROM steps WHERE job_id=?", (job_id,))
+        }
+        return Job(row[0], row[1], row[2], row[3], row[4], row[5], steps)
+
+    def jobs(self, status: str | None = None) -> list[Job]:
+        q = "SELECT id FROM jobs" + (" WHERE status=?" if status else "") + " ORDER BY id"
+        return [self.get(r[0]) for r in self._db.execute(q, (status,) if status else ())]
+
+    def claim_next(self) -> Job | None:
+        """The oldest queued job, marked running (one attempt more), or None."""
+        with self._tx() as db:
+            row = db.execute("SELECT id FROM jobs WHERE status='queued' ORDER BY id LIMIT 1").fetchone()
+            if row is None:
+                return None
+            db.execute("UPDATE jobs SET status='running', attempts=attempts+1, updated=? WHERE id=?", (time.time(), row[0]))
+        return self.get(row[0])
+
+    def start_step(self, job_id: int, step: str) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE steps SET status='running', started=? WHERE job_id=? AND step=?", (time.time(), job_id, step))
+
+    def finish_step(self, job_id: int, step: str, output: dict) -> None:
+        with self._tx() as db:
+            db.execute(
+                "UPDATE steps SET status='done', finished=?, output=? WHERE job_id=? AND step=?",
+                (time.time(), json.dumps(output), job_id, step),
+            )
+            db.execute("UPDATE jobs SET updated=? WHERE id=?", (time.time(), job_id))
+
+    def finish_job(self, job_id: int) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE jobs SET status='done', error='', updated=? WHERE id=?", (time.time(), job_id))
+
+    def fail_attempt(self, job_id: int, step: str, error: str) -> str:
+        """Record a failed step: the job is retried until `max_attempts`, then failed. Returns the new status."""
+        with self._tx() as db:
+            attempts = db.execute("SELECT attempts FROM jobs WHERE id=?", (job_id,)).fetchone()[0]
+            status = "failed" if attempts >= self.max_attempts else "queued"
+            db.execute("UPDATE steps SET status='pending', started=NULL WHERE job_id=? AND step=?", (job_id, step))
+            db.execute("UPDATE jobs SET status=?, error=?, updated=? WHERE id=?", (status, f"{step}: {error}", time.time(), job_id))
+        return status
+
+    def retry(self, job_id: int) -> None:
+        """Operator re-run: a failed or finished job goes back to the queue with fresh attempts."""
+        with self._tx() as db:
+            db.execute("UPDATE jobs SET status='queued', attempts=0, error='', updated=? WHERE id=?", (time.time(), job_id))

@@ -1,0 +1,129 @@
+"""The pipeline service: committed captures -> registered -> reconstructed -> exported twins.
+
+It watches a capture store (`captures/<id>/`), enqueues each new capture once in the job store,
+and runs every job's remaining steps in order. Work is bounded: at most `max_queue` jobs wait at
+once; further captures stay safely in the store and are enqueued as the queue drains. A capture
+is never moved or deleted by the service, so a crash can lose no capture; a restart resumes each
+job at its first unfinished step.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+from deploy.jobs import STEPS, Job, JobStore
+
+
+class StepRunner(Protocol):
+    """Runs one step of one job and returns what it produced (JSON-able); raises on failure."""
+
+    def __call__(self, step: str, job: Job, work_dir: Path, previous: dict[str, dict]) -> dict: ...
+
+
+@dataclass
+class ServiceEvent:
+    kind: str  # "enqueued", "step-started", "step-done", "job-done", "job-failed", "job-retry"
+    job_id: int
+    capture_id: str
+    step: str = ""
+    detail: dict = field(default_factory=dict)
+
+
+class PipelineService:
+    """`store_root`: the rig's capture store; `work_root`: where jobs write (job store, twins)."""
+
+    def __init__(
+        self,
+        store_root: str | Path,
+        work_root: str | Path,
+        run_step: StepRunner,
+        *,
+        max_queue: int = 8,
+        max_attempts: int = 3,
+        on_event: Callable[[ServiceEvent], None] | None = None,
+    ) -> None:
+        self.captures_dir = Path(store_root) / "captures"
+        self.work_root = Path(work_root)
+        self.work_root.mkdir(parents=True, exist_ok=True)
+        self.jobs = JobStore(self.work_root / "jobs.sqlite", max_attempts=max_attempts)
+        self.run_step = run_step
+        self.max_queue = max_queue
+        self.on_event = on_event or (lambda e: None)
+        self._stop = threading.Event()
+
+    def job_dir(self, job: Job) -> Path:
+        return self.work_root / "jobs" / job.capture_id
+
+    def scan(self) -> int:
+        """Enqueue new committed captures, oldest first, while the queue has room. Returns how many."""
+        if not self.captures_dir.exists():
+            return 0
+        room = self.max_queue - self.jobs.count("queued")
+        added = 0
+        for cap in sorted(p for p in self.captures_dir.iterdir() if (p / "transforms.json").exists()):
+            if room <= 0:
+                break
+            if self.jobs.add(cap.name, cap):
+                job = next(j for j in self.jobs.jobs("queued") if j.capture_id == cap.name)
+                self.on_event(ServiceEvent("enqueued", job.id, job.capture_id))
+                room -= 1
+                added += 1
+        return added
+
+    def run_job(self, job: Job) -> str:
+        """Run `job`'s unfinished steps; returns the job's status afterwards."""
+        work = self.job_dir(job)
+        work.mkdir(parents=True, exist_ok=True)
+        for step in STEPS:
+            if job.steps[step]["status"] == "done":
+                continue
+            previous = {s: job.steps[s]["output"] for s in STEPS if job.steps[s]["status"] == "done"}
+            self.jobs.start_step(job.id, step)
+            self.on_event(ServiceEvent("step-started", job.id, job.capture_id, step))
+            try:
+                output = self.run_step(step, job, work, previous)
+            except Exception as e:  # a failed step is recorded, retried, then reported: never lost
+                msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+                status = self.jobs.fail_attempt(job.id, step, msg)
+                kind = "job-failed" if status == "failed" else "job-retry"
+                self.on_event(ServiceEvent(kind, job.id, job.capture_id, step, {"error": msg, "trace": traceback.format_exc(limit=3)}))
+                return status
+            self.jobs.finish_step(job.id, step, output)
+            job = self.jobs.get(job.id)
+            self.on_event(ServiceEvent("step-done", job.id, job.capture_id, step, output))
+        self.jobs.finish_job(job.id)
+        self.on_event(ServiceEvent("job-done", job.id, job.capture_id))
+        return "done"
+
+    def run_once(self) -> bool:
+        """Scan, then run one queued job; False when there was nothing to do."""
+        self.scan()
+        job = self.jobs.claim_next()
+        if job is None:
+            return False
+        self.run_job(job)
+        return True
+
+    def run_forever(self, poll_s: float = 1.0, max_jobs: int | None = None) -> int:
+        """Serve until stopped (SIGTERM/SIGINT finish the step in flight first) or `max_jobs` ran."""
+        done = 0
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(sig, lambda *_: self._stop.set())
+        while not self._stop.is_set():
+            if self.run_once():
+                done += 1
+                if max_jobs is not None and done >= max_jobs:
+                    break
+            else:
+                self._stop.wait(poll_s)
+        return done
+
+    def stop(self) -> None:
+        self._stop.set()
