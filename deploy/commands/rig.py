@@ -1,0 +1,185 @@
+"""`cadsplat rig list | capture | watch`: the rig's cameras and triggers, from rig.toml or simulated.
+
+`watch` prints one line per capture on stdout (`committed <id>`, `quarantined <id>: <reason>`,
+...) only after the capture is durable, and a live status line on stderr. SIGTERM/SIGINT stop it
+after the capture in flight.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import click
+
+STORE_HELP = "Capture store directory (default: storage.root of the config)."
+
+
+def _load(config: str | None, simulate: bool):
+    from rig.config import ConfigError, load_config
+
+    if simulate:
+        return None
+    if config is None:
+        raise click.ClickException("give --config rig.toml, or --simulate to run on the synthetic rig")
+    try:
+        return load_config(config)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from None
+
+
+@contextmanager
+def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None):
+    """Open cameras and store (config or simulated); yields (acquisition, rig closer)."""
+    from rig.acquisition import Acquisition, Thresholds, open_cameras
+    from rig.assembly import build_cameras, build_store, load_rig_calibration, simulated_cameras
+    from rig.camera import CameraError, CameraSettings
+    from rig.store import CaptureStore
+
+    synthetic = None
+    if simulate:
+        if store_dir is None:
+            raise click.ClickException("--simulate needs --store DIR (where the simulated captures go)")
+        cameras, synthetic = simulated_cameras(views, size[0], size[1], Path(mesh) if mesh else None)
+        store = CaptureStore(store_dir, min_free_bytes=int((1.0 if min_free_gb is None else min_free_gb) * 1e9))
+        rig_id, calibration_id, thresholds, settings = "simulated", "synthetic-ring", Thresholds(), CameraSettings(size[0], size[1])
+    else:
+        calibration_id, calibration = load_rig_calibration(cfg.calibration)
+        cameras = build_cameras(cfg, calibration)
+        store = build_store(cfg, Path(store_dir) if store_dir else None)
+        if min_free_gb is not None:
+            store.min_free_bytes = int(min_free_gb * 1e9)
+        rig_id, thresholds, settings = cfg.rig_id, cfg.thresholds, cfg.cameras[0].settings
+    for r in store.recovered:
+        click.echo(f"recovered {r.capture_id}: moved to quarantine ({r.reason})", err=True)
+    try:
+        locked = open_cameras(cameras, settings)
+    except CameraError as e:
+        for cam in cameras:
+            cam.close()
+        if synthetic is not None:
+            synthetic.close()
+        raise click.ClickException(str(e)) from None
+    acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, thresholds=thresholds, settings=locked)
+    try:
+        yield acq
+    finally:
+        acq.close()
+        if synthetic is not None:
+            synthetic.close()
+
+
+def _report(out) -> None:
+    if out.status == "committed":
+        click.echo(f"committed {out.capture_id}  ({out.latency_ns / 1e6:.0f} ms after trigger {out.trigger.seq})")
+    elif out.status in ("quarantined", "failed"):
+        click.echo(f"{out.status} {out.capture_id}: {out.reason}")
+    elif out.status in ("refused", "late"):
+        click.echo(f"{out.status} trigger {out.trigger.seq}: {out.reason}")
+    sys.stdout.flush()
+
+
+def _status(acq, source) -> str:
+    f, c = acq.trigger_filter, acq.counts
+    free = acq.store.disk_free() / 1e9
+    line = (
+        f"triggers {f.received} | captures {c['committed']} | quarantined {c['quarantined']} | dropped {c['dropped']} "
+        f"| missed {f.missed} | refused {c['refused']} | disk {free:.1f} GB free"
+    )
+    alarm = acq.store.alarm or source.last_error
+    return f"{line} | {alarm}" if alarm else line
+
+
+def _common(f):
+    for opt in reversed(
+        [
+            click.option("--config", "config", type=click.Path(dir_okay=False), help="rig.toml (cameras, trigger, storage, thresholds)."),
+            click.option("--simulate", is_flag=True, help="Run on the synthetic rig (no hardware)."),
+            click.option("--store", "store_dir", type=click.Path(file_okay=False), help=STORE_HELP),
+            click.option("--views", default=8, show_default=True, type=click.IntRange(1, 64), help="Simulated cameras."),
+            click.option("--size", default=(640, 480), show_default=True, type=(click.IntRange(16, 4096), click.IntRange(16, 4096)), help="Simulated image size W H."),
+            click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="Simulated part (default: the bundled sample, else a procedural box)."),
+            click.option("--min-free-gb", type=click.FloatRange(0), help="Stop capturing below this much free disk."),
+        ]
+    ):
+        f = opt(f)
+    return f
+
+
+@click.group()
+def rig() -> None:
+    """Camera drivers, triggers and captures from rig.toml (or --simulate)."""
+
+
+@rig.command("list")
+@click.option("--config", "config", type=click.Path(dir_okay=False), help="rig.toml whose cameras to list.")
+def list_cmd(config: str | None) -> None:
+    """Cameras: configured ones, OAK devices depthai can see, and the synthetic rig."""
+    from rig.camera import CameraError, driver_names
+    from rig.oak import list_oak_devices
+
+    if config:
+        cfg = _load(config, False)
+        click.echo(f"rig {cfg.rig_id}: {len(cfg.cameras)} cameras, trigger {cfg.trigger.kind}, store {cfg.storage.root}")
+        for c in cfg.cameras:
+            where = c.device and f"{c.device} {c.socket}" or c.path or "test pattern"
+            click.echo(f"  {c.id:<10} {c.driver:<8} {where}  {c.settings.width}x{c.settings.height} sync {c.settings.sync}")
+    try:
+        devices = list_oak_devices()
+    except (CameraError, RuntimeError) as e:
+        devices = []
+        click.echo(f"OAK devices: cannot enumerate ({e})")
+    click.echo(f"OAK devices: {len(devices)} found")
+    for d in devices:
+        click.echo(f"  {d['device_id']}  {d['name']}  {d['state']}")
+    click.echo(f"drivers: {', '.join(driver_names())} (synthetic: `--simulate`)")
+
+
+@rig.command()
+@_common
+def capture(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None:
+    """Take one software-triggered capture."""
+    from rig.triggers import SoftwareTrigger
+
+    cfg = _load(config, simulate)
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+        out = acq.handle(SoftwareTrigger().fire({"from": "cli"}))
+        _report(out)
+    if out.status != "committed":
+        raise click.ClickException(f"the capture was not committed ({out.status}: {out.reason})")
+
+
+@rig.command()
+@_common
+@click.option("--trigger", "trigger_kind", type=click.Choice(["can", "serial"]), default="can", show_default=True, help="Simulated trigger line.")
+@click.option("--rate", default=1.0, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
+@click.option("--max-captures", type=click.IntRange(1), help="Stop after this many captures (committed or quarantined).")
+def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_kind, rate, max_captures) -> None:
+    """Capture on every trigger until stopped, with a live status line."""
+    from rig.assembly import SimulatedPlc, build_trigger
+
+    cfg = _load(config, simulate)
+    stop = threading.Event()
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+        if simulate:
+            plc = SimulatedPlc(trigger_kind, rate)
+            source = plc.source
+        else:
+            plc, source = None, build_trigger(cfg.trigger)
+            acq.trigger_filter.debounce_ns = int(cfg.trigger.debounce_ms * 1e6)
+            acq.trigger_filter.min_interval_ns = int(cfg.trigger.min_interval_ms * 1e6)
+        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGTERM, signal.SIGINT)}
+        tty = sys.stderr.isatty()
+        show = lambda: click.echo(f"\r{_status(acq, source)}\033[K", nl=False, err=True) if tty else None  # noqa: E731
+        try:
+            plc.start() if plc else source.start()
+            acq.run(source, stop, max_captures=max_captures, on_outcome=lambda o: (_report(o), show()), on_idle=show)
+        finally:
+            plc.stop() if plc else source.stop()
+            for s, h in previous.items():
+                signal.signal(s, h)
+            pending = source.events.qsize()
+            click.echo(("\n" if tty else "") + _status(acq, source) + (f" | {pending} triggers unhandled at stop" if pending else ""), err=True)

@@ -1,0 +1,130 @@
+"""From a validated rig.toml to live objects: camera drivers, the trigger source, the store.
+
+Also the simulated rig (`--simulate`): synthetic cameras rendering a part on the conveyor, and a
+simulated PLC that sends triggers over a virtual CAN bus or a loop serial port, so the appliance
+runs end to end without hardware through the same trigger code as in the field.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import threading
+import time
+from pathlib import Path
+
+import serial
+
+from calibration.camera import Camera
+from rig.camera import CameraDriver, make_driver
+from rig.config import CameraConfig, RigConfig, TriggerConfig
+from rig.store import CaptureStore
+from rig.triggers import CanTrigger, SerialTrigger, SoftwareTrigger, TriggerSource, encode_can_trigger, format_trigger_line
+
+REPO = Path(__file__).resolve().parents[1]
+_MESH_SUFFIXES = (".glb", ".obj", ".ply")
+
+
+def load_rig_calibration(path: Path | None) -> tuple[str, dict[str, Camera]]:
+    """(calibration_id, {camera_id: Camera}) from a calibration JSON
+    {"calibration_id": str, "cameras": {camera_id: Camera.to_dict()}}; ("uncalibrated", {}) without one."""
+    if path is None:
+        return "uncalibrated", {}
+    try:
+        doc = json.loads(Path(path).read_text())
+        return str(doc["calibration_id"]), {cid: Camera.from_dict(d) for cid, d in doc["cameras"].items()}
+    except FileNotFoundError:
+        raise ValueError(f"{path}: calibration file not found") from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: not a rig calibration (needs calibration_id and cameras; {e})") from None
+
+
+def build_camera(cfg: CameraConfig, calibrated: Camera | None, index: int, n: int) -> CameraDriver:
+    if cfg.driver == "oak":
+        return make_driver("oak", camera_id=cfg.id, device_id=cfg.device, socket=cfg.socket, camera=calibrated)
+    if cfg.driver == "replay":
+        return make_driver("replay", camera_id=cfg.id, path=cfg.path)
+    return make_driver("pattern", camera_id=cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height)
+
+
+def build_cameras(cfg: RigConfig, calibration: dict[str, Camera]) -> list[CameraDriver]:
+    return [build_camera(c, calibration.get(c.id), i, len(cfg.cameras)) for i, c in enumerate(cfg.cameras)]
+
+
+def build_trigger(cfg: TriggerConfig) -> TriggerSource:
+    if cfg.kind == "serial":
+        return SerialTrigger(cfg.port, baudrate=cfg.baudrate, pattern=cfg.pattern)
+    if cfg.kind == "can":
+        return CanTrigger(interface=cfg.interface, channel=cfg.channel, arbitration_id=cfg.arbitration_id, payload_format=cfg.payload_format)
+    return SoftwareTrigger()
+
+
+def build_store(cfg: RigConfig, root: Path | None = None) -> CaptureStore:
+    return CaptureStore(root or cfg.storage.root, min_free_bytes=int(cfg.storage.min_free_gb * 1e9))
+
+
+def sample_mesh() -> Path | None:
+    """The bundled sample's mesh (sample/ at the repository root), if this checkout has one."""
+    sample = REPO / "sample"
+    if not sample.is_dir():
+        return None
+    meshes = sorted(p for p in sample.rglob("*") if p.suffix.lower() in _MESH_SUFFIXES)
+    return meshes[0] if meshes else None
+
+
+class SimulatedPlc:
+    """The conveyor's PLC: a trigger every 1/rate s with a rising seq and encoder count, on a virtual
+    CAN bus or a loop serial port. `source` is the matching trigger reader, as in the field."""
+
+    def __init__(self, kind: str, rate_hz: float, *, encoder_per_part: int = 2048) -> None:
+        if kind not in ("can", "serial"):
+            raise ValueError(f"simulated trigger must be 'can' or 'serial', got '{kind}'")
+        if not rate_hz > 0:
+            raise ValueError(f"trigger rate must be positive, got {rate_hz}")
+        self.kind, self.rate_hz, self.encoder_per_part = kind, rate_hz, encoder_per_part
+        self.sent = 0
+        self._stop = threading.Event()
+        if kind == "can":
+            import can
+
+            channel = f"cadsplat-sim-{time.monotonic_ns()}"
+            self.source: TriggerSource = CanTrigger(interface="virtual", channel=channel)
+            self._bus = can.Bus(interface="virtual", channel=channel)
+            self._send = lambda seq: self._bus.send(can.Message(arbitration_id=0x181, data=encode_can_trigger(seq, seq * encoder_per_part), is_extended_id=False))
+        else:
+            port = serial.serial_for_url("loop://", timeout=0.05)
+            self.source = SerialTrigger("loop://", open_port=lambda: port)
+            self._bus = port
+            self._send = lambda seq: port.write(format_trigger_line(seq, seq * encoder_per_part))
+        self._thread = threading.Thread(target=self._run, name="simulated-plc", daemon=True)
+
+    def start(self) -> "SimulatedPlc":
+        self.source.start()
+        time.sleep(0.05)  # let the reader open its end before the first trigger
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        for seq in itertools.count(1):
+            if self._stop.wait(max(0.0, t0 + (seq - 0.5) / self.rate_hz - time.monotonic())):
+                return
+            self._send(seq)
+            self.sent += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.source.stop()
+        if self.kind == "can":
+            self._bus.shutdown()
+
+
+def simulated_cameras(views: int, width: int, height: int, mesh: Path | None = None):
+    """(drivers, rig) of the synthetic rig rendering `mesh` (default: the sample's, else a procedural part)."""
+    from rig.synthetic_driver import SyntheticRig, procedural_part
+
+    part = mesh or sample_mesh() or procedural_part()
+    rig = SyntheticRig.from_mesh(part, views, width=width, height=height)
+    return rig.drivers(), rig
+
