@@ -1,0 +1,74 @@
+"""`cadsplat rig ...` as a user runs it (subprocesses; the simulated rig renders tiny images)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from tests.conftest import REPO
+from tests.rig.conftest import assert_store_sound
+
+SMALL = ["--views", "3", "--size", "96", "72", "--min-free-gb", "0"]
+
+
+def _cadsplat(*args: str) -> list[str]:
+    return [sys.executable, "-c", "import sys; from deploy.cli import main; sys.exit(main())", *args]
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def _committed(stdout: str) -> list[str]:
+    return [line.split()[1] for line in stdout.splitlines() if line.startswith("committed ")]
+
+
+def test_watch_simulate_can_ends_after_max_captures(tmp_path):
+    store = tmp_path / "store"
+    r = subprocess.run(_cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "3", "--max-captures", "2", "--store", str(store), *SMALL),
+                       capture_output=True, text=True, env=_env(), cwd=REPO, timeout=180)
+    assert r.returncode == 0, r.stderr
+    ids = _committed(r.stdout)
+    assert len(ids) == 2 and assert_store_sound(store, ids) == sorted(ids)
+    assert "captures 2 | quarantined 0" in r.stderr
+
+
+def test_watch_simulate_serial_stops_cleanly_on_sigterm(tmp_path):
+    store = tmp_path / "store"
+    proc = subprocess.Popen(_cadsplat("rig", "watch", "--simulate", "--trigger", "serial", "--rate", "4", "--store", str(store), *SMALL),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=REPO)
+    lines = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        lines.append(line)
+        if line.startswith("committed"):
+            break
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    ids = _committed("".join(lines) + out)
+    assert ids and assert_store_sound(store, ids) == sorted(ids)
+    assert "triggers" in err.splitlines()[-1]
+
+
+def test_capture_from_config_with_pattern_cameras(tmp_path):
+    (tmp_path / "rig.toml").write_text(
+        'rig_id = "bench"\n[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 64\nheight = 48\n'
+        '[[cameras]]\nid = "b"\ndriver = "pattern"\nwidth = 64\nheight = 48\n[storage]\nroot = "caps"\nmin_free_gb = 0\n'
+    )
+    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120)
+    assert r.returncode == 0, r.stderr
+    ids = _committed(r.stdout)
+    assert len(ids) == 1 and assert_store_sound(tmp_path / "caps", ids) == ids
+
+
+def test_bad_input_is_one_sentence_and_nonzero(tmp_path):
+    r = subprocess.run(_cadsplat("rig", "capture"), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=60)
+    assert r.returncode != 0 and r.stderr.strip() == "Error: give --config rig.toml, or --simulate to run on the synthetic rig"
+    (tmp_path / "rig.toml").write_text('[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 0\n')
+    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=60)
+    assert r.returncode != 0 and "cameras[0].width must be an integer" in r.stderr and len(r.stderr.strip().splitlines()) == 1
