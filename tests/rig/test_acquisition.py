@@ -201,3 +201,31 @@ def test_grab_errors_from_driver_bugs_quarantine_instead_of_crashing(store_root)
         Unpluggable("x", pull_at=1, away=1).grab(0.1)
     except CameraError as e:
         assert "disconnected" in str(e)
+
+
+def test_enospc_mid_capture_is_quarantined_and_the_next_capture_commits(store_root, monkeypatch):
+    import errno
+    import os
+
+    import calibration.capture as capture_mod
+
+    real, calls = capture_mod.atomic_write_bytes, {"n": 0}
+
+    def disk_full_once(path, data):
+        calls["n"] += 1
+        if calls["n"] == 5:  # the 2nd capture's 2nd image (3 images per capture)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(capture_mod, "atomic_write_bytes", disk_full_once)
+    acq = make_acquisition(store_root)
+    trig = SoftwareTrigger()
+    outs = [acq.handle(trig.fire()) for _ in range(3)]
+    acq.close()
+    assert [o.status for o in outs] == ["committed", "quarantined", "committed"]
+    assert outs[1].reason.startswith("disk full while writing: [Errno 28]")
+    assert acq.store.quarantine_reason(outs[1].capture_id) == outs[1].reason
+    q = store_root / "quarantine" / outs[1].capture_id
+    assert sorted(p.name for p in (q / "images").iterdir()) == ["cam0.png", "cam1.png", "cam2.png"]  # the frames were kept
+    committed = [outs[0].capture_id, outs[2].capture_id]
+    assert assert_store_sound(store_root, committed) == committed
