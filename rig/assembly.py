@@ -22,7 +22,6 @@ from rig.store import CaptureStore
 from rig.triggers import CanTrigger, SerialTrigger, SoftwareTrigger, TriggerSource, encode_can_trigger, format_trigger_line
 
 REPO = Path(__file__).resolve().parents[1]
-_MESH_SUFFIXES = (".glb", ".obj", ".ply")
 
 
 def load_rig_calibration(path: Path | None) -> tuple[str, dict[str, Camera]]:
@@ -64,12 +63,13 @@ def build_store(cfg: RigConfig, root: Path | None = None) -> CaptureStore:
 
 
 def sample_mesh() -> Path | None:
-    """The bundled sample's mesh (sample/ at the repository root), if this checkout has one."""
-    sample = REPO / "sample"
-    if not sample.is_dir():
+    """The bundled sample's textured object mesh (sample/sample.json "mesh"), if this checkout has one."""
+    manifest = REPO / "sample" / "sample.json"
+    try:
+        mesh = manifest.parent / json.loads(manifest.read_text())["mesh"]
+    except (FileNotFoundError, json.JSONDecodeError, KeyError, TypeError):
         return None
-    meshes = sorted(p for p in sample.rglob("*") if p.suffix.lower() in _MESH_SUFFIXES)
-    return meshes[0] if meshes else None
+    return mesh if mesh.is_file() else None
 
 
 class SimulatedPlc:
