@@ -104,6 +104,12 @@ class Normalized:
     offset: np.ndarray
     anisotropy: float
 
+    @property
+    def bbox_center(self) -> np.ndarray:
+        """Centre [2] of the canonical bounding box in source pixel coordinates: the point the canvas is centred on."""
+        c, s = np.cos(self.angle), np.sin(self.angle)
+        return self.centroid + np.array([[c, -s], [s, c]]) @ self.offset
+
 
 def principal_axis(mask: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Centroid [2] (pixel centres at +0.5), principal-axis angle (radians) and anisotropy of a bool mask [H, W]."""

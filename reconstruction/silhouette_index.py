@@ -13,7 +13,7 @@ IoU, where an orthographic one would differ more at the near end.
 
 Storage (per model, so adding a model never rebuilds the others): `<key>.npz` with the packed
 canvases [D, W] uint64 and per-view geometry [D, 6] float32 (canonical angle, canonical extent,
-centroid x, y, anisotropy, area; image quantities in normalised units = pixels / focal). The
+bbox centre x, y, anisotropy, area; image quantities in normalised units = pixels / focal). The
 query-time index concatenates the shards into flat files that are memory-mapped.
 """
 
@@ -35,7 +35,7 @@ from calibration.fileio import atomic_write_bytes, atomic_write_json
 from reconstruction.silhouette import normalize_silhouette, pack, render_silhouette
 
 # Columns of the per-view geometry array.
-ANGLE, EXTENT, CX, CY, ANISO, AREA = range(6)
+ANGLE, EXTENT, BX, BY, ANISO, AREA = range(6)
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,8 @@ def render_model_views(vertices: np.ndarray, faces: np.ndarray, grid: GridSpec) 
             continue
         nz = normalize_silhouette(sil, grid.canvas)
         canvases[i] = nz.canvas
-        geom[i] = (nz.angle, nz.extent / f, (nz.centroid[0] - c) / f, (nz.centroid[1] - c) / f, nz.anisotropy, sil.sum() / f**2)
+        b = nz.bbox_center
+        geom[i] = (nz.angle, nz.extent / f, (b[0] - c) / f, (b[1] - c) / f, nz.anisotropy, sil.sum() / f**2)
     return pack(canvases), geom
 
 
