@@ -155,7 +155,7 @@ def capture(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None
 @rig.command()
 @_common
 @click.option("--trigger", "trigger_kind", type=click.Choice(["can", "serial"]), default="can", show_default=True, help="Simulated trigger line.")
-@click.option("--rate", default=1.0, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
+@click.option("--rate", default=0.5, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
 @click.option("--max-captures", type=click.IntRange(1), help="Stop after this many captures (committed or quarantined).")
 def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_kind, rate, max_captures) -> None:
     """Capture on every trigger until stopped, with a live status line."""
