@@ -76,7 +76,7 @@ def calibrate_intrinsics(
     num_dist: int = 5,
     flags: int = 0,
 ) -> IntrinsicsResult:
-    """K, distortion (`num_dist` = 4, 5 or 8 OpenCV coefficients) and board poses from the views of one camera.
+    """K, distortion (`num_dist` = 0, 4, 5 or 8 OpenCV coefficients) and board poses from the views of one camera.
 
     `detections` maps view name -> detection (None for images without a board). Rejected views are
     reported, not fatal; fewer than MIN_VIEWS usable views raise CalibrationError naming the camera.
@@ -89,12 +89,14 @@ def calibrate_intrinsics(
     names = list(views)
     obj = [views[n].object_points.astype(np.float32) for n in names]
     img = [(views[n].uv - 0.5).astype(np.float32) for n in names]
-    if num_dist == 4:
+    if num_dist == 0:
+        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+    elif num_dist == 4:
         flags |= cv2.CALIB_FIX_K3
     elif num_dist == 8:
         flags |= cv2.CALIB_RATIONAL_MODEL
     elif num_dist != 5:
-        raise ValueError(f"num_dist must be 4, 5 or 8, got {num_dist}")
+        raise ValueError(f"num_dist must be 0, 4, 5 or 8, got {num_dist}")
     rms, k, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, flags=flags)
     dist = dist.reshape(-1)[:num_dist]
     camera = Camera(_k_from_opencv(k), image_size[0], image_size[1], dist)

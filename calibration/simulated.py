@@ -152,3 +152,57 @@ def random_board_poses(spec: BoardSpec, count: int, rng: np.random.Generator, *,
         poses.append(m)
     return poses
 
+
+
+def close_up_board_poses(camera: Camera, spec: BoardSpec, count: int, rng: np.random.Generator, *, fill: float = 0.7, max_tilt_deg: float = 40.0) -> list[np.ndarray]:
+    """Board-to-world poses close to one camera, the board filling ~`fill` of the image width, tilted at random.
+
+    These are the views that pin a camera's intrinsics (principal point and distortion need the
+    board near the image edges and seen in perspective); only this camera sees them.
+    """
+    from calibration.so3 import axis_angle_to_matrix
+
+    w, h = spec.size_m
+    dist = camera.K[0, 0] * w / (fill * camera.width)
+    poses = []
+    for _ in range(count):
+        tilt = axis_angle_to_matrix(np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 3)) * [1, 1, 0.2])
+        # Board axes aligned with the camera's, then tilted; its centre wanders over the image.
+        r = camera.c2w[:3, :3] @ tilt
+        shift = rng.uniform(-0.25, 0.25, 2) * [camera.width, camera.height] / camera.K[0, 0] * dist
+        centre_cam = np.array([shift[0], shift[1], dist])
+        centre = camera.c2w[:3, :3] @ centre_cam + camera.c2w[:3, 3]
+        m = np.eye(4)
+        m[:3, :3] = r
+        m[:3, 3] = centre - r @ np.array([w / 2, h / 2, 0.0])
+        poses.append(m)
+    return poses
+
+
+def rig_board_views(
+    spec: BoardSpec,
+    cameras: dict[str, Camera],
+    rng: np.random.Generator,
+    *,
+    shared: int = 12,
+    close_ups: int = 8,
+    noise: float = 0.01,
+    blur_sigma: float = 0.5,
+    supersample: int = 2,
+) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    """Board images as a rig calibration session takes them: `shared` frames near the rig's centre
+    (every camera shoots; some may not see the board) and `close_ups` per camera (only it shoots).
+
+    Returns (images[camera][frame] uint8 [H, W], board_to_world[frame]).
+    """
+    frames = {f"shared{j:02d}": (p, None) for j, p in enumerate(random_board_poses(spec, shared, rng))}
+    for name, cam in cameras.items():
+        for k, p in enumerate(close_up_board_poses(cam, spec, close_ups, rng)):
+            frames[f"{name}_close{k:02d}"] = (p, name)
+    images: dict[str, dict[str, np.ndarray]] = {n: {} for n in cameras}
+    for frame, (pose, only) in frames.items():
+        plane = board_plane(spec, pose)
+        for name, cam in cameras.items():
+            if only is None or only == name:
+                images[name][frame] = sensor(render_planes(cam, [plane], supersample=supersample), rng, noise=noise, blur_sigma=blur_sigma)
+    return images, {f: p for f, (p, _) in frames.items()}
