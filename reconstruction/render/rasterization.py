@@ -1,0 +1,247 @@
+"""Differentiable tile-based Gaussian rasterization with gsplat's `classic` semantics.
+
+CPU tensors go through the numba kernels in `_cpu_kernels`; CUDA tensors go to `gsplat.rasterization`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from reconstruction.render import _cpu_kernels as kernels
+from reconstruction.render.projection import project_gaussians, to_numpy
+from reconstruction.render.sh import eval_sh, num_sh_bases
+
+N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity
+
+
+@dataclass(frozen=True)
+class TileBins:
+    """Depth-sorted per-tile Gaussian lists of C cameras (see `_cpu_kernels` for the layout)."""
+
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    rects: np.ndarray  # [C, N, 4] int32 pixel ranges (u_lo, u_hi, v_lo, v_hi)
+    gauss_offsets: np.ndarray  # [C * N + 1] int64, first slot of each (camera, Gaussian)
+    tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
+    keys: np.ndarray  # [n_isect] int64, (depth bits << 32) | gaussian index, sorted per tile
+    work: np.ndarray  # [C * tiles_y * tiles_x] tile ids grouped into per-thread bins
+    work_offsets: np.ndarray  # [n_bins + 1]
+
+    @property
+    def n_isects(self) -> int:
+        return int(self.keys.shape[0])
+
+
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int) -> TileBins:
+    """Assigns visible Gaussians to the tiles their radius box covers and sorts each tile by depth.
+
+    Args:
+        means2d: [C, N, 2] float64; radii: [C, N, 2] int32; depths: [C, N] float64.
+
+    Ties in depth (after rounding to float32, as gsplat sorts) are broken by Gaussian index.
+    """
+    n_cams, n = radii.shape[:2]
+    tiles_x = -(-width // tile_size)
+    tiles_y = -(-height // tile_size)
+    rects = np.zeros((n_cams, n, 4), np.int32)
+    tile_counts = np.zeros(n_cams * n, np.int64)
+    kernels.pixel_rects(to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects, tile_counts)
+    gauss_offsets = np.zeros(n_cams * n + 1, np.int64)
+    np.cumsum(tile_counts, out=gauss_offsets[1:])
+    # Depths of visible Gaussians are > near_plane > 0, whose float32 bit patterns sort like the values.
+    depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
+    tile_offsets, keys = kernels.bin_and_sort(rects, tile_counts, depth_bits, tile_size, tiles_x, tiles_y)
+    work, work_offsets = kernels.balance_tiles(tile_offsets, numba.get_num_threads())
+    return TileBins(tile_size, tiles_x, tiles_y, rects, gauss_offsets, tile_offsets, keys, work, work_offsets)
+
+
+class _RasterizeToPixels(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height):
+        n_cams, n, depth = colors.shape
+        out_colors = np.empty((n_cams, height, width, depth))
+        transmittance = np.empty((n_cams, height, width))
+        last_ids = np.empty((n_cams, height, width), np.int64)
+        slot_counts = np.zeros(bins.n_isects, np.int32)
+        args = (
+            to_numpy(means2d), to_numpy(conics), to_numpy(colors), to_numpy(opacities), to_numpy(backgrounds),
+            bins.rects, bins.gauss_offsets, bins.tile_offsets, bins.keys, bins.work, bins.work_offsets,
+            width, height, bins.tile_size, bins.tiles_x,
+        )
+        kernels.rasterize_forward(*args, out_colors, transmittance, last_ids, slot_counts)
+        counts = np.empty(n_cams * n, np.int64)
+        kernels.sum_slot_counts(slot_counts, bins.gauss_offsets, counts)
+
+        ctx.save_for_backward(means2d, conics, colors, opacities, backgrounds)
+        ctx.bins = bins
+        ctx.image_size = (width, height)
+        ctx.transmittance = transmittance
+        ctx.last_ids = last_ids
+        render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
+        counts_t = torch.from_numpy(counts).view(n_cams, n)
+        ctx.mark_non_differentiable(counts_t)
+        return torch.from_numpy(out_colors), render_alphas, counts_t
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_render_colors, v_render_alphas, _v_counts):
+        means2d, conics, colors, opacities, backgrounds = ctx.saved_tensors
+        bins: TileBins = ctx.bins
+        width, height = ctx.image_size
+        n_cams, n, depth = colors.shape
+        slot_grads = np.zeros((bins.n_isects, N_GRAD_GEOMETRY + depth))
+        v_colors_np = to_numpy(v_render_colors)
+        kernels.rasterize_backward(
+            to_numpy(means2d), to_numpy(conics), to_numpy(colors), to_numpy(opacities), to_numpy(backgrounds),
+            bins.rects, bins.gauss_offsets, bins.tile_offsets, bins.keys, bins.work, bins.work_offsets,
+            width, height, bins.tile_size, bins.tiles_x,
+            ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]),
+            slot_grads,
+        )
+        grads = np.zeros((n_cams * n, N_GRAD_GEOMETRY + depth))
+        kernels.sum_slot_rows(slot_grads, bins.gauss_offsets, grads)
+        grads_t = torch.from_numpy(grads).view(n_cams, n, -1)
+        v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
+        return grads_t[..., 0:2], grads_t[..., 2:5], grads_t[..., N_GRAD_GEOMETRY:], grads_t[..., 5].sum(0), v_backgrounds, None, None, None
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active):
+    n = means.shape[0]
+    n_cams = viewmats.shape[0]
+    expect = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+        "viewmats": (viewmats, (n_cams, 4, 4)),
+        "Ks": (Ks, (n_cams, 3, 3)),
+    }
+    for name, (tensor, shape) in expect.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must have shape {list(shape)}, got {list(tensor.shape)}")
+    if sh_degree is None:
+        if colors.dim() not in (2, 3) or colors.shape[-2] != n or (colors.dim() == 3 and colors.shape[0] != n_cams):
+            raise ValueError(f"colors must be [N, D] or [C, N, D] with N={n}, C={n_cams}; got {list(colors.shape)}")
+    else:
+        bases = num_sh_bases(sh_degree)
+        if colors.dim() not in (3, 4) or colors.shape[-3] != n or colors.shape[-2] < bases or colors.shape[-1] != 3:
+            raise ValueError(
+                f"SH colors must be [N, K, 3] or [C, N, K, 3] with N={n}, K>={bases}; got {list(colors.shape)}"
+            )
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if backgrounds is not None and backgrounds.shape[-1] != (3 if sh_degree is not None else colors.shape[-1]):
+        raise ValueError(f"backgrounds must have one value per colour channel, got {list(backgrounds.shape)}")
+    if active is not None and (active.dtype != torch.bool or tuple(active.shape) != (n,)):
+        raise ValueError(f"active must be a bool tensor of shape [{n}]")
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    sh_degree: int | None = None,
+    backgrounds: Tensor | None = None,
+    tile_size: int = 16,
+    active: Tensor | None = None,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Renders 3D Gaussians into C pinhole cameras, as `gsplat.rasterization` in `classic` mode (unpacked).
+
+    Each pixel composites, front to back in depth order (ties by Gaussian index), the Gaussians whose
+    alpha = min(0.999, opacity * exp(-sigma)) is >= 1/255 (pixel centres at +0.5), and stops before
+    the Gaussian that would bring its transmittance T to <= 1e-4; colour = sum + T * background and
+    alpha = 1 - T. See `project_gaussians` for projection and culling.
+
+    Args:
+        means: [N, 3]; quats: [N, 4] wxyz (normalised here); scales: [N, 3] linear; opacities: [N].
+        colors: [N, D] or [C, N, D] values, or with `sh_degree` SH coefficients [N, K, 3] or
+            [C, N, K, 3]; the colour is then max(SH(dir) + 0.5, 0) with dir from camera centre to mean.
+        viewmats: [C, 4, 4] world-to-camera (OpenCV axes); Ks: [C, 3, 3] intrinsics.
+        width, height: image size in pixels (any, including 1x1).
+        near_plane, far_plane, eps2d: as gsplat.
+        sh_degree: None for plain colours, else 0..3.
+        backgrounds: optional [C, D] (or [D]) colour behind the Gaussians.
+        tile_size: tile edge in pixels.
+        active: optional [N] bool; only these Gaussians are drawn and receive gradients (splat
+            dropout without copying the model).
+
+    Returns:
+        render_colors [C, H, W, D], render_alphas [C, H, W, 1] and meta with radii [C, N, 2] int32,
+        means2d [C, N, 2], conics [C, N, 3], depths [C, N], visibility_counts [C, N] (pixels each
+        Gaussian shaded), n_isects, tile_size, width, height, n_cameras. On CPU, means2d and conics
+        are float64 graph tensors, so `meta["means2d"].retain_grad()` gives screen-space gradients.
+
+    Gradients flow to means, quats, scales, opacities, colors, viewmats and backgrounds (not Ks).
+    """
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active)
+    if tile_size < 1:
+        raise ValueError(f"tile_size must be positive, got {tile_size}")
+    if not near_plane > 0.0:
+        raise ValueError(f"near_plane must be positive, got {near_plane}")
+    if means.is_cuda:
+        from reconstruction.render._gsplat import rasterize_gsplat
+
+        return rasterize_gsplat(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, tile_size=tile_size,
+            active=active,
+        )
+
+    # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
+    # from all paths are summed in float64 and rounded once, when autograd casts them back.
+    dtype = colors.dtype
+    means, quats, scales, opacities, colors, viewmats = (
+        t.to(torch.float64) for t in (means, quats, scales, opacities, colors, viewmats)
+    )
+    n_cams = viewmats.shape[0]
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, active=active,
+    )
+    if sh_degree is not None:
+        # gsplat's convention: direction from the camera centre to the mean, DC offset 0.5, clamped at 0.
+        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        dirs = means[None, :, :] - campos[:, None, :]
+        colors = torch.clamp_min(eval_sh(sh_degree, colors, dirs) + 0.5, 0.0)
+    if colors.dim() == 2:
+        colors = colors.expand(n_cams, -1, -1)
+    if backgrounds is None:
+        backgrounds = torch.zeros(n_cams, colors.shape[-1], dtype=torch.float64)
+    backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
+
+    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height, tile_size)
+    render_colors, render_alphas, counts = _RasterizeToPixels.apply(
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height
+    )
+    meta = {
+        "radii": proj.radii,
+        "means2d": proj.means2d,
+        "conics": proj.conics,
+        "depths": proj.depths.to(dtype),
+        "visibility_counts": counts,
+        "n_isects": bins.n_isects,
+        "tile_size": tile_size,
+        "width": width,
+        "height": height,
+        "n_cameras": n_cams,
+    }
+    return render_colors.to(dtype), render_alphas.to(dtype), meta

@@ -1,0 +1,390 @@
+"""The CPU rasterizer against a dense per-pixel PyTorch reference written here (float64, autograd).
+
+The reference shares no code with `reconstruction.render`: it builds rotations by rotating basis
+vectors with the quaternion, inverts the 2D covariance with `torch.linalg.inv`, evaluates every
+Gaussian at every pixel and composites with a cumulative product. The rasterizer runs on float32
+inputs, as in production; the reference runs on the same values cast to float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import pytest
+import torch
+
+from reconstruction.render import eval_sh, num_sh_bases, project_gaussians, rasterize
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds")
+
+
+# --------------------------------------------------------------------------- reference
+
+
+def _ref_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[N, 3, 3] by rotating e_x, e_y, e_z: v' = v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)."""
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, u = q[:, :1], q[:, 1:]
+    cols = []
+    for axis in range(3):
+        v = torch.zeros_like(u)
+        v[:, axis] = 1.0
+        uv = torch.cross(u, v, dim=-1)
+        cols.append(v + 2.0 * w * uv + 2.0 * torch.cross(u, uv, dim=-1))
+    return torch.stack(cols, dim=-1)
+
+
+def _ref_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Textbook real SH (Sloan's table) in 3DGS's sign convention; sh [..., K, 3], dirs [..., 3]."""
+    d = dirs / dirs.norm(dim=-1, keepdim=True)
+    x, y, z = d.unbind(-1)
+    basis = [torch.full_like(x, 0.5 / math.sqrt(math.pi))]
+    if degree >= 1:
+        c1 = math.sqrt(3.0 / (4.0 * math.pi))
+        basis += [-c1 * y, c1 * z, -c1 * x]
+    if degree >= 2:
+        basis += [
+            0.5 * math.sqrt(15.0 / math.pi) * x * y,
+            -0.5 * math.sqrt(15.0 / math.pi) * y * z,
+            0.25 * math.sqrt(5.0 / math.pi) * (2.0 * z * z - x * x - y * y),
+            -0.5 * math.sqrt(15.0 / math.pi) * x * z,
+            0.25 * math.sqrt(15.0 / math.pi) * (x * x - y * y),
+        ]
+    if degree >= 3:
+        basis += [
+            -0.25 * math.sqrt(35.0 / (2.0 * math.pi)) * y * (3.0 * x * x - y * y),
+            0.5 * math.sqrt(105.0 / math.pi) * x * y * z,
+            -0.25 * math.sqrt(21.0 / (2.0 * math.pi)) * y * (4.0 * z * z - x * x - y * y),
+            0.25 * math.sqrt(7.0 / math.pi) * z * (2.0 * z * z - 3.0 * x * x - 3.0 * y * y),
+            -0.25 * math.sqrt(21.0 / (2.0 * math.pi)) * x * (4.0 * z * z - x * x - y * y),
+            0.25 * math.sqrt(105.0 / math.pi) * z * (x * x - y * y),
+            -0.25 * math.sqrt(35.0 / (2.0 * math.pi)) * x * (x * x - 3.0 * y * y),
+        ]
+    b = torch.stack(basis, dim=-1)
+    return (b[..., :, None] * sh[..., : b.shape[-1], :]).sum(dim=-2)
+
+
+def reference_render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane=0.01,
+                     far_plane=1e10, eps2d=0.3, sh_degree=None, backgrounds=None, active=None):
+    """Dense per-pixel gsplat-classic rendering; every input is used in float64."""
+    means, quats, scales, opacities = (t.double() for t in (means, quats, scales, opacities))
+    colors, viewmats, Ks = colors.double(), viewmats.double(), Ks.double()
+    n_cams, n = viewmats.shape[0], means.shape[0]
+    rot = _ref_rotmat(quats)
+    cov3 = rot @ torch.diag_embed(scales**2) @ rot.transpose(-1, -2)
+    if sh_degree is not None:
+        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        colors = torch.clamp_min(_ref_sh(sh_degree, colors, means[None] - campos[:, None]) + 0.5, 0.0)
+    elif colors.dim() == 2:
+        colors = colors.expand(n_cams, -1, -1)
+    if backgrounds is None:
+        backgrounds = torch.zeros(n_cams, colors.shape[-1], dtype=torch.float64)
+    backgrounds = backgrounds.double().expand(n_cams, -1)
+    if active is None:
+        active = torch.ones(n, dtype=torch.bool)
+    ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    pix = torch.stack([xs, ys], dim=-1).reshape(-1, 2).double()
+    images, alphas = [], []
+    for c in range(n_cams):
+        R, t = viewmats[c, :3, :3], viewmats[c, :3, 3]
+        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+        mc = means @ R.T + t
+        z = mc[:, 2]
+        in_depth = (z > near_plane) & (z < far_plane)
+        z_safe = torch.where(in_depth, z, torch.ones_like(z))
+        lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+        tx = z_safe * torch.clamp(mc[:, 0] / z_safe, min=-(cx / fx + lim_x), max=(width - cx) / fx + lim_x)
+        ty = z_safe * torch.clamp(mc[:, 1] / z_safe, min=-(cy / fy + lim_y), max=(height - cy) / fy + lim_y)
+        zero = torch.zeros_like(z)
+        J = torch.stack(
+            [fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1
+        ).reshape(n, 2, 3)
+        cov2 = J @ R @ cov3 @ R.T @ J.transpose(-1, -2) + eps2d * torch.eye(2, dtype=torch.float64)
+        det = torch.linalg.det(cov2)
+        valid = in_depth & (det > 0) & (opacities >= 1.0 / 255.0) & active
+        conic = torch.linalg.inv(torch.where(valid[:, None, None], cov2, torch.eye(2, dtype=torch.float64)))
+        mean2d = torch.stack([fx * mc[:, 0] / z_safe + cx, fy * mc[:, 1] / z_safe + cy], dim=-1)
+        d = pix[:, None, :] - mean2d[None]  # [P, N, 2]
+        sigma = 0.5 * torch.einsum("pni,nij,pnj->pn", d, conic, d)
+        alpha = torch.clamp(opacities[None] * torch.exp(-sigma), max=0.999)
+        keep = valid[None] & (sigma >= 0) & (alpha >= 1.0 / 255.0)
+        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+        order = torch.sort(torch.where(valid, z, torch.full_like(z, math.inf)), stable=True).indices
+        alpha = alpha[:, order]
+        one_minus = 1.0 - alpha
+        t_after = torch.cumprod(one_minus, dim=1)
+        contributes = t_after > 1e-4  # monotone, so this is the prefix before termination
+        t_before = torch.cat([torch.ones_like(t_after[:, :1]), t_after[:, :-1]], dim=1)
+        weights = torch.where(contributes, alpha * t_before, torch.zeros_like(alpha))
+        t_final = torch.where(contributes, one_minus, torch.ones_like(one_minus)).prod(dim=1)
+        img = weights @ colors[c][order] + t_final[:, None] * backgrounds[c]
+        images.append(img.reshape(height, width, -1))
+        alphas.append((1.0 - t_final).reshape(height, width, 1))
+    return torch.stack(images), torch.stack(alphas)
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> torch.Tensor:
+    """World-to-camera 4x4 (OpenCV: x right, y down, z forward) for a camera at eye facing target."""
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    fwd = torch.nn.functional.normalize(target - eye, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, up), dim=0)
+    down = torch.linalg.cross(fwd, right)
+    R = torch.stack([right, down, fwd])
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ eye
+    return vm.float()
+
+
+def intrinsics(width, height, focal) -> torch.Tensor:
+    return torch.tensor([[focal, 0.0, width / 2 + 0.3], [0.0, focal, height / 2 - 0.2], [0.0, 0.0, 1.0]])
+
+
+def random_scene(n, *, seed, n_cams=2, width=45, height=37, sh_degree=None, spread=1.0):
+    g = torch.Generator().manual_seed(seed)
+    scene = {
+        "means": torch.randn(n, 3, generator=g) * spread,
+        "quats": torch.randn(n, 4, generator=g),
+        "scales": torch.exp(torch.randn(n, 3, generator=g) * 0.6 - 2.2),
+        "opacities": torch.rand(n, generator=g) * 0.98 + 0.01,
+        "colors": torch.randn(n, num_sh_bases(sh_degree), 3, generator=g) * 0.4
+        if sh_degree is not None
+        else torch.rand(n, 3, generator=g),
+    }
+    eyes = [(0.3, -0.4, -5.0), (4.0, 1.0, -3.0), (-3.0, -2.0, 3.5)][:n_cams]
+    scene["viewmats"] = torch.stack([look_at(e, (0.0, 0.0, 0.0)) for e in eyes])
+    scene["Ks"] = torch.stack([intrinsics(width, height, 0.9 * width)] * n_cams)
+    scene["backgrounds"] = torch.rand(n_cams, 3, generator=g)
+    scene["width"], scene["height"], scene["sh_degree"] = width, height, sh_degree
+    return scene
+
+
+def run_both(scene, **kwargs):
+    """Renders with both implementations under the same random loss; returns outputs and gradients."""
+    inputs = {k: (v.clone().requires_grad_(True) if k in PARAMS else v) for k, v in scene.items()}
+    kw = {k: inputs[k] for k in ("width", "height", "sh_degree", "backgrounds")} | kwargs
+    args = [inputs[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")]
+    colors, alphas, meta = rasterize(*args, **kw)
+    g = torch.Generator().manual_seed(7)
+    w_col, w_alpha = torch.randn(colors.shape, generator=g), torch.randn(alphas.shape, generator=g)
+    ((colors * w_col).sum() + (alphas * w_alpha).sum()).backward()
+    grads = {k: inputs[k].grad for k in PARAMS}
+    ref_inputs = {k: (v.clone().requires_grad_(True) if k in PARAMS else v) for k, v in scene.items()}
+    kw_ref = {k: ref_inputs[k] for k in ("width", "height", "sh_degree", "backgrounds")} | kwargs
+    kw_ref.pop("tile_size", None)
+    ref_colors, ref_alphas = reference_render(
+        *[ref_inputs[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")], **kw_ref
+    )
+    ((ref_colors * w_col.double()).sum() + (ref_alphas * w_alpha.double()).sum()).backward()
+    ref_grads = {k: ref_inputs[k].grad for k in PARAMS}
+    return (colors, alphas, meta, grads), (ref_colors, ref_alphas, ref_grads)
+
+
+def assert_matches(scene, **kwargs):
+    (colors, alphas, meta, grads), (ref_colors, ref_alphas, ref_grads) = run_both(scene, **kwargs)
+    for name, out in (("colors", colors), ("alphas", alphas)):
+        assert torch.isfinite(out).all(), name
+    assert colors.dtype == torch.float32
+    assert (colors.double() - ref_colors).abs().max() <= 1e-5
+    assert (alphas.double() - ref_alphas).abs().max() <= 1e-5
+    for name in PARAMS:
+        got, ref = grads[name], ref_grads[name]
+        if ref is None:
+            ref = torch.zeros_like(got, dtype=torch.float64)
+        assert got is not None and torch.isfinite(got).all(), name
+        err = (got.double() - ref).abs()
+        ok = (err <= 1e-6) | (err <= 1e-3 * ref.abs())
+        assert ok.all(), f"{name}: worst abs err {err.max():.3g} at ref {ref.flatten()[err.argmax()]:.3g}"
+    return colors, alphas, meta, grads
+
+
+# --------------------------------------------------------------------------- tests
+
+
+@pytest.mark.parametrize("sh_degree", [None, 3])
+def test_random_scene_matches_reference(sh_degree):
+    scene = random_scene(150, seed=1 if sh_degree is None else 2, sh_degree=sh_degree)
+    _, alphas, meta, _ = assert_matches(scene)
+    assert alphas.max() > 0.9  # the scene is not trivially empty
+    assert meta["visibility_counts"].shape == (2, 150) and meta["visibility_counts"].sum() > 0
+
+
+def test_dense_scene_terminates_early_like_reference():
+    scene = random_scene(300, seed=3, n_cams=1, width=33, height=29, spread=0.8)
+    scene["opacities"] = torch.full((300,), 0.97)
+    scene["scales"] = scene["scales"] * 3.0
+    _, alphas, _, _ = assert_matches(scene)
+    # Most pixels are covered many times over, yet T never falls to the 1e-4 floor: compositing stopped.
+    assert (alphas > 0.996).float().mean() > 0.5
+    assert (1.0 - alphas.double()).min() > 0.99e-4
+
+
+def test_lower_sh_degree_reads_leading_coefficients():
+    scene = random_scene(60, seed=4, n_cams=1, sh_degree=3)
+    scene["sh_degree"] = 1
+    assert_matches(scene)
+
+
+def test_behind_camera_and_near_plane():
+    # Camera at the origin looking down +z; Gaussians behind it, straddling and just past the near plane.
+    scene = random_scene(6, seed=5, n_cams=1, width=40, height=30)
+    scene["viewmats"] = torch.eye(4)[None]
+    scene["means"] = torch.tensor(
+        [[0.1, 0.0, -1.0], [0.0, 0.1, 0.005], [0.05, -0.02, 0.02], [0.2, 0.1, 0.3], [-3.0, 0.5, 0.05], [0.0, 0.0, 2.0]]
+    )
+    scene["scales"] = torch.tensor([[0.5, 0.5, 0.5], [0.3, 0.3, 0.3], [0.05, 0.08, 0.1]] + [[0.1, 0.2, 0.05]] * 3)
+    _, _, meta, _ = assert_matches(scene)
+    assert meta["radii"][0, :2].eq(0).all() and meta["radii"][0, 2:4].gt(0).all()
+
+
+def test_extreme_shapes_and_opacities():
+    scene = random_scene(8, seed=6, n_cams=2, width=31, height=23)
+    scene["means"] = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [-0.4, 0.1, 0.2], [0.1, 0.4, -0.3],
+         [0.2, 0.2, 0.2], [-0.2, -0.3, 0.0], [0.5, 0.0, -0.1], [0.0, -0.5, 0.3]]
+    )
+    scene["scales"] = torch.tensor(
+        [
+            [1e-4, 1.0, 1.0],  # scale ratio 1e4: a disc seen at an angle
+            [2e-5, 2e-5, 2e-5],  # sub-pixel: eps2d dominates
+            [8.0, 6.0, 7.0],  # covers the whole image
+            [1e-4, 1e-4, 1.0],  # needle
+            [0.1, 0.1, 0.1],
+            [0.2, 0.05, 0.1],
+            [0.3, 0.3, 0.3],
+            [0.15, 0.1, 0.2],
+        ]
+    ) * 0.5
+    scene["opacities"] = torch.tensor([1.0, 1.0, 0.3, 0.0, 1.0, 0.5, 0.0, 1.0 / 255.0 + 1e-6])
+    _, _, meta, grads = assert_matches(scene)
+    assert grads["opacities"][6] == 0 and meta["radii"][:, 6].eq(0).all()
+
+
+def test_equal_depths_break_ties_by_index():
+    scene = random_scene(12, seed=8, n_cams=1, width=24, height=20)
+    scene["viewmats"] = torch.eye(4)[None]
+    xy = torch.randn(12, 2, generator=torch.Generator().manual_seed(0)) * 0.15
+    scene["means"] = torch.cat([xy, torch.full((12, 1), 2.0)], dim=1)
+    scene["quats"] = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(12, 1)
+    scene["scales"] = torch.full((12, 3), 0.15)
+    scene["opacities"] = torch.full((12,), 0.8)
+    assert_matches(scene)
+    # Same scene, order reversed: a different image, since ties follow the index.
+    flipped = dict(scene, **{k: scene[k].flip(0) for k in ("means", "colors")})
+    a = rasterize(*[scene[k] for k in PARAMS[:-1]], scene["Ks"], 24, 20)[0]
+    b = rasterize(*[flipped[k] for k in PARAMS[:-1]], flipped["Ks"], 24, 20)[0]
+    assert (a - b).abs().max() > 1e-2
+
+
+def test_everything_off_screen():
+    scene = random_scene(20, seed=9, n_cams=2, width=17, height=16)
+    scene["means"] = scene["means"] * 0.1 + torch.tensor([40.0, 0.0, 0.0])
+    colors, alphas, meta, grads = assert_matches(scene)
+    assert meta["radii"].eq(0).all() and meta["n_isects"] == 0
+    assert torch.equal(colors, scene["backgrounds"][:, None, None, :].expand_as(colors))
+    assert alphas.eq(0).all() and grads["means"].eq(0).all()
+
+
+@pytest.mark.parametrize(("width", "height"), [(1, 1), (17, 33), (50, 3)])
+def test_odd_image_sizes(width, height):
+    scene = random_scene(40, seed=10 + width, n_cams=2, width=width, height=height)
+    scene["scales"] = scene["scales"] * (4.0 if width == 1 else 1.0)
+    assert_matches(scene)
+
+
+def test_tile_size_does_not_change_the_image():
+    scene = random_scene(80, seed=11, n_cams=1, width=40, height=24)
+    assert_matches(scene, tile_size=8)
+
+
+def test_per_camera_colors_and_plain_background_vector():
+    scene = random_scene(50, seed=12, n_cams=3, width=20, height=18)
+    scene["colors"] = torch.rand(3, 50, 4, generator=torch.Generator().manual_seed(1))
+    scene["backgrounds"] = torch.rand(3, 4, generator=torch.Generator().manual_seed(2))
+    colors, _, _, _ = assert_matches(scene)
+    assert colors.shape == (3, 18, 20, 4)
+
+
+def test_active_subset_equals_rendering_the_subset():
+    scene = random_scene(120, seed=13, n_cams=2, width=30, height=26, sh_degree=2)
+    active = torch.rand(120, generator=torch.Generator().manual_seed(3)) < 0.5
+    _, _, _, grads = assert_matches(scene, active=active)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        assert grads[name][~active].eq(0).all(), name
+    sub = {k: (scene[k][active] if k in PARAMS[:5] else scene[k]) for k in scene}
+    kw = {k: sub[k] for k in ("width", "height", "sh_degree", "backgrounds")}
+    full = rasterize(*[scene[k] for k in PARAMS[:-1]], scene["Ks"], active=active, **kw)
+    part = rasterize(*[sub[k] for k in PARAMS[:-1]], sub["Ks"], **kw)
+    assert torch.equal(full[0], part[0]) and torch.equal(full[1], part[1])
+
+
+def test_results_do_not_depend_on_thread_count():
+    scene = random_scene(200, seed=14, n_cams=2)
+    outs = []
+    before = numba.get_num_threads()
+    for threads in sorted({1, before}):
+        numba.set_num_threads(threads)
+        inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS[:-1]}
+        colors, _, _ = rasterize(*inputs.values(), scene["Ks"], scene["width"], scene["height"])
+        colors.square().sum().backward()
+        outs.append((colors, inputs["means"].grad, inputs["viewmats"].grad))
+    numba.set_num_threads(before)
+    for a, b in zip(outs[0], outs[-1]):
+        assert torch.equal(a, b)
+
+
+def test_projection_meta_matches_gsplat_box_rule():
+    scene = random_scene(100, seed=15, n_cams=1)
+    proj = project_gaussians(*[scene[k] for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")],
+                             scene["width"], scene["height"])
+    vis = proj.radii[0, :, 0] > 0
+    assert vis.any()
+    cov_xx = proj.conics[0, :, 2] / (proj.conics[0, :, 0] * proj.conics[0, :, 2] - proj.conics[0, :, 1] ** 2)
+    extent = torch.sqrt(2.0 * torch.log(255.0 * scene["opacities"].double()))
+    assert torch.equal(proj.radii[0, vis, 0], torch.ceil(extent[vis] * cov_xx[vis].sqrt()).int())
+
+
+def test_eval_sh_matches_textbook_basis():
+    g = torch.Generator().manual_seed(0)
+    sh = torch.randn(2, 30, 16, 3, dtype=torch.float64, generator=g)
+    dirs = torch.randn(2, 30, 3, dtype=torch.float64, generator=g) * 3.0
+    for degree in range(4):
+        assert num_sh_bases(degree) == (degree + 1) ** 2
+        assert torch.allclose(eval_sh(degree, sh, dirs), _ref_sh(degree, sh, dirs), atol=1e-12)
+    with pytest.raises(ValueError):
+        num_sh_bases(4)
+
+
+def test_rejects_bad_shapes():
+    scene = random_scene(10, seed=16, n_cams=1)
+    args = [scene[k] for k in PARAMS[:-1]] + [scene["Ks"]]
+    args[1] = args[1][:, :3]
+    with pytest.raises(ValueError, match="quats"):
+        rasterize(*args, 10, 10)
+
+
+@pytest.mark.skipif(
+    not (torch.cuda.is_available() and __import__("importlib").util.find_spec("gsplat")),
+    reason="needs a CUDA GPU and gsplat",
+)
+def test_cuda_backend_agrees_with_cpu():
+    scene = random_scene(300, seed=17, n_cams=2, width=64, height=48, sh_degree=3)
+    outs = {}
+    for device in ("cpu", "cuda"):
+        inputs = {k: scene[k].to(device).requires_grad_(True) for k in PARAMS}
+        colors, alphas, meta = rasterize(
+            *[inputs[k] for k in PARAMS[:-1]], scene["Ks"].to(device), 64, 48, sh_degree=3,
+            backgrounds=inputs["backgrounds"],
+        )
+        (colors.square().sum() + alphas.sum()).backward()
+        outs[device] = (colors, alphas, meta["visibility_counts"], {k: inputs[k].grad for k in PARAMS})
+    cpu, gpu = outs["cpu"], outs["cuda"]
+    assert (cpu[0] - gpu[0].cpu()).abs().max() < 1e-4
+    assert (cpu[1] - gpu[1].cpu()).abs().max() < 1e-4
+    assert (cpu[2] - gpu[2].cpu()).abs().sum() <= 0.01 * cpu[2].sum()
+    for k in PARAMS:
+        assert torch.allclose(cpu[3][k], gpu[3][k].cpu(), rtol=1e-2, atol=1e-4), k
