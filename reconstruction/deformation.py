@@ -1,0 +1,177 @@
+"""Deformation field (paper 3.5): Δμ = D(γ(μ)), an MLP on sinusoidal features of canonical positions.
+
+Positions are normalised by the object's bounding sphere before encoding, so the same bands fit a
+part in millimetres and one in metres, and the head's output is scaled back by the radius (the
+learning rate then means the same thing for every object). The head is zero-initialised: the field
+starts as the identity.
+
+On a CPU the MLP need not run at every splat: with `anchors`, it runs at M anchor points (farthest-
+point subsample of the splats) and each splat takes a fixed inverse-distance blend of its k nearest
+anchors' offsets. The field stays smooth (it is a smooth MLP blended with smooth weights) and its
+cost drops from N to M evaluations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    depth: int = 8
+    width: int = 256
+    bands: int = 10
+    num_anchors: int | None = None  # None: evaluate at every splat (the paper)
+    anchor_k: int = 4
+
+
+def positional_encoding(x: torch.Tensor, bands: int) -> torch.Tensor:
+    """γ(x) for x [N, 3] in about [-1, 1] -> [N, 3 + 6 * bands]: x, sin(2^l π x), cos(2^l π x)."""
+    freqs = (2.0 ** torch.arange(bands, dtype=x.dtype, device=x.device)) * math.pi
+    xf = x[:, None, :] * freqs[:, None]  # [N, L, 3]
+    return torch.cat([x, torch.sin(xf).flatten(1), torch.cos(xf).flatten(1)], 1)
+
+
+class DeformationMLP(nn.Module):
+    """depth x width ReLU MLP; the encoding is concatenated again after layer depth // 2; linear head -> 3."""
+
+    def __init__(self, in_dim: int, depth: int, width: int):
+        super().__init__()
+        if depth < 1 or width < 1:
+            raise ValueError(f"deformation MLP needs depth and width >= 1, got {depth}x{width}")
+        self.skip = depth // 2
+        layers = []
+        for i in range(depth):
+            d_in = in_dim if i == 0 else width
+            if i == self.skip and i > 0:
+                d_in = width + in_dim
+            layers.append(nn.Linear(d_in, width))
+        self.layers = nn.ModuleList(layers)
+        self.head = nn.Linear(width, 3)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, enc: torch.Tensor) -> torch.Tensor:
+        h = enc
+        for i, layer in enumerate(self.layers):
+            if i == self.skip and i > 0:
+                h = torch.cat([h, enc], 1)
+            h = torch.relu(layer(h))
+        return self.head(h)
+
+
+def farthest_point_indices(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
+    """Indices [m] of a farthest-point subsample of points [N, 3] (m clipped to N)."""
+    pts = np.asarray(points, np.float64)
+    m = min(m, len(pts))
+    idx = np.empty(m, np.int64)
+    idx[0] = np.random.default_rng(seed).integers(len(pts))
+    d = np.sum((pts - pts[idx[0]]) ** 2, 1)
+    for i in range(1, m):
+        idx[i] = int(d.argmax())
+        d = np.minimum(d, np.sum((pts - pts[idx[i]]) ** 2, 1))
+    return idx
+
+
+def idw_weights(points: np.ndarray, anchors: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """k nearest anchors [N, k] of each point and inverse-square-distance weights [N, k] summing to 1.
+
+    A point on an anchor takes that anchor's value exactly (the weight formula is regularised by a
+    floor of 1e-6 of the mean anchor spacing).
+    """
+    k = min(k, len(anchors))
+    tree = cKDTree(np.asarray(anchors, np.float64))
+    dist, idx = tree.query(np.asarray(points, np.float64), k=k, workers=-1)
+    dist, idx = dist.reshape(len(points), k), idx.reshape(len(points), k)
+    spacing = float(np.mean(tree.query(anchors, k=min(2, len(anchors)))[0][:, -1])) if len(anchors) > 1 else 1.0
+    w = 1.0 / np.maximum(dist, 1e-6 * max(spacing, 1e-12)) ** 2
+    return idx.astype(np.int64), (w / w.sum(1, keepdims=True)).astype(np.float32)
+
+
+class DeformationField(nn.Module):
+    """Offsets Δμ [N, 3] for the fixed canonical means [N, 3] it was built on (object frame, metres)."""
+
+    def __init__(self, means_canonical: np.ndarray, config: FieldConfig = FieldConfig(), *, seed: int = 0,
+                 center: np.ndarray | None = None, radius: float | None = None):
+        super().__init__()
+        self.config = config
+        pts = np.asarray(means_canonical, np.float64)
+        lo, hi = pts.min(0), pts.max(0)
+        c = (lo + hi) / 2 if center is None else np.asarray(center, np.float64)
+        r = float(np.linalg.norm(pts - c, axis=1).max()) if radius is None else float(radius)
+        r = max(r, 1e-9)
+        self.register_buffer("center", torch.tensor(c, dtype=torch.float32))
+        self.register_buffer("radius", torch.tensor(r, dtype=torch.float32))
+        self.mlp = DeformationMLP(3 + 6 * config.bands, config.depth, config.width)
+        if config.num_anchors is not None and config.num_anchors < len(pts):
+            anchors = pts[farthest_point_indices(pts, config.num_anchors, seed)]
+            idx, w = idw_weights(pts, anchors, config.anchor_k)
+            self.register_buffer("anchors", torch.tensor(anchors, dtype=torch.float32))
+            self.register_buffer("anchor_idx", torch.from_numpy(idx))
+            self.register_buffer("anchor_w", torch.from_numpy(w))
+            self.register_buffer("points", torch.zeros(0, 3))
+        else:
+            self.register_buffer("anchors", None)
+            self.register_buffer("points", torch.tensor(pts, dtype=torch.float32))
+
+    @property
+    def num_evaluations(self) -> int:
+        """MLP evaluations per forward pass."""
+        return len(self.anchors) if self.anchors is not None else len(self.points)
+
+    def _mlp_at(self, x: torch.Tensor) -> torch.Tensor:
+        xn = (x - self.center) / self.radius
+        return self.mlp(positional_encoding(xn, self.config.bands)) * self.radius
+
+    def forward(self) -> torch.Tensor:
+        """Δμ [N, 3] at the canonical means."""
+        if self.anchors is None:
+            return self._mlp_at(self.points)
+        d = self._mlp_at(self.anchors)
+        return torch.einsum("nk,nkd->nd", self.anchor_w, d[self.anchor_idx])
+
+    @torch.no_grad()
+    def offsets_at(self, points: np.ndarray) -> np.ndarray:
+        """Δ [P, 3] at arbitrary canonical points (e.g. CAD vertices), the same field the splats see."""
+        pts = np.asarray(points, np.float64)
+        if self.anchors is None:
+            return self._mlp_at(torch.tensor(pts, dtype=torch.float32)).numpy().astype(np.float64)
+        anchors = self.anchors.numpy()
+        idx, w = idw_weights(pts, anchors, self.config.anchor_k)
+        d = self._mlp_at(self.anchors).numpy()
+        return np.einsum("nk,nkd->nd", w, d[idx]).astype(np.float64)
+
+    def export_state(self) -> dict:
+        """Config + weights + normalisation + anchors: enough to evaluate the field anywhere."""
+        return {
+            "config": asdict(self.config),
+            "state_dict": {k: v.detach().cpu() for k, v in self.mlp.state_dict().items()},
+            "center": self.center.cpu(),
+            "radius": self.radius.cpu(),
+            "anchors": None if self.anchors is None else self.anchors.cpu(),
+        }
+
+
+def field_from_state(state: dict, means_canonical: np.ndarray) -> DeformationField:
+    """Rebuild a field saved by `export_state` on `means_canonical` (anchors restored exactly)."""
+    config = FieldConfig(**state["config"])
+    field = DeformationField(
+        means_canonical, FieldConfig(config.depth, config.width, config.bands, None, config.anchor_k),
+        center=state["center"].numpy(), radius=float(state["radius"]),
+    )
+    field.config = config
+    field.mlp.load_state_dict(state["state_dict"])
+    if state.get("anchors") is not None:
+        anchors = state["anchors"].numpy().astype(np.float64)
+        idx, w = idw_weights(means_canonical, anchors, config.anchor_k)
+        field.anchors = torch.tensor(anchors, dtype=torch.float32)
+        field.anchor_idx = torch.from_numpy(idx)
+        field.anchor_w = torch.from_numpy(w)
+        field.points = torch.zeros(0, 3)
+    return field

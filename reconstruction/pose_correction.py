@@ -1,0 +1,106 @@
+"""Learnable camera-pose correction (paper 3.3, eq. (pose)), acting on camera-to-object poses.
+
+`global`: one Sim(3) delta shared by all cameras of a calibrated rig, c -> R_δ (s c) + t_δ and
+R -> R_δ R, with R_δ from a 6D vector by Gram-Schmidt (Zhou et al. 2019) and s = exp(Δs); ten
+parameters, identity at init. The refined registration is then ΔSim3 ∘ sim3_rig_to_object_init.
+
+`per_camera`: an independent SE(3) delta per camera for rough poses. It multiplies on the camera's
+side (c2w @ Δ) so a rotation turns the camera about its own centre and a translation moves it along
+its own axes: per-view pointing errors are then decoupled from the camera's distance to the object.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from calibration.sim3 import Sim3
+
+POSE_MODES = ("global", "per_camera")
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+
+def rotation_6d_to_matrix(r6: torch.Tensor) -> torch.Tensor:
+    """6D vectors [..., 6] (two columns a1, a2) -> rotations [..., 3, 3] with columns b1, b2, b3 (Gram-Schmidt)."""
+    a1, a2 = r6[..., :3], r6[..., 3:]
+    b1 = a1 / a1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    a2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+    b2 = a2 / a2.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    b3 = torch.cross(b1, b2, dim=-1)
+    return torch.stack([b1, b2, b3], -1)
+
+
+def viewmats_from_c2w(c2w: torch.Tensor) -> torch.Tensor:
+    """Rigid camera-to-world [C, 4, 4] -> world-to-camera [C, 4, 4] (differentiable, no general inverse)."""
+    r = c2w[:, :3, :3]
+    t = c2w[:, :3, 3:]
+    rt = r.transpose(1, 2)
+    top = torch.cat([rt, -rt @ t], 2)
+    bottom = torch.zeros_like(c2w[:, 3:, :])
+    bottom[..., 3] = 1
+    return torch.cat([top, bottom], 1)
+
+
+class PoseCorrection(nn.Module):
+    """Corrects camera-to-object poses c2w [C, 4, 4] (OpenCV axes). Identity at initialisation."""
+
+    def __init__(self, num_cameras: int, mode: str = "global"):
+        super().__init__()
+        if mode not in POSE_MODES:
+            raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {mode!r}")
+        self.mode = mode
+        n = 1 if mode == "global" else num_cameras
+        self.num_cameras = num_cameras
+        self.r6 = nn.Parameter(torch.tensor([_IDENTITY_6D] * n, dtype=torch.float64))
+        self.t = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
+        # Only the global mode carries a scale (the rig-to-CAD unit ambiguity); per-camera is SE(3).
+        self.log_scale = nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=mode == "global")
+
+    def forward(self, c2w: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        """Corrected c2w [C, 4, 4] (float64) for cameras `index` [C] (default: all)."""
+        c2w = c2w.to(torch.float64)
+        r_in, c_in = c2w[:, :3, :3], c2w[:, :3, 3]
+        if self.mode == "global":
+            rd = rotation_6d_to_matrix(self.r6[0])
+            r_out = rd @ r_in
+            c_out = (torch.exp(self.log_scale) * c_in) @ rd.T + self.t[0]
+        else:
+            sel = torch.arange(len(c2w)) if index is None else index
+            rd = rotation_6d_to_matrix(self.r6[sel])
+            r_out = r_in @ rd
+            c_out = c_in + (r_in @ self.t[sel, :, None])[..., 0]
+        out = torch.zeros_like(c2w)
+        out[:, :3, :3] = r_out
+        out[:, :3, 3] = c_out
+        out[:, 3, 3] = 1
+        return out
+
+    @torch.no_grad()
+    def delta_sim3(self) -> Sim3:
+        """The global correction as a Sim(3) in the object frame (identity for per-camera mode)."""
+        if self.mode != "global":
+            return Sim3.identity()
+        r = rotation_6d_to_matrix(self.r6[0]).numpy()
+        return Sim3(float(torch.exp(self.log_scale)), r, self.t[0].numpy())
+
+
+def choose_pose_mode(meta: dict, override: str | None = None) -> tuple[str, str]:
+    """(mode, why) from a capture's calibration provenance (`capture.meta`), unless overridden."""
+    if override is not None:
+        if override not in POSE_MODES:
+            raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {override!r}")
+        return override, "set by the caller"
+    source = str(meta.get("pose_source", "")).lower()
+    if source in ("rough", "approximate", "estimated", "phone"):
+        return "per_camera", f"capture poses are marked pose_source={source!r}: each view gets its own SE(3) correction"
+    if meta.get("calibration_id"):
+        return "global", f"rig calibration {meta['calibration_id']!r}: one global Sim(3) correction for all cameras"
+    return "global", "no provenance says the poses are rough: one global Sim(3) correction (the paper's default)"
+
+
+def corrected_c2w_numpy(correction: PoseCorrection, c2w: np.ndarray) -> np.ndarray:
+    """Apply a trained correction to c2w [C, 4, 4] numpy poses; returns float64 [C, 4, 4]."""
+    with torch.no_grad():
+        return correction(torch.as_tensor(np.asarray(c2w, np.float64))).numpy()
+

@@ -1,0 +1,104 @@
+"""Deformation field: identity at init, skip at the middle, anchors interpolate, it can fit a smooth warp."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(1)  # the CI box is shared; one thread avoids oversubscription stalls
+
+from reconstruction.deformation import (
+    DeformationField,
+    FieldConfig,
+    farthest_point_indices,
+    field_from_state,
+    idw_weights,
+    positional_encoding,
+)
+
+
+def sphere_points(n=3000, r=0.1, seed=0):
+    p = np.random.default_rng(seed).normal(size=(n, 3))
+    return p / np.linalg.norm(p, axis=1, keepdims=True) * r
+
+
+def test_encoding_has_10_bands():
+    x = torch.rand(5, 3) * 2 - 1
+    e = positional_encoding(x, 10)
+    assert e.shape == (5, 63)
+    torch.testing.assert_close(e[:, :3], x)
+    torch.testing.assert_close(e[:, 3 + 3 * 9: 6 + 3 * 9], torch.sin(x * 512 * np.pi))
+
+
+@pytest.mark.parametrize("anchors", [None, 256])
+def test_field_starts_at_identity(anchors):
+    pts = sphere_points()
+    f = DeformationField(pts, FieldConfig(depth=8, width=64, num_anchors=anchors))
+    d = f()
+    assert d.shape == (3000, 3)
+    assert torch.count_nonzero(d) == 0
+    assert np.count_nonzero(f.offsets_at(pts[:10] * 1.5)) == 0
+    # Gradients reach the network even though the output is zero.
+    d.sum().backward()
+    assert f.mlp.head.weight.grad.abs().sum() > 0
+
+
+def test_paper_architecture_8x256_skip_at_middle():
+    f = DeformationField(sphere_points(100), FieldConfig())
+    layers = f.mlp.layers
+    assert len(layers) == 8 and all(l.out_features == 256 for l in layers)
+    assert layers[0].in_features == 63 and layers[4].in_features == 256 + 63 and layers[5].in_features == 256
+
+
+def test_fps_spreads_and_idw_interpolates():
+    pts = sphere_points(2000)
+    idx = farthest_point_indices(pts, 100)
+    assert len(np.unique(idx)) == 100
+    a = pts[idx]
+    # Farthest-point samples are well spread: min spacing far above that of a random subset.
+    from scipy.spatial.distance import pdist
+
+    rand = pts[np.random.default_rng(0).choice(2000, 100, replace=False)]
+    assert pdist(a).min() > 2 * pdist(rand).min()
+    nn, w = idw_weights(pts, a, 4)
+    np.testing.assert_allclose(w.sum(1), 1, rtol=1e-6)
+    # At an anchor the weight is all on that anchor.
+    nn_a, w_a = idw_weights(a, a, 4)
+    np.testing.assert_array_equal(nn_a[:, 0], np.arange(100))
+    assert np.all(w_a[:, 0] > 0.999)
+
+
+def fit(field, pts, target, steps=250, lr=5e-3):
+    opt = torch.optim.Adam(field.mlp.parameters(), lr=lr)
+    tgt = torch.tensor(target, dtype=torch.float32)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = ((field() - tgt) ** 2).mean()
+        loss.backward()
+        opt.step()
+    return float(np.sqrt(np.mean((field.offsets_at(pts) - target) ** 2)))
+
+
+def test_fits_a_smooth_deformation_with_and_without_anchors():
+    torch.manual_seed(0)
+    pts = sphere_points(2000)
+    # A smooth bulge: 5 mm at most on a 10 cm sphere.
+    target = 0.05 * pts * np.sin(3 * pts[:, :1] / 0.1) * np.cos(2 * pts[:, 1:2] / 0.1)
+    rms0 = float(np.sqrt(np.mean(target**2)))
+    full = fit(DeformationField(pts, FieldConfig(depth=4, width=64, bands=4)), pts, target)
+    anch = fit(DeformationField(pts, FieldConfig(depth=4, width=64, bands=4, num_anchors=512)), pts, target)
+    assert full < 0.3 * rms0 and anch < 0.3 * rms0, (full, anch, rms0)
+
+
+def test_state_round_trip_millimetres():
+    pts = sphere_points(500, r=100.0)  # a part in millimetres
+    f = DeformationField(pts, FieldConfig(depth=2, width=16, bands=3, num_anchors=64))
+    with torch.no_grad():
+        f.mlp.head.bias[:] = torch.tensor([0.1, 0.2, 0.3])
+    assert 99.0 < float(f.radius) < 102.0
+    # The head works in radius units: a bias of 0.1 is a tenth of the object's radius, in millimetres here.
+    np.testing.assert_allclose(f().detach().numpy(), np.tile([0.1, 0.2, 0.3], (500, 1)) * float(f.radius), rtol=1e-5)
+    g = field_from_state(f.export_state(), pts)
+    np.testing.assert_allclose(g().detach().numpy(), f().detach().numpy(), rtol=1e-6)
+    assert g.num_evaluations == 64

@@ -1,0 +1,84 @@
+"""Pose correction: 6D rotations stay rotations, identity at init, the paper's eq. (pose), mode choice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from calibration.camera import look_at_c2w
+from calibration.sim3 import Sim3
+from calibration.so3 import axis_angle_to_matrix, is_rotation
+from reconstruction.pose_correction import (
+    PoseCorrection,
+    choose_pose_mode,
+    corrected_c2w_numpy,
+    rotation_6d_to_matrix,
+    viewmats_from_c2w,
+)
+
+
+def ring(n=5):
+    return np.stack([look_at_c2w(np.array([np.cos(a), np.sin(a), 0.3]) * 0.6, np.zeros(3)) for a in np.linspace(0, 6, n)])
+
+
+def test_6d_rotation_is_always_a_rotation():
+    r6 = torch.randn(2000, 6, dtype=torch.float64) * torch.logspace(-3, 3, 2000, dtype=torch.float64)[:, None]
+    r = rotation_6d_to_matrix(r6).numpy()
+    assert all(is_rotation(m, tol=1e-9) for m in r)
+    # The first two columns of a rotation map back to it exactly.
+    rot = axis_angle_to_matrix(np.array([0.3, -1.2, 2.0]))
+    r6 = torch.tensor(np.concatenate([rot[:, 0], rot[:, 1]]))
+    np.testing.assert_allclose(rotation_6d_to_matrix(r6).numpy(), rot, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["global", "per_camera"])
+def test_starts_at_identity(mode):
+    c2w = ring()
+    corr = PoseCorrection(len(c2w), mode)
+    np.testing.assert_allclose(corrected_c2w_numpy(corr, c2w), c2w, atol=1e-14)
+    if mode == "global":
+        assert sum(p.numel() for p in corr.parameters() if p.requires_grad) == 10
+        np.testing.assert_allclose(corr.delta_sim3().matrix(), np.eye(4), atol=1e-14)
+
+
+def test_global_correction_is_the_papers_sim3():
+    c2w = ring()
+    corr = PoseCorrection(len(c2w), "global")
+    rd = axis_angle_to_matrix(np.array([0.1, 0.2, -0.05]))
+    with torch.no_grad():
+        corr.r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]) * 3.0)  # any positive scaling
+        corr.t[0] = torch.tensor([0.01, -0.02, 0.03])
+        corr.log_scale[0] = np.log(1.1)
+    out = corrected_c2w_numpy(corr, c2w)
+    delta = Sim3(1.1, rd, np.array([0.01, -0.02, 0.03]))
+    np.testing.assert_allclose(out, delta.apply_to_c2w(c2w), atol=1e-12)
+    np.testing.assert_allclose(corr.delta_sim3().matrix(), delta.matrix(), atol=1e-12)
+    # Composing with the initial registration gives the refined registration of the rig.
+    init = Sim3(2.0, axis_angle_to_matrix(np.array([0, 0, 1.0])), np.array([1.0, 0, 0]))
+    rig = init.inverse().apply_to_c2w(c2w)
+    np.testing.assert_allclose((corr.delta_sim3() @ init).apply_to_c2w(rig), out, atol=1e-10)
+
+
+def test_per_camera_rotates_about_own_centre_and_has_gradients():
+    c2w = ring(3)
+    corr = PoseCorrection(3, "per_camera")
+    with torch.no_grad():
+        corr.r6[1] = torch.tensor([np.cos(0.1), np.sin(0.1), 0, -np.sin(0.1), np.cos(0.1), 0])
+    out = corrected_c2w_numpy(corr, c2w)
+    np.testing.assert_allclose(out[:, :3, 3], c2w[:, :3, 3], atol=1e-14)  # centres unchanged
+    np.testing.assert_allclose(out[[0, 2]], c2w[[0, 2]], atol=1e-14)
+    vm = viewmats_from_c2w(corr(torch.tensor(c2w)))
+    np.testing.assert_allclose(vm.detach().numpy() @ out, np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
+    vm.sum().backward()
+    assert corr.r6.grad is not None and torch.all(torch.isfinite(corr.r6.grad))
+    assert not corr.log_scale.requires_grad
+
+
+def test_mode_from_provenance():
+    assert choose_pose_mode({"calibration_id": "cal-7"})[0] == "global"
+    assert choose_pose_mode({"pose_source": "rough"})[0] == "per_camera"
+    assert choose_pose_mode({})[0] == "global"
+    assert choose_pose_mode({"pose_source": "rough"}, "global") == ("global", "set by the caller")
+    with pytest.raises(ValueError, match="pose mode"):
+        choose_pose_mode({}, "bogus")
