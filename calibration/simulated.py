@@ -58,7 +58,7 @@ def marker_plane(dictionary: str, marker_id: int, side_m: float, marker_to_world
 
 
 def noise_texture(size: tuple[int, int], rng: np.random.Generator, octaves: int = 5) -> np.ndarray:
-    """Blotchy gray texture [h, w] in [0, 1] with detail at several scales (features for ORB/SIFT)."""
+    """Gray texture [h, w] in [0, 1]: blotches at several scales plus sharp shapes (features for ORB/SIFT)."""
     h, w = size
     out = np.zeros((h, w), np.float32)
     for o in range(octaves):
@@ -66,7 +66,17 @@ def noise_texture(size: tuple[int, int], rng: np.random.Generator, octaves: int 
         small = rng.random((max(2, h * cells // max(h, w)), cells)).astype(np.float32)
         out += cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC) / 2 ** (0.6 * o)
     out -= out.min()
-    return out / out.max()
+    out /= out.max()
+    # Sharp-edged clutter (panels, bolts, labels): corners that feature detectors lock on to.
+    for _ in range(h * w // 900):
+        c = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+        r = int(rng.integers(2, max(3, min(h, w) // 24)))
+        tone = float(rng.random())
+        if rng.random() < 0.5:
+            cv2.rectangle(out, (c[0] - r, c[1] - r // 2), (c[0] + r, c[1] + r // 2), tone, -1)
+        else:
+            cv2.circle(out, c, r, tone, -1)
+    return out
 
 
 def render_planes(camera: Camera, planes: list[TexturedPlane], background: float = 0.5, supersample: int = 3) -> np.ndarray:
@@ -109,7 +119,7 @@ def _window(camera: Camera, p2c: np.ndarray, width_m: float, height_m: float, s:
     corners = np.array([[0, 0, 0, 1], [width_m, 0, 0, 1], [0, height_m, 0, 1], [width_m, height_m, 0, 1.0]]) @ p2c.T
     if np.any(corners[:, 2] <= 1e-9):
         return 0, 0, w, h
-    uv = corners[:, :2] / corners[:, 2:] @ camera.K[:2, :2].T + camera.K[:2, 2]
+    uv = corners[:, :2] / corners[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
     lo = np.floor(uv.min(0) * s).astype(int) - 2
     hi = np.ceil(uv.max(0) * s).astype(int) + 2
     return max(lo[0], 0), max(lo[1], 0), min(hi[0], w), min(hi[1], h)
@@ -206,3 +216,55 @@ def rig_board_views(
             if only is None or only == name:
                 images[name][frame] = sensor(render_planes(cam, [plane], supersample=supersample), rng, noise=noise, blur_sigma=blur_sigma)
     return images, {f: p for f, (p, _) in frames.items()}
+
+
+def _frame(x_axis, y_axis, origin) -> np.ndarray:
+    x = np.asarray(x_axis, float)
+    y = np.asarray(y_axis, float)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, np.cross(x, y), origin
+    return m
+
+
+def rig_frame_scene(
+    rng: np.random.Generator, *, half_x: float = 1.0, half_y: float = 1.0, z_lo: float = -0.5, z_hi: float = 1.0, fiducials: bool = True, marker_m: float = 0.1
+) -> tuple[list[TexturedPlane], dict | None]:
+    """The static surroundings of a ring rig: the inside of a box with textured walls, and
+    optionally ArUco fiducials (DICT_4X4_50) on the far wall and the floor.
+
+    Returns (planes, fiducials) with fiducials = {"dictionary", "marker_m", "markers": {id: [4, 3]
+    corners in the rig frame, ArUco order TL TR BR BL}} or None.
+    """
+    tex_px = 512
+    walls = [
+        _frame([1, 0, 0], [0, 0, -1], [-half_x, half_y, z_hi]),  # far wall (y = +half_y)
+        _frame([1, 0, 0], [0, 1, 0], [-half_x, -half_y, z_lo]),  # floor
+        _frame([0, 1, 0], [0, 0, -1], [-half_x, -half_y, z_hi]),  # left wall
+        _frame([0, -1, 0], [0, 0, -1], [half_x, half_y, z_hi]),  # right wall
+        _frame([-1, 0, 0], [0, 0, -1], [half_x, -half_y, z_hi]),  # near wall
+        _frame([1, 0, 0], [0, -1, 0], [-half_x, half_y, z_hi]),  # ceiling
+    ]
+    planes = []
+    for w in walls:
+        size = max(2 * half_x, 2 * half_y, z_hi - z_lo)
+        planes.append(TexturedPlane(0.15 + 0.7 * noise_texture((tex_px, tex_px), rng), w, size / tex_px))
+    if not fiducials:
+        return planes, None
+    markers = {}
+    eps = 1e-3
+    spots = [(x, z) for x in (-0.6, -0.2, 0.2, 0.6) for z in (-0.1, -0.32)]
+    for i, (x, z) in enumerate(spots):
+        m = _frame([1, 0, 0], [0, 0, -1], [x - marker_m / 2, half_y - eps, z + marker_m / 2])
+        planes.append(marker_plane("DICT_4X4_50", i, marker_m, m))
+        markers[i] = _marker_corners(m, marker_m)
+    for j, (x, y) in enumerate([(-0.5, 0.55), (0.0, 0.65), (0.5, 0.55)]):
+        # Seen from above: the marker frame's z (into the marker) must point down, or it prints mirrored.
+        m = _frame([1, 0, 0], [0, -1, 0], [x - marker_m / 2, y + marker_m / 2, z_lo + eps])
+        planes.append(marker_plane("DICT_4X4_50", len(spots) + j, marker_m, m))
+        markers[len(spots) + j] = _marker_corners(m, marker_m)
+    return planes, {"dictionary": "DICT_4X4_50", "marker_m": marker_m, "markers": {k: v.tolist() for k, v in markers.items()}}
+
+
+def _marker_corners(marker_to_world: np.ndarray, side: float) -> np.ndarray:
+    local = np.array([[0, 0, 0, 1], [side, 0, 0, 1], [side, side, 0, 1], [0, side, 0, 1.0]])
+    return (local @ marker_to_world.T)[:, :3]

@@ -1,0 +1,204 @@
+"""The calibration document (`calibration.json`) and its version store.
+
+`calibration.json` is the current version; every version ever made also lives, never overwritten,
+in `<stem>.versions/v0001.json, v0002.json, ...` beside it. The rig frame is the first camera's
+frame. Intrinsics use this project's pixel convention (pixel centres at +0.5).
+
+Per camera: name, K (3x3), dist (OpenCV order), width, height, rms_px, c2r (camera-to-rig 4x4),
+per_image_rms_px, coverage (fraction of an 8x8 image grid holding detected corners), uncertainty
+({intrinsics_cv_px, extrinsics_cv_rotation_deg, extrinsics_cv_translation_mm}: differences
+between calibrations from two disjoint halves of the data), outlier_views, rejected_views.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from calibration.fileio import _json_default, atomic_write_bytes, fsync_dir
+from calibration.multiview import RigCalibration
+
+FORMAT = "cadsplat.calibration/1"
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file that cannot be read or a version that cannot be written."""
+
+
+@dataclass(frozen=True)
+class CalibrationDoc:
+    """Cameras (c2w = camera-to-rig) plus provenance and quality figures per camera."""
+
+    cameras: dict[str, Camera]
+    figures: dict[str, dict] = field(default_factory=dict)
+    source: str = "board"
+    board: str | None = None
+    version: int | None = None
+    parent: int | None = None
+    created: str = ""
+    notes: dict = field(default_factory=dict)
+    fiducials: dict | None = None
+
+    def camera(self, name: str) -> Camera:
+        if name not in self.cameras:
+            raise CalibrationFileError(f"calibration has no camera '{name}' (it has {', '.join(self.cameras)})")
+        return self.cameras[name]
+
+    def with_cameras(self, cameras: dict[str, Camera], *, source: str, notes: dict | None = None) -> "CalibrationDoc":
+        """A successor document: new poses, the same figures, this version as parent."""
+        return replace(self, cameras={**self.cameras, **cameras}, source=source, parent=self.version, version=None, created="", notes=notes or {})
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def from_rig(rig: RigCalibration, *, board: str | None, source: str = "board") -> CalibrationDoc:
+    figures = {}
+    for n in rig.cameras:
+        cv = (rig.extrinsics_cv or {}).get(n, {})
+        figures[n] = {
+            "rms_px": rig.rms_px[n],
+            "per_image_rms_px": rig.per_image_rms_px[n],
+            "coverage": rig.coverage[n],
+            "uncertainty": {
+                "intrinsics_cv_px": rig.intrinsics_cv_px[n],
+                "extrinsics_cv_rotation_deg": cv.get("rotation_deg"),
+                "extrinsics_cv_translation_mm": cv.get("translation_mm"),
+            },
+            "outlier_views": list(rig.outliers[n]),
+            "rejected_views": rig.rejected[n],
+        }
+    return CalibrationDoc(rig.cameras, figures, source, board, notes={"single_camera_frames": list(rig.single_camera_frames)})
+
+
+def to_document(doc: CalibrationDoc) -> dict:
+    cams = []
+    for name, cam in doc.cameras.items():
+        fig = doc.figures.get(name, {})
+        cams.append(
+            {
+                "name": name,
+                "K": cam.K.tolist(),
+                "dist": cam.dist.tolist(),
+                "width": cam.width,
+                "height": cam.height,
+                "rms_px": fig.get("rms_px"),
+                "c2r": cam.c2w.tolist(),
+                **{k: v for k, v in fig.items() if k != "rms_px"},
+            }
+        )
+    out = {
+        "format": FORMAT,
+        "version": doc.version,
+        "parent": doc.parent,
+        "created": doc.created,
+        "source": doc.source,
+        "board": doc.board,
+        "rig_frame": f"camera '{next(iter(doc.cameras))}'" if doc.cameras else None,
+        "cameras": cams,
+        "notes": doc.notes,
+    }
+    if doc.fiducials is not None:
+        out["fiducials"] = doc.fiducials
+    return out
+
+
+def from_document(d: dict, where: str = "calibration") -> CalibrationDoc:
+    if not isinstance(d, dict) or not str(d.get("format", "")).startswith("cadsplat.calibration/"):
+        raise CalibrationFileError(f"{where}: not a cadsplat calibration file (no 'format: {FORMAT}')")
+    cameras, figures = {}, {}
+    try:
+        for c in d["cameras"]:
+            name = str(c["name"])
+            cameras[name] = Camera(np.array(c["K"]), int(c["width"]), int(c["height"]), np.array(c.get("dist", [])), np.array(c["c2r"]))
+            figures[name] = {k: v for k, v in c.items() if k not in ("name", "K", "dist", "width", "height", "c2r")}
+    except (KeyError, TypeError, ValueError) as e:
+        raise CalibrationFileError(f"{where}: camera entry is malformed ({e})") from None
+    if not cameras:
+        raise CalibrationFileError(f"{where}: lists no cameras")
+    return CalibrationDoc(
+        cameras, figures, d.get("source", "board"), d.get("board"), d.get("version"), d.get("parent"), d.get("created", ""), d.get("notes", {}), d.get("fiducials")
+    )
+
+
+def read_calibration(path: str | os.PathLike) -> CalibrationDoc:
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{path}: calibration file does not exist") from None
+    except json.JSONDecodeError as e:
+        raise CalibrationFileError(f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from None
+    return from_document(d, str(path))
+
+
+def _encode(doc: CalibrationDoc) -> bytes:
+    return (json.dumps(to_document(doc), indent=2, default=_json_default, allow_nan=False) + "\n").encode()
+
+
+def _write_new(path: Path, data: bytes) -> None:
+    """Write `data` to `path` atomically, failing if `path` exists (link(2) never replaces)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise CalibrationFileError(f"{path}: version already exists; versions are never overwritten") from None
+    finally:
+        os.unlink(tmp)
+    fsync_dir(path.parent)
+
+
+class CalibrationStore:
+    """`calibration.json` (the current version) and `<stem>.versions/` (all versions, write-once)."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.versions_dir = self.path.with_name(self.path.stem + ".versions")
+
+    def versions(self) -> list[int]:
+        if not self.versions_dir.exists():
+            return []
+        return sorted(int(p.stem[1:]) for p in self.versions_dir.glob("v[0-9]*.json"))
+
+    def load(self, version: int | None = None) -> CalibrationDoc:
+        """The current calibration, or a given version."""
+        if version is None:
+            return read_calibration(self.path)
+        p = self.versions_dir / f"v{version:04d}.json"
+        if not p.exists():
+            raise CalibrationFileError(f"{self.path}: has no version {version} (versions: {self.versions() or 'none'})")
+        return read_calibration(p)
+
+    def commit(self, doc: CalibrationDoc) -> CalibrationDoc:
+        """Store `doc` as the next version and make it current; returns it with version, parent, created set.
+
+        A current file that is not yet in the version store (made by hand or by an older tool) is
+        archived first, so nothing is ever lost.
+        """
+        self.versions_dir.mkdir(parents=True, exist_ok=True)
+        parent = doc.parent
+        if self.path.exists():
+            current = read_calibration(self.path)
+            if current.version is None or current.version not in self.versions():
+                current = replace(current, version=(max(self.versions(), default=0) + 1))
+                _write_new(self.versions_dir / f"v{current.version:04d}.json", _encode(current))
+            parent = current.version if parent is None else parent
+        number = max(self.versions(), default=0) + 1
+        doc = replace(doc, version=number, parent=parent, created=doc.created or now_iso())
+        data = _encode(doc)
+        _write_new(self.versions_dir / f"v{number:04d}.json", data)
+        atomic_write_bytes(self.path, data)
+        return doc
