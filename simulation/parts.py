@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.twin import MeshParts, Twin, read_parts_glb
+from reconstruction.twin import MeshParts, Twin
 
 SPLAT_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh", "part_label")
 
@@ -55,8 +55,6 @@ def read_mesh_parts(path: str | os.PathLike) -> tuple[MeshParts, np.ndarray | No
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such mesh file")
-    if path.suffix.lower() in (".glb", ".gltf"):
-        return read_parts_glb(path), None
     kwargs = {"split_objects": True, "split_groups": True} if path.suffix.lower() == ".obj" else {}
     try:
         loaded = trimesh.load(str(path), force="scene", process=False, **kwargs)
@@ -72,7 +70,7 @@ def read_mesh_parts(path: str | os.PathLike) -> tuple[MeshParts, np.ndarray | No
         verts.append(trimesh.transform_points(mesh.vertices, transform))
         faces.append(np.asarray(mesh.faces, np.int64) + offset)
         labels.append(np.full(len(mesh.faces), len(names)))
-        names.append(str(geom_name if len(loaded.graph.nodes_geometry) > 1 else node))
+        names.append(str(node))
         colors.append(_face_colors(mesh))
         offset += len(mesh.vertices)
     if not names:

@@ -37,6 +37,16 @@ class Trajectory:
         t[:3, 3] = self.pos[frame, body]
         return t
 
+    def poses(self) -> np.ndarray:
+        """Object-to-world transforms [T, B, 4, 4] of every body at every frame."""
+        from calibration.so3 import quat_to_matrix
+
+        out = np.zeros(self.pos.shape[:2] + (4, 4))
+        out[..., :3, :3] = quat_to_matrix(self.quat)
+        out[..., :3, 3] = self.pos
+        out[..., 3, 3] = 1.0
+        return out
+
     def to_dict(self) -> dict:
         return {
             "times_s": self.times,
