@@ -1,0 +1,111 @@
+"""Parts: labels from the CAD file or connected components, splats inherit them, exploded views
+move the chosen parts away from the assembly centre and leave the rest exactly where they were."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from calibration.camera import Camera, look_at_c2w
+from calibration.fileio import atomic_write_png
+from reconstruction.twin import load_twin
+from simulation.follow import render_bodies
+from simulation.parts import (
+    component_labels,
+    exploded_splats,
+    list_parts,
+    part_centroids,
+    read_mesh_parts,
+    splat_parts,
+)
+from tests.conftest import require_shared
+from tests.simulation.twins import box, make_twin, skateboard
+
+
+@pytest.fixture(scope="module")
+def board(tmp_path_factory):
+    return load_twin(make_twin(tmp_path_factory.mktemp("twins"), "board", *skateboard(), n=4000))
+
+
+def test_connected_components_label_faces():
+    a, b = box([1, 1, 1]), box([1, 1, 1], (3, 0, 0))
+    mesh = trimesh.util.concatenate([a, b])
+    labels = component_labels(mesh.faces, len(mesh.vertices))
+    assert list(labels) == [0] * 12 + [1] * 12
+
+
+def test_parts_from_obj_objects_glb_nodes_and_stl_components(tmp_path):
+    obj = tmp_path / "two.obj"
+    a, b = box([1, 1, 1]), box([1, 1, 1], (3, 0, 0))
+    lines = ["o lid"] + [f"v {x} {y} {z}" for x, y, z in a.vertices] + [f"f {i + 1} {j + 1} {k + 1}" for i, j, k in a.faces]
+    lines += ["o base"] + [f"v {x} {y} {z}" for x, y, z in b.vertices] + [f"f {i + 9} {j + 9} {k + 9}" for i, j, k in b.faces]
+    obj.write_text("\n".join(lines) + "\n")
+    parts, _ = read_mesh_parts(obj)
+    assert sorted(parts.part_names) == ["base", "lid"]
+    lid = parts.part_names.index("lid")
+    assert parts.vertices[parts.faces[parts.face_part == lid]].reshape(-1, 3)[:, 0].max() == pytest.approx(0.5)
+    scene = trimesh.Scene()
+    scene.add_geometry(a, node_name="deck", geom_name="deck")
+    scene.add_geometry(b, node_name="wheel", geom_name="wheel")
+    (tmp_path / "s.glb").write_bytes(scene.export(file_type="glb"))
+    assert sorted(read_mesh_parts(tmp_path / "s.glb")[0].part_names) == ["deck", "wheel"]
+    counter, _ = read_mesh_parts(require_shared("cad", "parts", "counter.unitsmm.STL"))
+    assert len(counter.part_names) == 6 and np.bincount(counter.face_part).min() > 0
+
+
+def test_splats_inherit_their_face_part():
+    assert list(splat_parts(np.array([2, 0, 1, 2]), np.array([5, 6, 7]))) == [7, 5, 6, 7]
+
+
+def test_list_and_hide_parts(board):
+    listed = list_parts(board)
+    assert [name for _, name, _ in listed] == ["deck", "wheel_0", "wheel_1", "wheel_2", "wheel_3"]
+    assert sum(n for _, _, n in listed) == board.num_splats
+    out = exploded_splats(board, 0.0, hidden=["wheel_1", 4])  # by name (index 2) and by index
+    assert set(np.unique(out["part_label"]).tolist()) == {0, 1, 3}
+    assert out["means"] == pytest.approx(board.means[~np.isin(board.part_label, [2, 4])])
+    with pytest.raises(ValueError, match="no part named 'axle'"):
+        exploded_splats(board, 0.5, hidden=["axle"])
+    with pytest.raises(ValueError, match="factor"):
+        exploded_splats(board, -1.0)
+
+
+def test_explode_moves_wheels_and_keeps_the_deck(board):
+    p = len(board.part_names)
+    before = part_centroids(board.means, board.part_label, p)
+    out = exploded_splats(board, 0.5, moving=["wheel_0", "wheel_1", "wheel_2", "wheel_3"])
+    after = part_centroids(out["means"], out["part_label"], p)
+    centre = before.mean(0)
+    assert np.array_equal(out["means"][board.part_label == 0], board.means[board.part_label == 0])  # deck fixed
+    for w in range(1, 5):
+        assert after[w] - centre == pytest.approx(1.5 * (before[w] - centre), abs=1e-6)
+    # Every splat of a part moves by the same vector: parts move rigidly.
+    shift = out["means"] - board.means
+    for w in range(1, 5):
+        assert np.ptp(shift[board.part_label == w], 0).max() < 1e-6
+
+
+def red_pixels(rgb):
+    return np.argwhere((rgb[..., 0] > 0.6) & (rgb[..., 1] < 0.35) & (rgb[..., 2] < 0.35))
+
+
+def green_pixels(rgb):
+    return np.argwhere((rgb[..., 1] > 0.45) & (rgb[..., 0] < 0.3))
+
+
+def test_exploded_view_render(board, tmp_path):
+    # Seen from below the side so the wheels are in view; the exploded view is written as a PNG.
+    cam = Camera.from_fov(np.deg2rad(55), 160, 120, look_at_c2w(np.array([0.05, -0.42, -0.12]), np.array([0, 0, 0.02])))
+    full = {k: getattr(board, k) for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "part_label")} | {"sh_degree": board.sh_degree}
+    assembled, _ = render_bodies([full], [np.eye(4)], cam)
+    exploded, _ = render_bodies([exploded_splats(board, 0.8, moving=[f"wheel_{i}" for i in range(4)])], [np.eye(4)], cam)
+    atomic_write_png(tmp_path / "exploded.png", np.concatenate([assembled, exploded], 1))
+    r0, r1 = red_pixels(assembled), red_pixels(exploded)
+    g0, g1 = green_pixels(assembled), green_pixels(exploded)
+    assert len(r0) > 30 and len(r1) > 30 and len(g0) > 200
+    # Wheels spread out in the image; the deck stays where it was.
+    centre = np.array([60, 80])
+    assert np.abs(r1 - centre).mean(0)[1] > 1.3 * np.abs(r0 - centre).mean(0)[1]
+    assert np.abs(g1.mean(0) - g0.mean(0)).max() < 2.0
+    assert (tmp_path / "exploded.png").stat().st_size > 1000
