@@ -157,10 +157,10 @@ class Twin:
         return None if self.root is None else self.root / DEFORMATION_PT
 
     def load_mesh_cad(self) -> MeshParts:
-        return read_parts_glb(self._need(MESH_CAD_GLB))
+        return read_mesh_parts(self._need(MESH_CAD_GLB))
 
     def load_mesh_deformed(self) -> MeshParts:
-        return read_parts_glb(self._need(MESH_DEFORMED_GLB))
+        return read_mesh_parts(self._need(MESH_DEFORMED_GLB))
 
     def _need(self, name: str) -> Path:
         if self.root is None or not (self.root / name).exists():
@@ -259,19 +259,22 @@ def parts_glb_bytes(parts: MeshParts) -> bytes:
     return scene.export(file_type="glb")
 
 
-def read_parts_glb(path: str | os.PathLike) -> MeshParts:
-    """A GLB written by `parts_glb_bytes` (or any GLB: one part per node) -> MeshParts."""
+def read_mesh_parts(path: str | os.PathLike) -> MeshParts:
+    """Any mesh file trimesh reads (a GLB written by `parts_glb_bytes`, a CAD export, a PLY) -> MeshParts,
+    one part per scene node, named after the node, in the file's own units."""
     import trimesh
 
     try:
         scene = trimesh.load(str(path), force="scene", process=False)
     except Exception as e:  # trimesh raises many types on bad files
-        raise TwinError(f"{path}: not a readable GLB ({e})") from None
+        raise TwinError(f"{path}: not a readable mesh ({e})") from None
     verts, faces, labels, names = [], [], [], []
     offset = 0
     for node in scene.graph.nodes_geometry:
         transform, geom_name = scene.graph[node]
         mesh = scene.geometry[geom_name]
+        if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+            continue
         v = trimesh.transform_points(mesh.vertices, transform)
         verts.append(v)
         faces.append(np.asarray(mesh.faces) + offset)
@@ -279,7 +282,7 @@ def read_parts_glb(path: str | os.PathLike) -> MeshParts:
         names.append(str(node))
         offset += len(v)
     if not names:
-        raise TwinError(f"{path}: GLB holds no triangle meshes")
+        raise TwinError(f"{path}: holds no triangle meshes")
     return MeshParts(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels), names)
 
 

@@ -16,7 +16,7 @@ from reconstruction.twin import (
     TwinError,
     load_twin,
     ply_columns,
-    read_parts_glb,
+    read_mesh_parts,
     save_twin,
     splat_normals,
 )
@@ -88,7 +88,7 @@ def test_round_trip_and_every_ply_column(tmp_path):
     np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), twin.quats, atol=1e-6)
     assert len(v["x"]) == n
 
-    parts = read_parts_glb(out / "mesh_deformed.glb")
+    parts = read_mesh_parts(out / "mesh_deformed.glb")
     assert sorted(parts.part_names) == ["body", "lid"]
     assert len(parts.faces) == 2
     assert back.load_mesh_cad().faces.shape == (2, 3)

@@ -1,0 +1,194 @@
+"""Capture + CAD library -> registration -> CAD-anchored splats -> two-stage training -> twin directory.
+
+This is the I/O edge of the reconstruction engine: it reads the capture and the library, writes the
+twin (and a checkpoint beside it while training), and records what it chose, why, and how long each
+step took. The math lives in splats, deformation, pose_correction, losses and train.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from calibration.camera import Camera
+from calibration.capture import Capture, load_views, read_capture
+from calibration.sim3 import Sim3
+from reconstruction.pose_correction import choose_pose_mode
+from reconstruction.presets import resolve_preset, scene_stats
+from reconstruction.render import rasterize
+from reconstruction.splats import init_splats, project_colors
+from reconstruction.train import ProgressFn, TrainResult, Views, train
+from reconstruction.twin import MeshParts, Twin, TwinCamera, read_mesh_parts, save_twin, software_versions
+
+Log = Callable[[str], None]
+
+
+@dataclass
+class Reconstruction:
+    twin: Twin
+    registration: object  # reconstruction.registration.RegistrationResult
+    train: TrainResult
+
+
+def model_parts(library, model_id: str) -> MeshParts:
+    """The library model's mesh in metres, split into its named parts (one part named after the model if unnamed)."""
+    entry = library.entry(model_id)
+    parts = read_mesh_parts(entry.mesh_path)
+    parts.vertices = parts.vertices * entry.scale_to_m
+    if len(parts.part_names) == 1:
+        parts.part_names = [model_id]
+    return parts
+
+
+def render_rgba(means, quats, log_scales, opacity_logits, sh, sh_degree: int, camera: Camera) -> np.ndarray:
+    """Straight-alpha RGBA [H, W, 4] float32 of splat arrays (object frame) seen by a pinhole `camera`."""
+    with torch.no_grad():
+        t = lambda a: torch.as_tensor(np.asarray(a, np.float32))  # noqa: E731
+        rgb, alpha, _ = rasterize(
+            t(means), t(quats), torch.exp(t(log_scales)), torch.sigmoid(t(opacity_logits)), t(sh),
+            torch.tensor(camera.viewmat, dtype=torch.float32)[None], torch.tensor(camera.K, dtype=torch.float32)[None],
+            camera.width, camera.height, sh_degree=sh_degree,
+        )
+    a = alpha[0].numpy()
+    # Over a black background the render is premultiplied; PNG alpha is straight.
+    straight = np.where(a > 1e-4, rgb[0].numpy() / np.maximum(a, 1e-4), 0.0)
+    return np.concatenate([np.clip(straight, 0, 1), a], -1).astype(np.float32)
+
+
+def twin_rgba(twin: Twin, camera: Camera) -> np.ndarray:
+    """RGBA [H, W, 4] of a twin from an object-frame camera."""
+    return render_rgba(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, twin.sh_degree, camera)
+
+
+def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -> tuple[np.ndarray, str]:
+    if masks is not None:
+        return masks, "masks/"
+    from reconstruction.masks import capture_masks
+
+    all_masks, source = capture_masks(capture)
+    return all_masks[list(indices)], source
+
+
+def reconstruct(
+    capture_path: str | os.PathLike,
+    library_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    preset: str = "cpu",
+    model_id: str | None = None,
+    views: Sequence[int] | None = None,
+    pose_mode: str | None = None,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    log: Log | None = None,
+    overwrite: bool = False,
+) -> Reconstruction:
+    """Reconstruct the twin of a capture; writes `out_dir` (atomically) and returns the twin.
+
+    An interrupted run leaves `.<out_dir name>.checkpoint.pt` beside `out_dir`; running the same
+    command again resumes from it. `views` picks training views by index; `model_id` skips retrieval
+    and registers that library model only; `pose_mode` overrides the automatic choice.
+    """
+    from reconstruction.library import load_library
+    from reconstruction.registration import register
+
+    say = log or (lambda _msg: None)
+    out = Path(out_dir)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists; choose another --out or remove it")
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    torch.manual_seed(seed)
+
+    t = time.perf_counter()
+    capture = read_capture(capture_path)
+    idx = list(range(len(capture))) if views is None else list(views)
+    images, cap_masks, cams = load_views(capture, idx)
+    masks, mask_source = _masks(capture, idx, cap_masks)
+    library = load_library(library_path)
+    timings["load"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"registering {len(idx)} views against {len(library.models)} library models")
+    reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed)
+    timings["registration"] = time.perf_counter() - t
+    say(f"registered {reg.model_id} (mean silhouette IoU {reg.score:.3f})")
+
+    t = time.perf_counter()
+    parts = model_parts(library, reg.model_id)
+    c2w_init = reg.sim3_rig_to_object.apply_to_c2w(np.stack([c.c2w for c in cams]))
+    centre = 0.5 * (parts.vertices.min(0) + parts.vertices.max(0))
+    stats = scene_stats(masks, c2w_init, centre)
+    cfg, choices = resolve_preset(preset, stats)
+    mode, why = choose_pose_mode(capture.meta, pose_mode)
+    choices["pose_mode"] = {"value": mode, "why": why}
+    choices["masks"] = {"value": mask_source, "why": "capture masks when present, else background subtraction"}
+    Ks = np.stack([c.K for c in cams])
+    viewmats = np.stack([np.linalg.inv(c) for c in c2w_init])
+    probe = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, seed=seed)
+    rgb = project_colors(probe.means, probe.normals, images, masks, viewmats, Ks)
+    splats = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, rgb=rgb, seed=seed)
+    choices["sh_init"] = {"value": "projected", "why": "SH DC from the training images projected at the registered poses "
+                          "(facing views, inside masks, z-buffered); neutral grey where no view sees a splat"}
+    timings["init"] = time.perf_counter() - t
+
+    ckpt = out.parent / f".{out.name}.checkpoint.pt"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = train(Views(images, masks, Ks, c2w_init), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
+    for stage, secs in result.timings_s.items():
+        timings[f"train_{stage}"] = secs
+    choices["iterations"] = {"value": result.iterations, "why": "stages stop at their cap or when the loss plateaus" if cfg.plateau else "fixed schedule"}
+
+    t = time.perf_counter()
+    model = result.model
+    with torch.no_grad():
+        means = model.means().numpy()
+        c2w_refined = model.pose(torch.tensor(c2w_init)).numpy()
+        sh = model.sh().numpy()
+    delta = model.pose.delta_sim3()
+    sim3_refined: Sim3 = delta @ reg.sim3_rig_to_object
+    twin_cams = [
+        TwinCamera(capture.frames[i].file_path, capture.frames[i].camera_id, cams[j].K, cams[j].width, cams[j].height, c2w_refined[j])
+        for j, i in enumerate(idx)
+    ]
+    losses = {stage: vals for stage, vals in result.losses.items()}
+    losses["skipped_nonfinite_steps"] = result.skipped_steps
+    twin = Twin(
+        model_id=reg.model_id,
+        sim3_rig_to_object_init=reg.sim3_rig_to_object,
+        sim3_rig_to_object=sim3_refined,
+        cameras=twin_cams,
+        preset=cfg.name,
+        choices=choices,
+        timings_s=timings,
+        losses=losses,
+        means=means,
+        quats=splats.quats,
+        log_scales=model.log_scales.detach().numpy(),
+        opacity_logits=model.opacity_logits.detach().numpy(),
+        sh=sh,
+        sh_degree=cfg.sh_degree,
+        means_canonical=splats.means,
+        face_index=splats.face_index,
+        barycentrics=splats.barycentrics,
+        part_label=splats.part_label,
+        part_names=parts.part_names,
+        pose_mode=mode,
+        versions=software_versions(),
+    )
+    renders = {Path(c.file_path).name: twin_rgba(twin, c.camera) for c in twin_cams}
+    deformed = MeshParts(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, parts.face_part, parts.part_names)
+    timings["export"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    twin.choices["registration"] = {"value": reg.to_dict(), "why": "silhouette consensus registration (paper 3.2)"}
+    save_twin(twin, out, deformation_state=model.field.export_state(), mesh_cad=parts, mesh_deformed=deformed,
+              renders=renders, overwrite=overwrite)
+    if ckpt.exists():
+        ckpt.unlink()
+    return Reconstruction(twin, reg, result)

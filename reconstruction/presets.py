@@ -1,0 +1,150 @@
+"""Reconstruction presets: `paper` (the paper's table), `cpu` (sized from the scene), `preview`.
+
+"Model only what a scene needs": the `cpu` preset reads the capture (foreground pixels, view count,
+angular coverage, image size) and chooses splat count, SH degree, training image scale, deformation
+anchors and iteration caps; stages stop early once their loss plateaus. Every choice is returned
+with the reason, and the pipeline writes them to twin.json `choices`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from reconstruction.deformation import FieldConfig
+
+PAPER_LR = {
+    "deformation": 1.6e-5,
+    "pose": 5e-4,
+    "scales": 5e-3,
+    "opacities": 5e-2,
+    "sh0": 2.5e-3,
+    "shN": 1.25e-4,
+}
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    num_splats: int
+    sh_degree: int
+    field: FieldConfig
+    iters_pose: int  # Stage I, pose only
+    iters_deform: int  # Stage I, pose + deformation
+    iters_photo: int  # Stage II
+    plateau: bool = False  # stop a stage early once its loss stops falling
+    dropout_p0: float = 0.5
+    dropout_anneal: int = 20_000  # Stage-II iterations over which dropout goes to 0
+    sh_neighbours: int = 20
+    lambda_dssim: float = 0.2
+    lambda_mask: float = 1.0
+    lambda_sh: float = 1.0
+    lr: dict = field(default_factory=lambda: dict(PAPER_LR))
+    refine_steps: int = 400
+    image_scale: float = 1.0  # Stage-II training resolution relative to the capture
+    mask_scale: float = 1.0  # Stage-I (silhouette) resolution relative to the capture
+    checkpoint_every: int = 500
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+PAPER = Preset(
+    name="paper", num_splats=600_000, sh_degree=3, field=FieldConfig(8, 256, 10, None),
+    iters_pose=3000, iters_deform=3000, iters_photo=24_000,
+)
+
+
+@dataclass(frozen=True)
+class SceneStats:
+    """What the cpu preset sizes itself from: per-view foreground pixels, image size, camera geometry."""
+
+    num_views: int
+    width: int
+    height: int
+    foreground_px: tuple[int, ...]
+    coverage_deg: float  # largest angle between two viewing directions towards the object
+
+    @property
+    def total_foreground_px(self) -> int:
+        return int(sum(self.foreground_px))
+
+
+def scene_stats(masks: np.ndarray, c2w: np.ndarray, target: np.ndarray) -> SceneStats:
+    """masks [V, H, W] bool, camera-to-object poses c2w [V, 4, 4], object centre `target` [3]."""
+    dirs = np.asarray(target, np.float64) - c2w[:, :3, 3]
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    cos = np.clip(dirs @ dirs.T, -1, 1)
+    coverage = float(np.degrees(np.arccos(cos.min()))) if len(dirs) > 1 else 0.0
+    v, h, w = masks.shape
+    return SceneStats(v, w, h, tuple(int(m.sum()) for m in masks), coverage)
+
+
+def _choice(value, why: str) -> dict:
+    return {"value": value, "why": why}
+
+
+def sh_degree_for(stats: SceneStats) -> tuple[int, str]:
+    """View-dependent colour needs views from several directions to be constrained at all."""
+    if stats.num_views < 4 or stats.coverage_deg < 30:
+        return 0, f"{stats.num_views} views spanning {stats.coverage_deg:.0f} deg cannot constrain view dependence"
+    if stats.num_views < 8 or stats.coverage_deg < 90:
+        return 1, f"{stats.num_views} views spanning {stats.coverage_deg:.0f} deg constrain only linear view dependence"
+    return 2, (f"{stats.num_views} views spanning {stats.coverage_deg:.0f} deg; degree 3 adds 21 coefficients per "
+               f"splat that sparse views leave to the SH regulariser")
+
+
+def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
+    """The preset named `name` sized for the scene, and the choices made (value + why)."""
+    if name == "paper":
+        return PAPER, {"preset": _choice("paper", "the paper's hyperparameter table, unchanged")}
+    if name not in ("cpu", "preview"):
+        raise ValueError(f"unknown preset {name!r}; choose cpu, preview or paper")
+    preview = name == "preview"
+    choices: dict = {}
+    long_side = max(stats.width, stats.height)
+    # Render where the rasterizer is cheap but silhouettes keep their shape.
+    target_side = 160 if preview else 320
+    scale = min(1.0, target_side / long_side)
+    choices["image_scale"] = _choice(round(scale, 4), f"Stage II renders {long_side} px images at <= {target_side} px on the long side")
+    mask_side = 128 if preview else 192
+    mask_scale = min(1.0, mask_side / long_side)
+    choices["mask_scale"] = _choice(round(mask_scale, 4), f"silhouettes (Stage I) need only <= {mask_side} px on the long side")
+
+    fg = stats.total_foreground_px * scale * scale
+    per_px, cap, floor = (0.5, 8_000, 2_000) if preview else (1.0, 40_000, 5_000)
+    n = int(np.clip(round(per_px * fg), floor, cap))
+    choices["num_splats"] = _choice(n, f"{per_px} splat per foreground pixel over {stats.num_views} views at training scale "
+                                       f"({int(fg)} px), clipped to [{floor}, {cap}]")
+    degree, why = sh_degree_for(stats)
+    if preview:
+        degree, why = 0, "preview: diffuse colour only"
+    choices["sh_degree"] = _choice(degree, why)
+    anchors = int(min(n, 512 if preview else 2048))
+    width, depth = (64, 4) if preview else (128, 6)
+    fc = FieldConfig(depth=depth, width=width, bands=10, num_anchors=anchors, anchor_k=4)
+    choices["deformation"] = _choice(asdict(fc), f"MLP {depth}x{width} evaluated at {anchors} farthest-point anchors and "
+                                                 f"blended to the {n} splats (see benchmarks/reconstruction.py)")
+    iters = (60, 60, 200) if preview else (200, 250, 900)
+    choices["iteration_caps"] = _choice(
+        {"pose": iters[0], "deform": iters[1], "photo": iters[2]},
+        "caps; each stage stops earlier once its loss plateaus" if not preview else "fixed short schedule for a first look",
+    )
+    # Fewer iterations than the paper: the learning rates of the slow groups rise so each stage
+    # can travel as far as the paper's does in its 3k/24k iterations.
+    lr = dict(PAPER_LR)
+    lr["deformation"] = 1e-4 if not preview else 2e-4
+    lr["pose"] = 2e-3
+    lr["shN"] = 1e-3
+    choices["learning_rates"] = _choice(lr, "paper rates, with pose, deformation and higher-SH rates raised for ~10x fewer iterations")
+    anneal = int(0.8 * iters[2])
+    preset = Preset(
+        name=name, num_splats=n, sh_degree=degree, field=fc, iters_pose=iters[0], iters_deform=iters[1],
+        iters_photo=iters[2], plateau=not preview, dropout_anneal=anneal, lr=lr, refine_steps=50 if preview else 100,
+        image_scale=scale, mask_scale=mask_scale, checkpoint_every=100,
+    )
+    choices["dropout"] = _choice({"p0": preset.dropout_p0, "anneal_iters": anneal},
+                                 "0.5 cosine to 0 over the first 80% of Stage II, as the paper's 20k of 24k")
+    return preset, choices
+

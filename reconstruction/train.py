@@ -1,0 +1,291 @@
+"""The two-stage training schedule (paper 3.6) over CAD-anchored splats.
+
+Stage I (geometric warm-up, silhouettes only): L_mask on the rendered alpha; first the pose
+correction alone ("pose"), then pose + deformation field ("deform"). Stage II ("photo"): L_rgb on
+random-background composites + λ_mask L_mask + λ_SH L_SH, with splat dropout on the RGB render
+(the mask render uses every splat); pose, field, scales, opacities and SH all learn, each group
+with its own Adam learning rate. Means and quaternions never learn.
+
+One random training view per iteration (as 3DGS). Non-finite losses or gradients skip the step
+(counted, never applied). A checkpoint written every `checkpoint_every` iterations and at each
+stage end lets an interrupted run resume where it stopped.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from calibration.fileio import atomic_write_bytes
+from reconstruction.deformation import DeformationField
+from reconstruction.losses import composite, dropout_active, dropout_fraction, mask_l1, photometric_loss, sh_neighbour_loss
+from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
+from reconstruction.presets import Preset
+from reconstruction.render import rasterize
+from reconstruction.splats import CanonicalSplats, knn_indices
+
+STAGES = ("pose", "deform", "photo")
+ProgressFn = Callable[[str, int, int, float], None]
+
+
+@dataclass
+class Views:
+    """Training views at capture resolution: images [V, H, W, 3] float32, masks [V, H, W] bool,
+    Ks [V, 3, 3], camera-to-object poses c2w [V, 4, 4] (float64, OpenCV) from the registration."""
+
+    images: np.ndarray
+    masks: np.ndarray
+    Ks: np.ndarray
+    c2w: np.ndarray
+
+    def resized(self, scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
+        """(images [V, h, w, 3], mask coverage [V, h, w] in [0, 1], Ks [V, 3, 3], w, h) at `scale`.
+
+        Area resampling keeps the fraction of each low-res pixel the object covers; K scales with
+        the continuous pixel coordinates (pixel edges at integers map onto pixel edges).
+        """
+        v, h, w = self.masks.shape
+        w2, h2 = max(1, round(w * scale)), max(1, round(h * scale))
+        if (w2, h2) == (w, h):
+            imgs, cov = self.images, self.masks.astype(np.float32)
+        else:
+            imgs = np.stack([cv2.resize(im, (w2, h2), interpolation=cv2.INTER_AREA) for im in self.images])
+            cov = np.stack([cv2.resize(m.astype(np.float32), (w2, h2), interpolation=cv2.INTER_AREA) for m in self.masks])
+        ks = self.Ks.copy()
+        ks[:, 0] *= w2 / w
+        ks[:, 1] *= h2 / h
+        return (torch.tensor(imgs, dtype=torch.float32), torch.tensor(cov, dtype=torch.float32),
+                torch.tensor(ks, dtype=torch.float32), w2, h2)
+
+
+class SplatModel(nn.Module):
+    """Learnable state: frozen canonical means/quats, deformation field, pose correction, scales,
+    opacities and SH (DC and higher bands as separate groups for their learning rates)."""
+
+    def __init__(self, splats: CanonicalSplats, preset: Preset, num_cameras: int, pose_mode: str, seed: int = 0):
+        super().__init__()
+        self.register_buffer("means_canonical", torch.tensor(splats.means, dtype=torch.float32))
+        self.register_buffer("quats", torch.tensor(splats.quats, dtype=torch.float32))
+        self.field = DeformationField(splats.means, preset.field, seed=seed)
+        self.pose = PoseCorrection(num_cameras, pose_mode)
+        self.log_scales = nn.Parameter(torch.tensor(splats.log_scales, dtype=torch.float32))
+        self.opacity_logits = nn.Parameter(torch.tensor(splats.opacity_logits, dtype=torch.float32))
+        sh = torch.tensor(splats.sh, dtype=torch.float32)
+        self.sh0 = nn.Parameter(sh[:, :1].clone())
+        self.shN = nn.Parameter(sh[:, 1:].clone())
+        self.sh_degree = splats.sh_degree
+        # Scale bounds relative to the object: no splat collapses to nothing or swallows the object.
+        radius = float(self.field.radius)
+        self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
+
+    def means(self) -> torch.Tensor:
+        """Deformed means [N, 3] = μ + D(γ(μ))."""
+        return self.means_canonical + self.field()
+
+    def sh(self) -> torch.Tensor:
+        return torch.cat([self.sh0, self.shN], 1)
+
+    def viewmats(self, c2w_init: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """World-to-camera [C, 4, 4] float32 of cameras `index` after the pose correction."""
+        corrected = self.pose(c2w_init[index], index)
+        return viewmats_from_c2w(corrected).to(torch.float32)
+
+    def param_groups(self, lr: dict) -> list[dict]:
+        pose = [p for p in self.pose.parameters() if p.requires_grad]
+        return [
+            {"name": "pose", "params": pose, "lr": lr["pose"]},
+            {"name": "deformation", "params": list(self.field.parameters()), "lr": lr["deformation"]},
+            {"name": "scales", "params": [self.log_scales], "lr": lr["scales"]},
+            {"name": "opacities", "params": [self.opacity_logits], "lr": lr["opacities"]},
+            {"name": "sh0", "params": [self.sh0], "lr": lr["sh0"]},
+            {"name": "shN", "params": [self.shN], "lr": lr["shN"]},
+        ]
+
+    @torch.no_grad()
+    def clamp_(self) -> None:
+        self.log_scales.clamp_(*self.log_scale_range)
+        self.opacity_logits.clamp_(-12.0, 12.0)
+
+
+TRAINABLE = {
+    "pose": ("pose",),
+    "deform": ("pose", "deformation"),
+    "photo": ("pose", "deformation", "scales", "opacities", "sh0", "shN"),
+}
+
+
+class Plateau:
+    """Stops a stage once the mean loss of the last `window` iterations improves on the window
+    before it by less than `rel_tol` (relative). Single-view losses are noisy; whole windows are not."""
+
+    def __init__(self, window: int, rel_tol: float):
+        self.window = window
+        self.rel_tol = rel_tol
+        self.history: list[float] = []
+
+    def update(self, loss: float) -> bool:
+        self.history.append(loss)
+        w = self.window
+        if len(self.history) < 2 * w or len(self.history) % w:
+            return False
+        prev = float(np.mean(self.history[-2 * w: -w]))
+        cur = float(np.mean(self.history[-w:]))
+        return prev - cur < self.rel_tol * max(abs(prev), 1e-12)
+
+
+@dataclass
+class TrainResult:
+    model: SplatModel
+    losses: dict
+    timings_s: dict
+    iterations: dict
+    skipped_steps: int
+    history: dict = field(default_factory=dict)
+
+
+def _set_trainable(model: SplatModel, stage: str) -> None:
+    on = TRAINABLE[stage]
+    for group in model.param_groups({k: 0.0 for k in ("pose", "deformation", "scales", "opacities", "sh0", "shN")}):
+        for p in group["params"]:
+            p.requires_grad_(group["name"] in on)
+
+
+def _grads_finite(params) -> bool:
+    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+
+
+def _save_checkpoint(path: Path, payload: dict) -> None:
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views, pose_mode: str) -> dict:
+    return {"preset": preset.to_dict(), "num_splats": len(splats), "views": int(len(views.images)),
+            "pose_mode": pose_mode, "c2w": np.round(views.c2w, 9).tolist()}
+
+
+def train(
+    views: Views,
+    splats: CanonicalSplats,
+    preset: Preset,
+    *,
+    pose_mode: str = "global",
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    checkpoint: str | os.PathLike | None = None,
+) -> TrainResult:
+    """Run Stage I (pose, then pose + deformation) and Stage II (photometric) on `views`.
+
+    progress(stage, iteration, cap, loss) is called after every iteration. With `checkpoint`, the
+    run resumes from that file when it matches this run (same preset, splats, views), and writes it
+    as it goes; the caller deletes it once the twin is saved.
+    """
+    v = len(views.images)
+    model = SplatModel(splats, preset, v, pose_mode, seed)
+    # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups
+    # that are frozen in a stage have no gradient and are skipped by Adam.
+    opt = torch.optim.Adam(model.param_groups(preset.lr), eps=1e-15)
+    neighbours = torch.from_numpy(knn_indices(splats.means, preset.sh_neighbours))
+    c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
+    mask_data = views.resized(preset.mask_scale)
+    photo_data = views.resized(preset.image_scale)
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed)
+    caps = {"pose": preset.iters_pose, "deform": preset.iters_deform, "photo": preset.iters_photo}
+    state = {"stage": 0, "it": 0, "iterations": {}, "timings": {}, "losses": {}, "skipped": 0, "plateau": [], "history": {}}
+    fp = _fingerprint(preset, splats, views, pose_mode)
+    ckpt = Path(checkpoint) if checkpoint is not None else None
+    if ckpt is not None and ckpt.exists():
+        saved = torch.load(ckpt, weights_only=False)
+        if saved.get("fingerprint") == fp:
+            model.load_state_dict(saved["model"])
+            opt.load_state_dict(saved["optimizer"])
+            rng.bit_generator.state = saved["rng"]
+            gen.set_state(saved["torch_rng"])
+            state = saved["state"]
+
+    def save() -> None:
+        if ckpt is not None:
+            _save_checkpoint(ckpt, {"fingerprint": fp, "model": model.state_dict(), "optimizer": opt.state_dict(),
+                                    "rng": rng.bit_generator.state, "torch_rng": gen.get_state(), "state": state})
+
+    n = len(splats)
+    zeros = torch.zeros(n, 1)
+    trainable = [p for g in opt.param_groups for p in g["params"]]
+    for si in range(state["stage"], len(STAGES)):
+        stage = STAGES[si]
+        _set_trainable(model, stage)
+        cap = caps[stage]
+        plateau = Plateau(window=max(20, cap // 12), rel_tol=0.01 if stage != "photo" else 0.003)
+        plateau.history = list(state["plateau"])
+        hist = state["history"].setdefault(stage, [])
+        t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
+        imgs, cov, ks, w, h = mask_data if stage != "photo" else photo_data
+        last: dict = {}
+        it = state["it"]
+        while it < cap:
+            view = int(rng.integers(v))
+            idx = torch.tensor([view])
+            means = model.means()
+            scales = torch.exp(model.log_scales)
+            opac = torch.sigmoid(model.opacity_logits)
+            viewmats = model.viewmats(c2w_init, idx)
+            if stage != "photo":
+                _, alpha, _ = rasterize(means, model.quats, scales, opac, zeros, viewmats, ks[idx], w, h)
+                l_mask = mask_l1(alpha, cov[idx])
+                loss = l_mask
+                last = {"mask": l_mask}
+            else:
+                bg = torch.rand(1, 3, generator=gen)
+                p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
+                active = dropout_active(n, p, gen)
+                rgb, alpha, _ = rasterize(means, model.quats, scales, opac, model.sh(), viewmats, ks[idx], w, h,
+                                          sh_degree=model.sh_degree, backgrounds=bg, active=active)
+                if active is not None:
+                    # The silhouette is supervised on every splat: dropout regularises appearance only.
+                    _, alpha, _ = rasterize(means, model.quats, scales, opac, zeros, viewmats, ks[idx], w, h)
+                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim)
+                l_mask = mask_l1(alpha, cov[idx])
+                l_sh = sh_neighbour_loss(model.sh(), neighbours)
+                loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
+                last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
+            opt.zero_grad(set_to_none=True)
+            value = float(loss.detach())
+            if math.isfinite(value):
+                loss.backward()
+            if math.isfinite(value) and _grads_finite(trainable):
+                opt.step()
+                model.clamp_()
+            else:
+                state["skipped"] += 1
+            it += 1
+            hist.append(value)
+            state["it"] = it
+            if progress is not None:
+                progress(stage, it, cap, value)
+            # In Stage II the plateau test starts once dropout is over: the final fit uses every splat.
+            if preset.plateau and math.isfinite(value) and (stage != "photo" or it >= preset.dropout_anneal):
+                if plateau.update(value):
+                    break
+            state["plateau"] = plateau.history
+            state["timings"][stage] = time.perf_counter() - t0
+            if preset.checkpoint_every and it % preset.checkpoint_every == 0:
+                save()
+        state["timings"][stage] = time.perf_counter() - t0
+        state["iterations"][stage] = it
+        state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
+        state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else float("nan")
+        state["stage"], state["it"], state["plateau"] = si + 1, 0, []
+        save()
+    return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"])
