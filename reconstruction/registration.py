@@ -352,14 +352,15 @@ def match_views(observations: list[Observation | None], index: SilhouetteIndex, 
     return hyps, best_seen
 
 
-def independent_poses(masks: np.ndarray, cameras: list[Camera], library: Library) -> list[tuple[str, np.ndarray] | None]:
+def independent_poses(masks: np.ndarray, cameras: list[Camera], library: Library, *, model_ids: list[str] | None = None) -> list[tuple[str, np.ndarray] | None]:
     """Each view matched alone to its single best library silhouette (paper Fig. 5b, for contrast):
     per view (model id, camera-to-object c2w [4, 4]) or None."""
     index = library.index
+    model_mask = None if model_ids is None else np.isin(np.array(index.model_ids), model_ids)
     out = []
     for v, (mask, cam) in enumerate(zip(masks, cameras)):
         obs = observe(mask, cam, index.grid.canvas)
-        m = index.query(obs.variants, top_k=1, min_iou=0.0) if obs is not None else None
+        m = index.query(obs.variants, top_k=1, min_iou=0.0, model_mask=model_mask) if obs is not None else None
         if m is None or len(m.rows) == 0:
             out.append(None)
             continue
