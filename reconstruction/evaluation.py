@@ -1,0 +1,358 @@
+"""The evaluation protocol (paper section 4.3, SPEC "Evaluation protocol") applied to a twin.
+
+Held-out cameras come in the capture's rig frame; they are mapped into the object frame through the
+twin's refined `sim3_rig_to_object`, rendered over white with our rasterizer and scored with
+`reconstruction.metrics.image_metrics`, once at the nominal pose and once after test-time pose
+refinement: per view, only an SE(3) delta of that camera learns (`PoseCorrection`'s per-camera
+mode) against the view's own photograph with the twin frozen, under the training loss of one view
+(L1 + D-SSIM on RGB with the photograph composited on the render's background, plus the L1 mask
+loss on alpha). The twin's arrays are only read: refinement cannot fit the twin to held-out views.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from calibration.camera import Camera
+from calibration.sim3 import Sim3
+from reconstruction.metrics import image_metrics
+from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
+from reconstruction.pose_metrics import registration_errors, rotation_error_deg
+from reconstruction.render import rasterize
+
+PAPER_REFINE_STEPS = 400
+REFINE_LR = 5e-4  # the paper's pose-correction learning rate (Table "Hyperparameters")
+LAMBDA_DSSIM = 0.2
+LAMBDA_MASK = 1.0
+WHITE = (1.0, 1.0, 1.0)
+METRIC_KEYS = ("psnr", "ssim", "lpips", "flip", "mpsnr", "mssim", "mlpips", "mflip", "fgpsnr", "iou")
+
+
+@dataclass(frozen=True)
+class FrozenGaussians:
+    """Render-ready splats (float32, no gradients): means [N, 3], quats [N, 4] wxyz, scales [N, 3]
+    linear, opacities [N] in (0, 1), sh [N, K, 3]."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    sh_degree: int
+
+    @staticmethod
+    def from_arrays(
+        means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, opacity_logits: np.ndarray, sh: np.ndarray, sh_degree: int
+    ) -> "FrozenGaussians":
+        """From the twin's stored parameterisation; every tensor is a fresh copy, so nothing written
+        through it can reach the caller's arrays."""
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.tensor(np.asarray(a, np.float32))
+
+        return FrozenGaussians(
+            t(means), t(quats), torch.exp(t(log_scales)), torch.sigmoid(t(opacity_logits)), t(sh), int(sh_degree)
+        )
+
+    @staticmethod
+    def from_twin(twin) -> "FrozenGaussians":
+        """From a `reconstruction.twin.Twin`."""
+        return FrozenGaussians.from_arrays(
+            twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, twin.sh_degree
+        )
+
+
+def render_rgba(
+    g: FrozenGaussians, viewmat: torch.Tensor, K: np.ndarray, width: int, height: int, background: Sequence[float] = WHITE
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One view of `g`: rgb [H, W, 3] composited over `background` and alpha [H, W].
+
+    viewmat: [4, 4] world-to-camera (may carry gradients); K: [3, 3].
+    """
+    colors, alphas, _ = rasterize(
+        g.means, g.quats, g.scales, g.opacities, g.sh, viewmat[None], torch.as_tensor(K, dtype=torch.float32)[None],
+        width, height, sh_degree=g.sh_degree, backgrounds=torch.tensor([background], dtype=torch.float32),
+    )
+    return colors[0], alphas[0, ..., 0]
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float32) - size // 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(3, 1, size, size).contiguous()
+
+
+def dssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(1 - SSIM) / 2 of `pred` vs `target` [H, W, 3], 3DGS's training form (11-tap Gaussian, zero padding)."""
+    x = pred.permute(2, 0, 1)[None]
+    y = target.permute(2, 0, 1)[None]
+    w = _gaussian_window().to(x.dtype)
+
+    def blur(z: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(z, w, padding=5, groups=3)
+
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return (1.0 - s.mean()) / 2.0
+
+
+def view_loss(
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    gt_rgb: torch.Tensor,
+    gt_mask: torch.Tensor,
+    background: torch.Tensor,
+    *,
+    lambda_dssim: float = LAMBDA_DSSIM,
+    lambda_mask: float = LAMBDA_MASK,
+) -> torch.Tensor:
+    """The training loss of one view: (1 - λ) L1 + λ D-SSIM on RGB + λ_mask L1(alpha, mask).
+
+    rgb [H, W, 3] is the render over `background` [3]; the photograph gt_rgb [H, W, 3] is composited
+    over the same background with gt_mask [H, W] bool, so background pixels compare like with like.
+    """
+    m = gt_mask[..., None].to(rgb.dtype)
+    target = gt_rgb * m + background.to(rgb.dtype) * (1.0 - m)
+    l_rgb = (1.0 - lambda_dssim) * (rgb - target).abs().mean() + lambda_dssim * dssim(rgb, target)
+    return l_rgb + lambda_mask * (alpha - gt_mask.to(alpha.dtype)).abs().mean()
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Result of test-time refinement of one camera: refined c2w [4, 4] (float64), losses per step [steps]."""
+
+    c2w: np.ndarray
+    losses: np.ndarray
+    rotation_deg: float  # how far the camera turned
+    translation: float  # how far its centre moved (object-frame units)
+
+
+def refine_camera_pose(
+    g: FrozenGaussians,
+    camera: Camera,
+    gt_rgb: np.ndarray,
+    gt_mask: np.ndarray,
+    *,
+    steps: int = PAPER_REFINE_STEPS,
+    lr: float = REFINE_LR,
+) -> Refinement:
+    """Test-time refinement: an SE(3) delta of `camera` (object frame) learns against its own view.
+
+    Adam on the delta's 6D rotation and camera-axis translation, `lr` constant (the paper's pose
+    learning rate), over white as the metrics render. Only the delta is handed to the optimizer and
+    the splats carry no gradient, so the twin cannot change. Returns the pose of the lowest loss
+    seen (the last step's pose may sit on an Adam oscillation).
+    """
+    correction = PoseCorrection(1, mode="per_camera")
+    opt = torch.optim.Adam([correction.r6, correction.t], lr=lr)
+    c2w0 = torch.as_tensor(camera.c2w, dtype=torch.float64)[None]
+    target = torch.as_tensor(np.asarray(gt_rgb, np.float32))
+    mask = torch.as_tensor(np.asarray(gt_mask, bool))
+    background = torch.tensor(WHITE, dtype=torch.float32)
+    losses = np.zeros(steps)
+    best_loss, best_c2w = math.inf, camera.c2w.copy()
+    for step in range(steps):
+        c2w = correction(c2w0)
+        rgb, alpha = render_rgba(g, viewmats_from_c2w(c2w)[0], camera.K, camera.width, camera.height)
+        loss = view_loss(rgb, alpha, target, mask, background)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        losses[step] = float(loss.detach())
+        if losses[step] < best_loss:
+            best_loss, best_c2w = losses[step], c2w.detach()[0].numpy().copy()
+        opt.step()
+    # The pose after the last update has not been scored; score it so it can win too.
+    if steps:
+        with torch.no_grad():
+            c2w = correction(c2w0)
+            rgb, alpha = render_rgba(g, viewmats_from_c2w(c2w)[0], camera.K, camera.width, camera.height)
+            final = float(view_loss(rgb, alpha, target, mask, background))
+        if final < best_loss:
+            best_c2w = c2w[0].numpy().copy()
+    rot = float(rotation_error_deg(camera.c2w[:3, :3], best_c2w[:3, :3]))
+    return Refinement(best_c2w, losses, rot, float(np.linalg.norm(best_c2w[:3, 3] - camera.c2w[:3, 3])))
+
+
+def cameras_to_object(cameras: Sequence[Camera], sim3_rig_to_object: Sim3) -> list[Camera]:
+    """Rig-frame cameras -> object-frame cameras through the registration (x_obj = s R x_rig + t)."""
+    return [c.with_c2w(sim3_rig_to_object.apply_to_c2w(c.c2w)) for c in cameras]
+
+
+def _finite(x: float) -> float | None:
+    """JSON has no NaN/inf: a metric that is undefined (nan) or unbounded (inf, identical images) is None."""
+    return float(x) if math.isfinite(x) else None
+
+
+def average_metrics(per_view: Sequence[dict[str, float | None]]) -> dict[str, float | None]:
+    """Mean of each metric over the views where it is defined (None where no view defines it)."""
+    out: dict[str, float | None] = {}
+    for key in METRIC_KEYS:
+        values = [v[key] for v in per_view if v.get(key) is not None]
+        out[key] = float(np.mean(values)) if values else None
+    return out
+
+
+def evaluate_views(
+    g: FrozenGaussians,
+    cameras: Sequence[Camera],
+    images: np.ndarray,
+    masks: np.ndarray,
+    *,
+    names: Sequence[str] | None = None,
+    refine_steps: int = PAPER_REFINE_STEPS,
+    refine_lr: float = REFINE_LR,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Scores `g` on held-out views, with and (when refine_steps > 0) without test-time refinement.
+
+    Args:
+        cameras: V object-frame pinhole cameras; images [V, H, W, 3] float in [0, 1]; masks [V, H, W] bool.
+        names: view names for the report (default view indices).
+        progress: called with (views done, V) after each view.
+
+    Returns:
+        {"views": [{name, metrics, metrics_refined?, refine?, timings_s}], "mean", "mean_refined"?,
+        "timings_s": {render, refine, metrics, per_view_render_ms}}; metrics are `image_metrics`'
+        keys, None where undefined (no overlap, empty eroded mask) or infinite (a perfect match).
+    """
+    if len(cameras) != len(images) or len(images) != len(masks):
+        raise ValueError(f"got {len(cameras)} cameras, {len(images)} images and {len(masks)} masks; they must match")
+    if len(cameras) == 0:
+        raise ValueError("there are no held-out views to evaluate")
+    names = [str(i) for i in range(len(cameras))] if names is None else list(names)
+    views, t_render, t_refine, t_metrics = [], 0.0, 0.0, 0.0
+    for i, (cam, img, msk) in enumerate(zip(cameras, images, masks)):
+        if not np.any(msk):
+            raise ValueError(f"held-out view {names[i]} has an empty mask: the object is not in it")
+        entry: dict = {"name": names[i]}
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            rgb, alpha = render_rgba(g, torch.as_tensor(cam.viewmat), cam.K, cam.width, cam.height)
+        t1 = time.perf_counter()
+        entry["metrics"] = {k: _finite(v) for k, v in image_metrics(rgb, alpha, img, msk).items()}
+        t2 = time.perf_counter()
+        t_render, t_metrics = t_render + t1 - t0, t_metrics + t2 - t1
+        timings = {"render": t1 - t0, "metrics": t2 - t1}
+        if refine_steps > 0:
+            ref = refine_camera_pose(g, cam, img, msk, steps=refine_steps, lr=refine_lr)
+            t3 = time.perf_counter()
+            with torch.no_grad():
+                rgb, alpha = render_rgba(g, torch.as_tensor(np.linalg.inv(ref.c2w)), cam.K, cam.width, cam.height)
+            entry["metrics_refined"] = {k: _finite(v) for k, v in image_metrics(rgb, alpha, img, msk).items()}
+            t4 = time.perf_counter()
+            entry["refine"] = {
+                "steps": refine_steps,
+                "rotation_deg": ref.rotation_deg,
+                "translation": ref.translation,
+                "translation_pct_of_distance": 100.0 * ref.translation / max(float(np.linalg.norm(cam.center)), 1e-12),
+                "loss_first": float(ref.losses[0]),
+                "loss_last": float(ref.losses[-1]),
+                "c2w_object": ref.c2w.tolist(),
+            }
+            timings |= {"refine": t3 - t2, "metrics_refined": t4 - t3}
+            t_refine, t_metrics = t_refine + t3 - t2, t_metrics + t4 - t3
+        entry["timings_s"] = timings
+        views.append(entry)
+        if progress:
+            progress(i + 1, len(cameras))
+    out = {
+        "views": views,
+        "mean": average_metrics([v["metrics"] for v in views]),
+        "timings_s": {
+            "render": t_render,
+            "refine": t_refine,
+            "metrics": t_metrics,
+            "per_view_render_ms": 1000.0 * t_render / len(views),
+        },
+    }
+    if refine_steps > 0:
+        out["mean_refined"] = average_metrics([v["metrics_refined"] for v in views])
+    return out
+
+
+def registration_report(
+    c2w_est: np.ndarray, c2w_gt: np.ndarray, symmetries: Sequence[np.ndarray] | None = None
+) -> dict:
+    """Registration errors of training cameras (object-frame c2w [N, 4, 4], estimated vs truth) as JSON-ready numbers."""
+    err = registration_errors(
+        np.linalg.inv(np.asarray(c2w_est, np.float64)), np.linalg.inv(np.asarray(c2w_gt, np.float64)), symmetries
+    )
+    return {
+        "rotation_deg_median": err["rotation_deg_median"],
+        "center_pct_median": err["center_pct_median"],
+        "rotation_deg": err["rotation_deg"].tolist(),
+        "center_pct": err["center_pct"].tolist(),
+        "symmetry": err["symmetry"],
+    }
+
+
+def select_views(n: int, max_views: int | None) -> list[int]:
+    """Indices of at most `max_views` of n views, evenly spread over the capture order (all when None)."""
+    if max_views is None or max_views >= n:
+        return list(range(n))
+    if max_views < 1:
+        raise ValueError(f"max_views must be at least 1, got {max_views}")
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, max_views)})
+
+
+def gt_train_poses(twin_cameras: Sequence, gt: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Pairs a twin's training cameras with `gt.json`'s true object-frame poses.
+
+    The synthetic rig names train view i `cam{i:02d}`; a twin made from a subset of views (farthest-
+    point sampling) keeps those names, so cameras are matched by name, never by position.
+    Returns (estimated c2w [M, 4, 4], true c2w [M, 4, 4], names [M]).
+    """
+    truth = np.asarray(gt["train_c2w_object"], np.float64)
+    est, ref, names = [], [], []
+    for cam in twin_cameras:
+        name = str(cam.camera_id)
+        if not (name.startswith("cam") and name[3:].isdigit() and int(name[3:]) < len(truth)):
+            raise ValueError(f"twin camera {name!r} has no ground-truth pose in gt.json (expected names cam00..cam{len(truth) - 1:02d})")
+        est.append(cam.c2w_object_opencv)
+        ref.append(truth[int(name[3:])])
+        names.append(name)
+    if not names:
+        raise ValueError("the twin lists no training cameras to compare with gt.json")
+    return np.stack(est), np.stack(ref), names
+
+
+def evaluate_twin(
+    twin,
+    cameras_rig: Sequence[Camera],
+    images: np.ndarray,
+    masks: np.ndarray,
+    *,
+    names: Sequence[str] | None = None,
+    refine_steps: int = PAPER_REFINE_STEPS,
+    refine_lr: float = REFINE_LR,
+    gt: dict | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """The whole protocol for a `Twin` on held-out views whose cameras are in the rig frame.
+
+    Cameras go to the object frame through the twin's refined `sim3_rig_to_object`; with `gt` (the
+    synthetic rig's gt.json dict) the twin's training cameras are also scored against the truth.
+    Returns `evaluate_views`' report plus "registration" when `gt` is given and "num_splats".
+    """
+    t0 = time.perf_counter()
+    g = FrozenGaussians.from_twin(twin)
+    cams = cameras_to_object(cameras_rig, twin.sim3_rig_to_object)
+    report = evaluate_views(g, cams, images, masks, names=names, refine_steps=refine_steps, refine_lr=refine_lr, progress=progress)
+    report["num_splats"] = int(twin.num_splats)
+    if gt is not None:
+        est, ref, cam_names = gt_train_poses(twin.cameras, gt)
+        report["registration"] = {"cameras": cam_names, **registration_report(est, ref)}
+    report["timings_s"]["total"] = time.perf_counter() - t0
+    return report
