@@ -1,0 +1,74 @@
+"""`cadsplat render TWIN --views CAPTURE | --orbit N --out DIR`: RGBA renders of a twin."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+
+def orbit_cameras(twin, n: int):
+    """n object-frame cameras on a turntable circle at the training cameras' mean distance and
+    elevation, looking at the splats' centre, with the first training camera's intrinsics."""
+    from calibration.camera import look_at_c2w
+
+    centre = 0.5 * (twin.means.min(0) + twin.means.max(0))
+    cams = [c.camera for c in twin.cameras]
+    offsets = np.stack([c.center for c in cams]) - centre
+    radius = float(np.median(np.linalg.norm(offsets, axis=1)))
+    # The rig's "up" is the mean camera -y axis (OpenCV y points down in the image).
+    up = -np.mean([c.c2w[:3, 1] for c in cams], axis=0)
+    up /= max(np.linalg.norm(up), 1e-12)
+    elev = float(np.median(np.arcsin(np.clip((offsets @ up) / np.linalg.norm(offsets, axis=1), -1, 1))))
+    a = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    out = []
+    for k in range(n):
+        phi = 2 * np.pi * k / n
+        eye = centre + radius * (np.cos(elev) * (np.cos(phi) * a + np.sin(phi) * b) + np.sin(elev) * up)
+        out.append((f"orbit_{k:03d}.png", cams[0].with_c2w(look_at_c2w(eye, centre, up))))
+    return out
+
+
+@click.command(help="Render the twin at TWIN from a capture's cameras (rig frame) or a turntable orbit; writes DIR/<name>.png as RGBA.")
+@click.argument("twin_dir", type=click.Path(path_type=Path))
+@click.option("--views", "views_dir", default=None, type=click.Path(path_type=Path), help="Capture whose cameras (rig frame) to render from.")
+@click.option("--orbit", default=None, type=click.IntRange(1, 3600), help="Render a turntable of N views instead.")
+@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Directory for the PNGs.")
+@click.option("--refine-steps", default=0, show_default=True, type=click.IntRange(0, 10000),
+              help="Test-time pose refinement steps per view against the capture's own images (the twin stays frozen).")
+def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: Path, refine_steps: int) -> None:
+    from rich.progress import track
+
+    from calibration.capture import read_capture
+    from calibration.fileio import atomic_write_png
+    from reconstruction.pipeline import twin_rgba
+    from reconstruction.twin import load_twin
+
+    if (views_dir is None) == (orbit is None):
+        raise click.ClickException("give exactly one of --views CAPTURE or --orbit N")
+    if orbit is not None and refine_steps:
+        raise click.ClickException("--refine-steps needs --views: an orbit has no photographs to refine against")
+    twin = load_twin(twin_dir)
+    if views_dir is not None:
+        capture = read_capture(views_dir)
+        jobs = [(Path(f.file_path).name, capture.camera(i).with_c2w(twin.sim3_rig_to_object.apply_to_c2w(f.camera.c2w)), i)
+                for i, f in enumerate(capture.frames)]
+    else:
+        capture = None
+        jobs = [(name, cam, None) for name, cam in orbit_cameras(twin, orbit)]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name, cam, i in track(jobs, description="rendering", transient=True):
+        if refine_steps and capture is not None:
+            from reconstruction.evaluation import FrozenGaussians, refine_camera_pose
+            from reconstruction.masks import capture_masks
+
+            mask = capture.mask(i)
+            if mask is None:
+                mask = capture_masks(capture)[0][i]
+            ref = refine_camera_pose(FrozenGaussians.from_twin(twin), cam, capture.image(i), mask, steps=refine_steps)
+            cam = cam.with_c2w(ref.c2w)
+        atomic_write_png(out_dir / f"{Path(name).stem}.png", twin_rgba(twin, cam))
+    click.echo(f"{len(jobs)} RGBA images written to {out_dir}")
