@@ -239,6 +239,14 @@ class SilhouetteIndex:
     def __len__(self) -> int:
         return int(self.words.shape[0])
 
+    def _scan(self, variants: np.ndarray, lo: int, hi: int, model_mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        if hi <= lo:
+            return np.zeros(0, np.float32), np.zeros(0, np.int16)
+        best, which = best_iou(self.words[lo:hi], self.counts[lo:hi], variants)
+        if model_mask is not None:
+            best = np.where(model_mask[self.model_row[lo:hi]], best, np.float32(0.0))
+        return best, which
+
     def query(self, variants: np.ndarray, *, top_k: int = 50, min_iou: float = 0.7, model_mask: np.ndarray | None = None) -> Matches:
         """Top-`top_k` rows with IoU >= `min_iou` against any of one mask's packed variants [Q, W].
 
@@ -246,15 +254,14 @@ class SilhouetteIndex:
         IoU seen in the count window even when nothing passes (for the error message).
         """
         q_counts = popcount_rows(variants)
-        # The window is widened to IoU 0.5 so a failed search can still say how close it came.
-        lo, hi = count_window(self.counts, q_counts, min(min_iou, 0.5))
-        if hi <= lo:
-            empty = np.zeros(0, np.int64)
-            return Matches(empty, np.zeros(0, np.float32), np.zeros(0, np.int16), 0.0)
-        best, which = best_iou(self.words[lo:hi], self.counts[lo:hi], variants)
-        if model_mask is not None:
-            best = np.where(model_mask[self.model_row[lo:hi]], best, 0.0)
-        top_seen = float(best.max())
+        lo, hi = count_window(self.counts, q_counts, min_iou)
+        best, which = self._scan(variants, lo, hi, model_mask)
+        top_seen = float(best.max()) if len(best) else 0.0
+        if top_seen < min_iou:
+            # Nothing passes: scan a wider window once so the caller can say how close it came.
+            lo, hi = count_window(self.counts, q_counts, min(min_iou, 0.3))
+            best, which = self._scan(variants, lo, hi, model_mask)
+            top_seen = float(best.max()) if len(best) else 0.0
         ok = np.flatnonzero(best >= min_iou)
         if len(ok) > top_k:
             ok = ok[np.argpartition(-best[ok], top_k - 1)[:top_k]]
