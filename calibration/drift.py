@@ -110,7 +110,7 @@ def _features(gray: np.ndarray, mode: str):
     if mode == THOROUGH:
         f = cv2.SIFT_create(nfeatures=4000)
     else:
-        f = cv2.ORB_create(nfeatures=1500, fastThreshold=10)
+        f = cv2.ORB_create(nfeatures=800, fastThreshold=10)
     return f.detectAndCompute(gray, None)
 
 
