@@ -33,7 +33,7 @@ from calibration.camera import Camera
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
-from reconstruction.silhouette import normalize_silhouette, pack
+from reconstruction.silhouette import fill_triangles, normalize_silhouette, pack
 from reconstruction.silhouette_index import ANGLE, BX, BY, EXTENT, SilhouetteIndex
 
 # Below this anisotropy the principal axis of a mask is unreliable; such masks are tried at many rolls.
@@ -226,10 +226,9 @@ def _view_ious(verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats: n
             zz = z if ok[i] else 1.0
             uv[i, 0] = k[0, 0] * x / zz + k[0, 1] * y / zz + k[0, 2]
             uv[i, 1] = k[1, 1] * y / zz + k[1, 2]
-        for r in range(h):
-            for c in range(w):
-                buf[r, c] = False
-        _fill(uv, faces, ok, buf, h, w)
+        view = buf[:h, :w]
+        view[:, :] = False
+        fill_triangles(uv, faces, ok, view)
         inter = 0
         rendered = 0
         for r in range(h):
@@ -244,36 +243,6 @@ def _view_ious(verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats: n
         if total + (n_views - 1 - v) < stop_below:
             break
     return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _fill(uv, faces, ok, out, h, w):
-    for f in range(faces.shape[0]):
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        if not (ok[a] and ok[b] and ok[c]):
-            continue
-        x0, y0 = uv[a, 0], uv[a, 1]
-        x1, y1 = uv[b, 0], uv[b, 1]
-        x2, y2 = uv[c, 0], uv[c, 1]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        if area == 0.0:
-            continue
-        sgn = 1.0 if area > 0 else -1.0
-        umin = max(int(np.ceil(min(x0, x1, x2) - 0.5)), 0)
-        umax = min(int(np.floor(max(x0, x1, x2) - 0.5)), w - 1)
-        vmin = max(int(np.ceil(min(y0, y1, y2) - 0.5)), 0)
-        vmax = min(int(np.floor(max(y0, y1, y2) - 0.5)), h - 1)
-        for v in range(vmin, vmax + 1):
-            py = v + 0.5
-            for u in range(umin, umax + 1):
-                if out[v, u]:
-                    continue
-                px = u + 0.5
-                e0 = sgn * ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0))
-                e1 = sgn * ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1))
-                e2 = sgn * ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2))
-                if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
-                    out[v, u] = True
 
 
 class Scorer:

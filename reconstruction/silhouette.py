@@ -25,7 +25,8 @@ _NEAR = 1e-6
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.ndarray) -> None:
+def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.ndarray) -> None:
+    """Set `out` [H, W] where a pixel centre lies inside a projected triangle: `uv` [N, 2], `faces` [F, 3], `ok` [N] (vertex in front)."""
     h, w = out.shape
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -74,7 +75,7 @@ def render_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, vi
     """
     uv, z = project_vertices(np.asarray(vertices, np.float64), np.asarray(K, np.float64), np.asarray(viewmat, np.float64))
     out = np.zeros((int(height), int(width)), dtype=np.bool_)
-    _fill_triangles(uv, np.ascontiguousarray(faces, dtype=np.int64), z > _NEAR, out)
+    fill_triangles(uv, np.ascontiguousarray(faces, dtype=np.int64), z > _NEAR, out)
     return out
 
 
