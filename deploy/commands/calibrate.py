@@ -16,7 +16,12 @@ from calibration.keeper import RECALIBRATE, Keeper, KeeperConfig, capture_images
 from calibration.multiview import calibrate_rig
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
-EXIT_RECALIBRATE = 3
+
+
+class RecalibrateAlarm(click.ClickException):
+    """A camera drifted beyond correction: exit 3, so timers and scripts see it."""
+
+    exit_code = 3
 
 
 @click.group()
@@ -142,8 +147,9 @@ def check_cmd(capture: Path | None, calibration: Path, latest: Path | None, thor
         figs = "no reference visible" if c["effect_px"] is None else f"{c['rotation_deg']:.3f} deg, {c['effect_px']:.2f} px ({c['method']})"
         click.echo(f"  {n}: {c['status']}  {figs}")
     click.echo(f"{rec['status']}: {rec['action']}")
-    if rec["status"] == RECALIBRATE or keeper.alarm() is not None:
-        raise SystemExit(EXIT_RECALIBRATE)
+    alarm = keeper.alarm()
+    if rec["status"] == RECALIBRATE or alarm is not None:
+        raise RecalibrateAlarm(f"camera(s) {', '.join(alarm['cameras'])} drifted beyond correction; recalibrate the rig with a board")
 
 
 @calibrate.command("history")
