@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
+from reconstruction.losses import composite, mask_l1, photometric_loss
 from reconstruction.metrics import image_metrics
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.pose_metrics import registration_errors, rotation_error_deg
@@ -83,31 +83,6 @@ def render_rgba(
     return colors[0], alphas[0, ..., 0]
 
 
-def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float32) - size // 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).expand(3, 1, size, size).contiguous()
-
-
-def dssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(1 - SSIM) / 2 of `pred` vs `target` [H, W, 3], 3DGS's training form (11-tap Gaussian, zero padding)."""
-    x = pred.permute(2, 0, 1)[None]
-    y = target.permute(2, 0, 1)[None]
-    w = _gaussian_window().to(x.dtype)
-
-    def blur(z: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(z, w, padding=5, groups=3)
-
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x**2
-    var_y = blur(y * y) - mu_y**2
-    cov = blur(x * y) - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return (1.0 - s.mean()) / 2.0
-
-
 def view_loss(
     rgb: torch.Tensor,
     alpha: torch.Tensor,
@@ -118,15 +93,13 @@ def view_loss(
     lambda_dssim: float = LAMBDA_DSSIM,
     lambda_mask: float = LAMBDA_MASK,
 ) -> torch.Tensor:
-    """The training loss of one view: (1 - λ) L1 + λ D-SSIM on RGB + λ_mask L1(alpha, mask).
+    """The training loss of one view (`reconstruction.losses`): L_rgb + λ_mask L_mask.
 
     rgb [H, W, 3] is the render over `background` [3]; the photograph gt_rgb [H, W, 3] is composited
-    over the same background with gt_mask [H, W] bool, so background pixels compare like with like.
+    over the same background with gt_mask [H, W], so background pixels compare like with like.
     """
-    m = gt_mask[..., None].to(rgb.dtype)
-    target = gt_rgb * m + background.to(rgb.dtype) * (1.0 - m)
-    l_rgb = (1.0 - lambda_dssim) * (rgb - target).abs().mean() + lambda_dssim * dssim(rgb, target)
-    return l_rgb + lambda_mask * (alpha - gt_mask.to(alpha.dtype)).abs().mean()
+    target = composite(gt_rgb[None], gt_mask[None], background)
+    return photometric_loss(rgb[None], target, lambda_dssim) + lambda_mask * mask_l1(alpha[None], gt_mask[None])
 
 
 @dataclass(frozen=True)
