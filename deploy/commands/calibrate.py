@@ -110,6 +110,32 @@ def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Pat
             click.echo(f"    skipped {view}: {why}")
 
 
+@calibrate.command("sfm")
+@click.argument("capture", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version)")
+@click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None, help="calibration to align to (default: the capture's own poses)")
+@click.option("--max-error-px", type=float, default=1.0, show_default=True)
+def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: float) -> None:
+    """Board-free relative calibration of a capture with SfM (intrinsics held fixed)."""
+    from calibration.calibfile import CalibrationDoc, read_calibration
+    from calibration.sfm import sfm_calibrate
+
+    cap = read_capture(capture)
+    images = capture_images(cap)
+    cams = {}
+    for i, f in enumerate(cap.frames):
+        cams.setdefault(f.camera_id, cap.camera(i))
+    ref = {n: c.c2w for n, c in read_calibration(reference).cameras.items()} if reference else {n: c.c2w for n, c in cams.items()}
+    res = sfm_calibrate(images, cams, reference=ref, max_reprojection_px=max_error_px)
+    figures = {n: {"rms_px": res.reprojection_px} for n in res.cameras}
+    notes = {"registered": f"{res.registered}/{res.total}", "points": res.points, "alignment_rms_m": res.alignment_rms_m, "capture": str(capture)}
+    doc = CalibrationStore(out).commit(CalibrationDoc(res.cameras, figures, source="sfm", notes=notes))
+    click.echo(
+        f"{out}: version {doc.version}; registered {res.registered}/{res.total} images, reprojection {res.reprojection_px:.2f} px, "
+        f"{res.points} points, aligned to the reference with {1000 * (res.alignment_rms_m or 0):.1f} mm RMS"
+    )
+
+
 def _latest_capture(folder: Path) -> Path:
     caps = [p for p in folder.iterdir() if (p / "transforms.json").exists()] if folder.is_dir() else []
     if not caps:
