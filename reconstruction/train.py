@@ -272,16 +272,17 @@ def train(
             it += 1
             hist.append(value)
             state["it"] = it
-            if progress is not None:
-                progress(stage, it, cap, value)
             # In Stage II the plateau test starts once dropout is over: the final fit uses every splat.
-            if preset.plateau and math.isfinite(value) and (stage != "photo" or it >= preset.dropout_anneal):
-                if plateau.update(value):
-                    break
+            done = (preset.plateau and math.isfinite(value) and (stage != "photo" or it >= preset.dropout_anneal)
+                    and plateau.update(value))
             state["plateau"] = plateau.history
             state["timings"][stage] = time.perf_counter() - t0
             if preset.checkpoint_every and it % preset.checkpoint_every == 0:
                 save()
+            if progress is not None:
+                progress(stage, it, cap, value)
+            if done:
+                break
         state["timings"][stage] = time.perf_counter() - t0
         state["iterations"][stage] = it
         state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
