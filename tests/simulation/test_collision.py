@@ -17,7 +17,7 @@ from simulation.collision import (
     surface_points,
 )
 
-FAST = DecompositionOptions(max_convex_hull=8, mcts_iterations=20, resolution=500, timeout_s=60)
+FAST = DecompositionOptions(max_convex_hull=8, mcts_iterations=20, resolution=500, timeout_s=600)  # a generous cap: the CPU is shared
 
 
 def rotated(mesh: trimesh.Trimesh, seed: int = 0) -> trimesh.Trimesh:
