@@ -1,0 +1,341 @@
+"""Speed against error (issue 6): the method's presets, its ablations and the baselines, one harness.
+
+    .venv/bin/python benchmarks/speed_vs_error.py [--quick] [--work DIR] [--scenes N] [--refine-steps N]
+
+Scenes: the synthetic rig (rig.synthetic, MuJoCo) photographs real YCB meshes from ../shared/data
+(9-13 train views, 320x240, 0.3 deg / 2 mm calibration noise, 36 held-out orbit views). The CAD
+model the method gets is the object decimated to 30 % and smoothly deformed (never the photographed
+mesh), alone in its library. Training views: all, and 8 / 5 / 3 chosen by farthest-point sampling
+over camera centres (first view drawn from the seed), as the paper's sparsity study.
+
+Methods (one point per method x preset):
+- full: the engine with presets `preview`, `cpu`, and `paper` (600k splats; iterations / 30 on a
+  CPU, the full schedule where CUDA is present);
+- no-mask-warmup: the `cpu` preset with Stage I removed (its iterations moved to Stage II), the
+  paper's strongest ablation;
+- sphere-init: the `cpu` preset on `baselines.sphere_mesh_for_views` instead of the CAD model;
+- vanilla-3dgs: `baselines.train_vanilla_3dgs`, the original recipe, schedule scaled to its iterations.
+
+Every run's twin is scored by `reconstruction.evaluation` (the paper's protocol) on evenly spread
+held-out views. Each run's metrics are cached as JSON under the work directory, so an interrupted
+sweep resumes where it stopped. Writes benchmarks/results/speed_vs_error.md and
+speed_vs_error_time.png / speed_vs_error_views.png.
+
+The engine (reconstruction/pipeline.py) takes no preset overrides or initial mesh yet, so the
+ablation and the sphere init reach it by substituting `pipeline.resolve_preset` and
+`registration.register` for the duration of one run (see `engine_overrides`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+YCB = SHARED / "objects" / "ycb"
+RESULTS = REPO / "benchmarks" / "results"
+OBJECTS = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane", "033_spatula",
+           "077_rubiks_cube", "061_foam_brick")
+VIEW_COUNTS = ("all", 8, 5, 3)
+SUMMARY = ("psnr", "ssim", "lpips", "mpsnr", "mlpips", "fgpsnr", "iou")
+
+
+@dataclass(frozen=True)
+class Run:
+    scene: str
+    method: str  # full | no-mask-warmup | sphere-init | vanilla-3dgs
+    preset: str  # engine preset, or "i<iterations>" for vanilla 3DGS
+    views: str  # "all" or a count
+
+    @property
+    def key(self) -> str:
+        return f"{self.scene}/{self.method}-{self.preset}-v{self.views}"
+
+
+# ------------------------------------------------------------------------------------ scenes
+
+
+def make_scene(work: Path, index: int, obj: str) -> Path:
+    """Synthetic rig capture of `obj` + its CAD library (one deformed, decimated variant); cached."""
+    from registration import decimate, deform  # benchmarks/registration.py: the same CAD variants
+    import trimesh
+
+    from reconstruction.library import build_library
+    from rig.synthetic import synth_dataset
+
+    d = work / "scenes" / f"{index:02d}_{obj}"
+    if not (d / "gt.json").exists():
+        synth_dataset(YCB / obj / "textured.obj", d, views=9 + index % 5, heldout=36, size=(320, 240), seed=200 + index,
+                      calib_noise_deg=0.3, calib_noise_mm=2.0, texture_size=512)
+    if not (d / "lib" / "library.json").exists():
+        (d / "cad").mkdir(exist_ok=True)
+        mesh = trimesh.load(YCB / obj / "textured.obj", force="mesh")
+        deform(decimate(mesh, 0.3), 0.03, seed=index).export(d / "cad" / f"{obj}_cad.stl")
+        build_library(d / "cad", d / "lib", unit="m", workers=1, progress=False, log=lambda _m: None)
+    return d
+
+
+def fps_views(centres: np.ndarray, k: int, seed: int) -> list[int]:
+    """Farthest-point sampling of k camera centres [V, 3], the first drawn from `seed` (paper 4.4.1)."""
+    rng = np.random.default_rng(seed)
+    chosen = [int(rng.integers(len(centres)))]
+    dist = np.linalg.norm(centres - centres[chosen[0]], axis=1)
+    while len(chosen) < min(k, len(centres)):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(centres - centres[nxt], axis=1))
+    return sorted(chosen)
+
+
+# ------------------------------------------------------------------------------------ engine hooks
+
+
+@dataclass
+class _SphereRegistration:
+    """What `pipeline.reconstruct` reads from a registration, for the sphere: identity, nothing retrieved."""
+
+    model_id: str
+    sim3_rig_to_object: object
+    score: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"model_id": self.model_id, "sim3_rig_to_object": self.sim3_rig_to_object.to_dict(),
+                "why": "sphere initialisation (paper 4.4.2): no retrieval, the sphere lives in the rig frame"}
+
+
+@contextmanager
+def engine_overrides(method: str, preset: str, cuda: bool):
+    """Substitutes the engine's preset resolution (ablations, reduced `paper`) and registration
+    (sphere init) for one run; restores them afterwards."""
+    import reconstruction.library as library_module
+    import reconstruction.pipeline as pipeline
+    import reconstruction.registration as registration
+    from calibration.sim3 import Sim3
+    from reconstruction.baselines import sphere_mesh_for_views
+    from reconstruction.twin import MeshParts
+
+    orig_resolve, orig_register, orig_parts = pipeline.resolve_preset, registration.register, pipeline.model_parts
+    orig_load = library_module.load_library
+    sphere: dict = {}
+
+    def resolve(name, stats):
+        p, choices = orig_resolve(name, stats)
+        if name == "paper" and not cuda:
+            p = replace(p, iters_pose=p.iters_pose // 30, iters_deform=p.iters_deform // 30, iters_photo=p.iters_photo // 30,
+                        dropout_anneal=p.dropout_anneal // 30)
+            choices["benchmark"] = {"value": "iterations / 30", "why": "paper preset on a CPU (speed_vs_error.py)"}
+        if method == "no-mask-warmup":
+            p = replace(p, iters_photo=p.iters_photo + p.iters_pose + p.iters_deform, iters_pose=0, iters_deform=0)
+            choices["ablation"] = {"value": "no mask warm-up", "why": "Stage I removed, its iterations moved to Stage II"}
+        return p, choices
+
+    def register(masks, cams, library, **_kw):
+        mesh = sphere_mesh_for_views(cams, masks)
+        sphere["parts"] = MeshParts(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.zeros(len(mesh.faces), np.int64), ["sphere"])
+        return _SphereRegistration("sphere", Sim3.identity())
+
+    pipeline.resolve_preset = resolve
+    if method == "sphere-init":
+        registration.register = register
+        pipeline.model_parts = lambda library, model_id: sphere["parts"]
+        library_module.load_library = lambda path: SimpleNamespace(models=[])  # no CAD library is consulted
+    try:
+        yield
+    finally:
+        pipeline.resolve_preset, registration.register, pipeline.model_parts = orig_resolve, orig_register, orig_parts
+        library_module.load_library = orig_load
+
+
+# ------------------------------------------------------------------------------------ one run
+
+
+def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
+    """Train (engine or baseline) and evaluate one configuration; the metrics JSON is cached."""
+    import torch
+
+    from calibration.capture import load_views, read_capture
+    from calibration.fileio import atomic_write_json
+    from reconstruction.evaluation import evaluate_twin, select_views
+    from reconstruction.twin import load_twin, save_twin
+
+    cache = work / "runs" / f"{run.key}.json"
+    if cache.exists():
+        return json.loads(cache.read_text())
+    train = read_capture(scene_dir / "train")
+    centres = np.stack([f.camera.c2w[:3, 3] for f in train.frames])
+    idx = list(range(len(train))) if run.views == "all" else fps_views(centres, int(run.views), seed=args.seed)
+    twin_dir = work / "twins" / run.key
+    t0 = time.perf_counter()
+    if not (twin_dir / "twin.json").exists():
+        if run.method == "vanilla-3dgs":
+            from reconstruction.baselines import VanillaConfig, train_vanilla_3dgs, vanilla_twin
+
+            images, masks, cams = load_views(train, idx)
+            cfg = VanillaConfig().scaled(int(run.preset[1:]), init_points=args.vanilla_init_points)
+            result = train_vanilla_3dgs(images, masks, cams, cfg, seed=args.seed)
+            names = [train.frames[i].camera_id for i in idx]
+            save_twin(vanilla_twin(result, cams, names), twin_dir, overwrite=True)
+        else:
+            from reconstruction.pipeline import reconstruct
+
+            with engine_overrides(run.method, run.preset, torch.cuda.is_available()):
+                reconstruct(scene_dir / "train", scene_dir / "lib", twin_dir, preset=run.preset, views=idx, seed=args.seed,
+                            overwrite=True)
+    train_wall = time.perf_counter() - t0
+    twin = load_twin(twin_dir)
+    held = read_capture(scene_dir / "heldout")
+    hidx = select_views(len(held), args.heldout_views)
+    images, masks, cams = load_views(held, hidx)
+    gt = json.loads((scene_dir / "gt.json").read_text())
+    report = evaluate_twin(twin, cams, images, masks, refine_steps=args.refine_steps,
+                           gt=gt if run.method != "vanilla-3dgs" else None)
+    doc = {
+        "run": run.__dict__, "train_views": idx, "heldout_views": hidx, "refine_steps": args.refine_steps,
+        "train_wall_s": float(twin.timings_s.get("total", train_wall)), "num_splats": twin.num_splats,
+        "mean": report["mean"], "mean_refined": report.get("mean_refined"), "eval_timings_s": report["timings_s"],
+        "registration": {k: v for k, v in report.get("registration", {}).items() if k.endswith("median")},
+    }
+    atomic_write_json(cache, doc)
+    return doc
+
+
+# ------------------------------------------------------------------------------------ report
+
+
+def _mean(docs: list[dict], key: str, refined: bool) -> float:
+    vals = [(d["mean_refined"] if refined and d["mean_refined"] else d["mean"]).get(key) for d in docs]
+    vals = [v for v in vals if v is not None]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def write_report(docs: list[dict], args, wall: float) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    refined = args.refine_steps > 0
+    groups: dict[tuple[str, str, str], list[dict]] = {}
+    for d in docs:
+        r = d["run"]
+        groups.setdefault((r["method"], r["preset"], str(r["views"])), []).append(d)
+    lines = [
+        "# Speed against error (benchmarks/speed_vs_error.py)",
+        "",
+        f"{'--quick: ' if args.quick else ''}{len({d['run']['scene'] for d in docs})} synthetic rig scenes (YCB meshes, 320x240, "
+        f"0.3 deg / 2 mm calibration noise, deformed+decimated CAD), {args.heldout_views} held-out views each, metrics "
+        f"{'after ' + str(args.refine_steps) + ' test-time refinement steps' if refined else 'at the nominal poses (no refinement)'}; "
+        f"train wall time on this machine's 2 shared CPU cores (load from other jobs inflates it). Sweep wall time {wall / 60:.1f} min.",
+        "",
+        "| method | preset | views | scenes | train s | splats | PSNR | SSIM | LPIPS | mPSNR | mLPIPS | fgPSNR | IoU | rot deg | ctr % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    order = {"full": 0, "sphere-init": 1, "no-mask-warmup": 2, "vanilla-3dgs": 3}
+    vorder = {v: i for i, v in enumerate(map(str, VIEW_COUNTS))}
+    for (method, preset, views), ds in sorted(groups.items(), key=lambda kv: (vorder.get(kv[0][2], 9), order.get(kv[0][0], 9), kv[0][1])):
+        reg = [d["registration"] for d in ds if d.get("registration")]
+        rot = f"{np.mean([r['rotation_deg_median'] for r in reg]):.2f}" if reg else "-"
+        ctr = f"{np.mean([r['center_pct_median'] for r in reg]):.2f}" if reg else "-"
+        cells = [f"{_mean(ds, k, refined):.3f}" for k in SUMMARY]
+        lines.append(f"| {method} | {preset} | {views} | {len(ds)} | {np.mean([d['train_wall_s'] for d in ds]):.0f} | "
+                     f"{int(np.mean([d['num_splats'] for d in ds]))} | " + " | ".join(cells) + f" | {rot} | {ctr} |")
+    lines += ["", "![wall time vs quality](speed_vs_error_time.png)", "", "![quality vs views](speed_vs_error_views.png)", ""]
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for ax, key, label in zip(axes, ("fgpsnr", "mlpips", "iou"), ("fgPSNR (dB) ↑", "mLPIPS ↓", "IoU ↑")):
+        for (method, preset, views), ds in groups.items():
+            if views != str(VIEW_COUNTS[0]):
+                continue
+            x = np.mean([d["train_wall_s"] for d in ds])
+            ax.scatter(x, _mean(ds, key, refined), s=40)
+            ax.annotate(f"{method}/{preset}", (x, _mean(ds, key, refined)), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel("train wall time (s, log)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    fig.suptitle("All training views: one point per method x preset (mean over scenes)")
+    fig.tight_layout()
+    fig.savefig(RESULTS / "speed_vs_error_time.png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, key, label in zip(axes, ("fgpsnr", "iou"), ("fgPSNR (dB) ↑", "IoU ↑")):
+        series: dict[tuple[str, str], list[tuple[int, float]]] = {}
+        for (method, preset, views), ds in groups.items():
+            n = int(np.mean([len(d["train_views"]) for d in ds]))
+            series.setdefault((method, preset), []).append((n, _mean(ds, key, refined)))
+        for (method, preset), pts in sorted(series.items()):
+            pts.sort()
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"{method}/{preset}")
+        ax.set_xlabel("training views")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "speed_vs_error_views.png", dpi=110)
+    plt.close(fig)
+    text = "\n".join(lines)
+    (RESULTS / "speed_vs_error.md").write_text(text)
+    return text
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="2 scenes, all + 3 views, preview presets, short vanilla, 4 held-out views")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-speed-vs-error"), help="cache of scenes, twins and per-run metrics (resumable)")
+    ap.add_argument("--scenes", type=int, default=None)
+    ap.add_argument("--refine-steps", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if not YCB.exists():
+        sys.exit(f"needs the shared data folder ({YCB} is absent)")
+    import torch
+
+    cuda = torch.cuda.is_available()
+    if args.quick:
+        n_scenes, view_counts, args.heldout_views = args.scenes or 2, ("all", 3), 4
+        args.refine_steps = 0 if args.refine_steps is None else args.refine_steps
+        methods = [("full", "preview"), ("no-mask-warmup", "preview"), ("sphere-init", "preview"), ("vanilla-3dgs", "i300")]
+        args.vanilla_init_points = 3000
+    else:
+        n_scenes, view_counts, args.heldout_views = args.scenes or 6, VIEW_COUNTS, 12
+        args.refine_steps = 100 if args.refine_steps is None else args.refine_steps
+        methods = [("full", "preview"), ("full", "cpu"), ("full", "paper"), ("no-mask-warmup", "cpu"), ("sphere-init", "cpu"),
+                   ("vanilla-3dgs", "i3000")]
+        args.vanilla_init_points = 10_000 if not cuda else 100_000
+    args.work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    docs = []
+    for i, obj in enumerate(OBJECTS[:n_scenes]):
+        scene = make_scene(args.work, i, obj)
+        for views in view_counts:
+            for method, preset in methods:
+                run = Run(scene.name, method, preset, str(views))
+                t = time.perf_counter()
+                try:
+                    doc = run_one(run, scene, args.work, args)
+                except Exception as e:  # one failed configuration is reported, the sweep goes on
+                    print(f"{run.key}: FAILED ({e.__class__.__name__}: {e})", flush=True)
+                    continue
+                docs.append(doc)
+                m = doc["mean_refined"] or doc["mean"]
+                print(f"{run.key}: train {doc['train_wall_s']:.0f} s, fgPSNR {m['fgpsnr']}, IoU {m['iou']:.3f} "
+                      f"({time.perf_counter() - t:.0f} s)", flush=True)
+                write_report(docs, args, time.perf_counter() - t0)
+    print(write_report(docs, args, time.perf_counter() - t0))
+
+
+if __name__ == "__main__":
+    main()
