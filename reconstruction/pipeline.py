@@ -22,7 +22,7 @@ from calibration.sim3 import Sim3
 from reconstruction.pose_correction import choose_pose_mode
 from reconstruction.presets import resolve_preset, scene_stats
 from reconstruction.render import rasterize
-from reconstruction.splats import init_splats, project_colors
+from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import MeshParts, Twin, TwinCamera, read_mesh_parts, save_twin, software_versions
 
@@ -34,6 +34,7 @@ class Reconstruction:
     twin: Twin
     registration: object  # reconstruction.registration.RegistrationResult
     train: TrainResult
+    splats: CanonicalSplats  # the initial state, before training
 
 
 def model_parts(library, model_id: str) -> MeshParts:
@@ -191,4 +192,4 @@ def reconstruct(
               renders=renders, overwrite=overwrite)
     if ckpt.exists():
         ckpt.unlink()
-    return Reconstruction(twin, reg, result)
+    return Reconstruction(twin, reg, result, splats)

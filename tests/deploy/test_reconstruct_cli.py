@@ -1,0 +1,121 @@
+"""`cadsplat reconstruct | render | export` end to end on the bundled sample (preview-sized), bad input
+in one sentence, and the twin beating its own initial state on held-out views."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(1)  # the CI box is shared; one thread avoids oversubscription stalls
+
+from calibration.capture import load_views, read_capture  # noqa: E402
+from deploy.cli import main  # noqa: E402
+from deploy.commands.demo import bundled_sample_dir  # noqa: E402
+from reconstruction import presets  # noqa: E402
+from reconstruction.twin import load_twin, read_splats_ply  # noqa: E402
+
+SAMPLE = bundled_sample_dir()
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    if not SAMPLE.exists():
+        pytest.skip("the bundled sample is absent")
+    from reconstruction.library import build_library
+
+    out = tmp_path_factory.mktemp("lib") / "library"
+    build_library(SAMPLE / "library_meshes", out, progress=False, log=lambda _m: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def short_preview():
+    """The preview preset with short stage caps so a CLI run takes seconds, not a minute."""
+    original = presets.resolve_preset
+
+    def resolve(name, stats):
+        p, c = original(name, stats)
+        return replace(p, iters_pose=30, iters_deform=20, iters_photo=40, dropout_anneal=20), c
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr("reconstruction.pipeline.resolve_preset", resolve)
+    yield
+    mp.undo()
+
+
+def test_reconstruct_render_export(tmp_path, library, short_preview, capsys):
+    twin_dir = tmp_path / "twin"
+    rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(twin_dir), "--preset", "preview",
+               "--views", "0,2,4,6,8"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "Twin of 'medium_clamp_cad'" in out
+    twin = load_twin(twin_dir)
+    assert twin.model_id == "medium_clamp_cad" and len(twin.cameras) == 5 and twin.preset == "preview"
+    doc = json.loads((twin_dir / "twin.json").read_text())
+    for key in ("model_id", "sim3_rig_to_object_init", "sim3_rig_to_object", "cameras", "preset", "choices", "timings_s", "losses", "versions"):
+        assert key in doc
+    assert {"num_splats", "sh_degree", "pose_mode", "sh_init", "iterations"} <= set(doc["choices"])
+    assert all(np.isfinite(v) for v in doc["timings_s"].values())
+    assert len(list((twin_dir / "renders").glob("*.png"))) == 5
+    assert (twin_dir / "mesh_deformed.glb").exists() and (twin_dir / "deformation.pt").exists()
+    assert not any(p.name.endswith(".checkpoint.pt") for p in tmp_path.iterdir())
+
+    # Render held-out cameras: RGBA with alpha = rendered alpha, named after the capture's images.
+    held = read_capture(SAMPLE / "heldout")
+    rc = main(["render", str(twin_dir), "--views", str(SAMPLE / "heldout"), "--out", str(tmp_path / "r")])
+    assert rc == 0
+    first = Path(held.frames[0].file_path).stem + ".png"
+    img = cv2.imread(str(tmp_path / "r" / first), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (240, 320, 4)
+    mask = held.mask(0)
+    assert (img[..., 3][mask] > 127).mean() > 0.7 and (img[..., 3][~mask] > 127).mean() < 0.05
+    assert main(["render", str(twin_dir), "--orbit", "3", "--out", str(tmp_path / "o")]) == 0
+    assert len(list((tmp_path / "o").glob("orbit_*.png"))) == 3
+
+    # Exports.
+    assert main(["export", str(twin_dir), "--format", "ply", "--out", str(tmp_path / "s.ply")]) == 0
+    ply = read_splats_ply(tmp_path / "s.ply")
+    np.testing.assert_allclose(ply["means"], twin.means)
+    assert main(["export", str(twin_dir), "--format", "glb", "--out", str(tmp_path / "m.glb")]) == 0
+    assert (tmp_path / "m.glb").stat().st_size > 1000
+
+
+def test_bad_input_is_one_sentence(tmp_path, library, capsys):
+    assert main(["reconstruct", str(tmp_path / "nope"), "--library", str(library), "--out", str(tmp_path / "t")]) != 0
+    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(tmp_path / "t"), "--views", "a,b"]) != 0
+    (tmp_path / "exists").mkdir()
+    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(tmp_path / "exists")]) != 0
+    assert main(["render", str(tmp_path / "exists"), "--orbit", "3", "--out", str(tmp_path / "o")]) != 0
+    assert main(["render", str(tmp_path / "exists"), "--out", str(tmp_path / "o")]) != 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "already exists" in err and "twin.json" in err
+
+
+@pytest.mark.slow
+def test_twin_beats_its_initial_state_on_heldout_views(tmp_path, library, short_preview):
+    """Held-out IoU and fgPSNR of the trained twin vs the same splats before training (projected
+    colours at the registered poses, field at identity, no pose correction)."""
+    from reconstruction.evaluation import evaluate_twin, select_views
+    from reconstruction.pipeline import reconstruct
+
+    rec = reconstruct(SAMPLE / "train", library, tmp_path / "twin", preset="preview")
+    twin = rec.twin
+    s0 = rec.splats
+    init = replace(twin, means=s0.means, sim3_rig_to_object=twin.sim3_rig_to_object_init, log_scales=s0.log_scales,
+                   opacity_logits=s0.opacity_logits, sh=s0.sh)
+    held = read_capture(SAMPLE / "heldout")
+    idx = select_views(len(held), 8)
+    images, masks, cams = load_views(held, idx)
+    after = evaluate_twin(twin, cams, images, masks, refine_steps=0)["mean"]
+    before = evaluate_twin(init, cams, images, masks, refine_steps=0)["mean"]
+    print(f"held-out IoU {before['iou']:.3f} -> {after['iou']:.3f}, fgPSNR {before['fgpsnr']:.2f} -> {after['fgpsnr']:.2f} dB")
+    assert after["iou"] > before["iou"] + 0.01, (before["iou"], after["iou"])
+    assert after["fgpsnr"] > before["fgpsnr"] + 0.5, (before["fgpsnr"], after["fgpsnr"])
