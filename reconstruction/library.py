@@ -28,6 +28,7 @@ from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_fil
 from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, model_frame, open_index, read_shard, render_model_views, shard_key, write_shard
 
 MESH_EXTS = (".obj", ".stl", ".ply", ".glb")
+CAD_ONLY_EXTS = (".step", ".stp")
 UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 LIBRARY_JSON = "library.json"
 FORMAT = "cadsplat-library/1"
@@ -209,6 +210,10 @@ def build_library(mesh_dir, out_dir, *, unit: str = "m", workers: int | None = N
     (out_dir / "meshes").mkdir(exist_ok=True)
 
     plans, jobs, skipped = [], [], []
+    for path in sorted(p for p in mesh_dir.rglob("*") if p.is_file() and p.suffix.lower() in CAD_ONLY_EXTS):
+        reason = "STEP files are not read (no B-rep kernel in this build); export the part as STL, OBJ, PLY or GLB"
+        skipped.append({"file": str(path), "reason": reason})
+        log(f"skipped {path}: {reason}")
     for path in files:
         mid = model_id_of(path, mesh_dir)
         try:

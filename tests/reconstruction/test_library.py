@@ -96,7 +96,8 @@ def test_shared_cad_parts_mixed_units(tmp_path):
     assert max(lib.entry("counter.unitsmm").extent_m) == pytest.approx(0.3048, rel=1e-3)
     # Files in millimetres read as inches come out metres-to-a-hundred-metres across: the build says so.
     assert any("large_block" in w for w in lib.warnings)
-    assert "featuretype" in lib.ids  # the STL; STEP files are not read
+    assert "featuretype" in lib.ids  # the STL; the STEP twin is reported, not read
+    assert any(s["file"].endswith("featuretype.STEP") and "STEP" in s["reason"] for s in lib.skipped)
 
 
 def test_missing_or_bad_library(tmp_path):
