@@ -25,17 +25,17 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def load_rig_calibration(path: Path | None) -> tuple[str, dict[str, Camera]]:
-    """(calibration_id, {camera_id: Camera}) from a calibration JSON
-    {"calibration_id": str, "cameras": {camera_id: Camera.to_dict()}}; ("uncalibrated", {}) without one."""
+    """(calibration_id, {camera_id: Camera}) from the keeper's `calibration.json`; ("uncalibrated", {}) without one.
+
+    The id names the version ("calibration-v0003") so every capture records which calibration it was taken under.
+    """
     if path is None:
         return "uncalibrated", {}
-    try:
-        doc = json.loads(Path(path).read_text())
-        return str(doc["calibration_id"]), {cid: Camera.from_dict(d) for cid, d in doc["cameras"].items()}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: calibration file not found") from None
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: not a rig calibration (needs calibration_id and cameras; {e})") from None
+    from calibration.calibfile import read_calibration
+
+    doc = read_calibration(path)
+    version = f"v{doc.version:04d}" if doc.version is not None else "unversioned"
+    return f"{Path(path).stem}-{version}", dict(doc.cameras)
 
 
 def build_camera(cfg: CameraConfig, calibrated: Camera | None, index: int, n: int) -> CameraDriver:
