@@ -1,0 +1,59 @@
+"""`cadsplat service run|status|retry`: the pipeline service over a capture store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.group(help="The pipeline service: committed captures -> registered -> reconstructed -> exported twins.")
+def service() -> None:
+    pass
+
+
+@service.command("run", help="Serve: pick up committed captures from STORE and turn each into a twin under WORK.")
+@click.option("--store", "store", required=True, type=click.Path(path_type=Path), help="The rig's capture store.")
+@click.option("--work", "work", required=True, type=click.Path(path_type=Path), help="Job store and twins.")
+@click.option("--library", "library", required=True, type=click.Path(exists=True, path_type=Path), help="CAD library.")
+@click.option("--preset", default="cpu", type=click.Choice(["preview", "cpu", "paper"]), show_default=True)
+@click.option("--max-queue", default=8, show_default=True, help="Jobs waiting at most; more captures wait in the store.")
+@click.option("--max-jobs", default=None, type=int, help="Stop after this many jobs (default: serve until SIGTERM).")
+@click.option("--poll", default=2.0, show_default=True, help="Seconds between scans of the store.")
+def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float) -> None:
+    from deploy.service import PipelineService
+    from deploy.steps import PipelineConfig, make_step_runner
+
+    def show(e) -> None:
+        detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else ""
+        click.echo(f"{e.kind:<12} job {e.job_id} {e.capture_id} {e.step} {detail}".rstrip())
+
+    svc = PipelineService(store, work, make_step_runner(PipelineConfig(str(library), preset)), max_queue=max_queue, on_event=show)
+    if svc.jobs.recovered:
+        click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")
+    done = svc.run_forever(poll_s=poll, max_jobs=max_jobs)
+    click.echo(f"stopped after {done} job(s)")
+
+
+@service.command("status", help="One line per job: its status, the step it is at, and any error.")
+@click.option("--work", "work", required=True, type=click.Path(exists=True, path_type=Path))
+def status(work: Path) -> None:
+    from deploy.jobs import JobStore
+
+    jobs = JobStore(work / "jobs.sqlite").jobs()
+    if not jobs:
+        click.echo("no jobs yet")
+    for j in jobs:
+        click.echo(f"{j.id:>4} {j.capture_id:<28} {j.status:<8} step {j.current_step:<11} {j.error}".rstrip())
+
+
+@service.command("retry", help="Put job JOB_ID back in the queue (after fixing what made it fail).")
+@click.argument("job_id", type=int)
+@click.option("--work", "work", required=True, type=click.Path(exists=True, path_type=Path))
+def retry(job_id: int, work: Path) -> None:
+    from deploy.jobs import JobStore
+
+    store = JobStore(work / "jobs.sqlite")
+    job = store.get(job_id)
+    store.retry(job_id)
+    click.echo(f"job {job_id} ({job.capture_id}) queued again")
