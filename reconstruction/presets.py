@@ -105,7 +105,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     choices: dict = {}
     long_side = max(stats.width, stats.height)
     # Render where the rasterizer is cheap but silhouettes keep their shape.
-    target_side = 160 if preview else 320
+    target_side = 160 if preview else 256
     scale = min(1.0, target_side / long_side)
     choices["image_scale"] = _choice(round(scale, 4), f"Stage II renders {long_side} px images at <= {target_side} px on the long side")
     mask_side = 128 if preview else 192
@@ -113,7 +113,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     choices["mask_scale"] = _choice(round(mask_scale, 4), f"silhouettes (Stage I) need only <= {mask_side} px on the long side")
 
     fg = stats.total_foreground_px * scale * scale
-    per_px, cap, floor = (0.5, 8_000, 2_000) if preview else (1.0, 40_000, 5_000)
+    per_px, cap, floor = (0.5, 8_000, 2_000) if preview else (0.5, 15_000, 4_000)
     n = int(np.clip(round(per_px * fg), floor, cap))
     choices["num_splats"] = _choice(n, f"{per_px} splat per foreground pixel over {stats.num_views} views at training scale "
                                        f"({int(fg)} px), clipped to [{floor}, {cap}]")
@@ -126,7 +126,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     fc = FieldConfig(depth=depth, width=width, bands=10, num_anchors=anchors, anchor_k=4)
     choices["deformation"] = _choice(asdict(fc), f"MLP {depth}x{width} evaluated at {anchors} farthest-point anchors and "
                                                  f"blended to the {n} splats (see benchmarks/reconstruction.py)")
-    iters = (60, 60, 200) if preview else (200, 250, 900)
+    iters = (40, 40, 120) if preview else (150, 150, 400)
     choices["iteration_caps"] = _choice(
         {"pose": iters[0], "deform": iters[1], "photo": iters[2]},
         "caps; each stage stops earlier once its loss plateaus" if not preview else "fixed short schedule for a first look",
@@ -138,13 +138,13 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     lr["pose"] = 2e-3
     lr["shN"] = 1e-3
     choices["learning_rates"] = _choice(lr, "paper rates, with pose, deformation and higher-SH rates raised for ~10x fewer iterations")
-    anneal = int(0.8 * iters[2])
+    anneal = int(0.6 * iters[2])
     preset = Preset(
         name=name, num_splats=n, sh_degree=degree, field=fc, iters_pose=iters[0], iters_deform=iters[1],
         iters_photo=iters[2], plateau=not preview, dropout_anneal=anneal, lr=lr, refine_steps=50 if preview else 100,
         image_scale=scale, mask_scale=mask_scale, checkpoint_every=100,
     )
     choices["dropout"] = _choice({"p0": preset.dropout_p0, "anneal_iters": anneal},
-                                 "0.5 cosine to 0 over the first 80% of Stage II, as the paper's 20k of 24k")
+                                 "0.5 cosine to 0 over the first 60% of Stage II (paper: 20k of 24k); the plateau test starts after it")
     return preset, choices
 

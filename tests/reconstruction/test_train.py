@@ -133,9 +133,9 @@ def test_cpu_preset_sizes_from_the_scene():
     big = SceneStats(12, 640, 480, (60000,) * 12, 300.0)
     ps, cs = resolve_preset("cpu", small)
     pb, cb = resolve_preset("cpu", big)
-    assert ps.num_splats < pb.num_splats <= 40_000
+    assert ps.num_splats < pb.num_splats <= 15_000
     assert ps.sh_degree == 0 and pb.sh_degree == 2
-    assert pb.image_scale == 0.5 and ps.image_scale == 1.0
+    assert pb.image_scale == 0.4 and ps.image_scale == 0.8
     assert all("why" in c and "value" in c for c in cb.values())
     paper, _ = resolve_preset("paper", big)
     assert (paper.num_splats, paper.sh_degree, paper.iters_pose, paper.iters_deform, paper.iters_photo) == (600_000, 3, 3000, 3000, 24_000)
