@@ -10,14 +10,14 @@ Conventions shared by all kernels:
 - conic (a, b, c) is the inverse 2D covariance [[a, b], [b, c]]; sigma = 0.5 (a dx^2 + c dy^2) + b dx dy
   with (dx, dy) = pixel centre - mean2d.
 - A Gaussian is visible in a camera iff its radius_x > 0 (projection culls with both radii zero).
-- rects [C, N, 4] are inclusive pixel ranges (u_lo, u_hi, v_lo, v_hi) of the pixel centres inside the
+- rects [C * N, 4] are inclusive pixel ranges (u_lo, u_hi, v_lo, v_hi) of the pixel centres inside the
   radius box, clipped to the image; tiles follow as pixel // tile_size.
-- keys [n_isect] are int64 (float32 depth bits << 32 | gaussian index), sorted within each tile, so the
-  order is by depth with ties broken by index; tile t owns keys[tile_offsets[t]:tile_offsets[t + 1]].
-- A "slot" is one (camera, Gaussian, tile) intersection, laid out Gaussian-major:
-  gauss_offsets[c * N + g] + row-major index of the tile inside the Gaussian's tile rectangle. Kernels
-  that run per tile write per-slot partial results, and a per-Gaussian pass sums them, which needs no
-  atomics.
+- Compositing works on "packed splats": the visible (camera, Gaussian) pairs, ordered by first tile
+  (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int64 record
+  (SI_* columns) and its colour row, so a tile's splats sit close together in memory.
+- A "slot" is one (splat, tile) intersection, laid out splat-major: splat j's first slot plus the
+  row-major index of the tile inside its tile rectangle. Kernels that run per tile write per-slot
+  partial results and a per-splat pass sums them, which needs no atomics.
 """
 
 from __future__ import annotations
@@ -30,23 +30,31 @@ from numba import njit, prange
 ALPHA_THRESHOLD = 1.0 / 255.0
 ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
-# Row spans are solved in closed form; widening them by this much (in pixels) keeps every pixel whose
-# own alpha test passes, and the per-pixel test stays the authority.
-_SPAN_MARGIN = 1e-6
+# Pixels are listed when sigma <= ln(255 opacity) + this margin, far above the rounding of either
+# side, so the per-pixel alpha test (not the listing) decides every borderline pixel.
+_SIGMA_MARGIN = 1e-9
 # Fixed chunk counts make the order of floating-point sums independent of the thread count.
 GAUSSIAN_CHUNKS = 256
 _BINNING_CHUNKS = 64
 _KEY_INDEX_MASK = 0xFFFFFFFF
+_EXP_MINUS_HALF = math.exp(-0.5)
+
+# Columns of the packed float record: mean2d, conic, opacity, 2 ln(255 opacity).
+SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_TWO_LOG = range(7)
+SF_COLUMNS = 7
+# Columns of the packed int record: pixel rect, tile rect origin and width, first slot.
+SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI, SI_TX0, SI_TY0, SI_TILES_W, SI_SLOT = range(8)
+SI_COLUMNS = 8
 
 _OPTS = {"cache": True, "error_model": "numpy"}
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _chunk_bounds(chunk: int, n_chunks: int, n: int) -> tuple[int, int]:
     return chunk * n // n_chunks, (chunk + 1) * n // n_chunks
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _rotation_and_factor(quat, scale, rot, factor) -> float:
     """Writes R(q / |q|) into rot [3, 3] and M = R diag(scale) into factor [3, 3]; returns |q|."""
     norm = math.sqrt(np.float64(quat[0]) ** 2 + np.float64(quat[1]) ** 2 + np.float64(quat[2]) ** 2 + np.float64(quat[3]) ** 2)
@@ -69,7 +77,7 @@ def _rotation_and_factor(quat, scale, rot, factor) -> float:
     return norm
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _covariance(factor, cov) -> None:
     """cov = M M^T."""
     for i in range(3):
@@ -77,7 +85,7 @@ def _covariance(factor, cov) -> None:
             cov[i, j] = factor[i, 0] * factor[j, 0] + factor[i, 1] * factor[j, 1] + factor[i, 2] * factor[j, 2]
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
     """Camera-frame mean R m + t (returned) and covariance R cov R^T (written to cov_cam)."""
     # Widen first: float32 * float32 stays float32 in numba (and so does float() of a float32).
@@ -94,7 +102,7 @@ def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
     return mx, my, mz
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _clamp_limits(fx: float, fy: float, cx: float, cy: float, width: int, height: int):
     """gsplat's limits on x/z and y/z: the image plus 30% of the half field of view on each side."""
     tan_fovx = 0.5 * width / fx
@@ -107,7 +115,7 @@ def _clamp_limits(fx: float, fy: float, cx: float, cy: float, width: int, height
     )
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi):
     """Non-zero entries (j00, j02, j11, j12) of the perspective Jacobian, with x/z and y/z clamped.
 
@@ -120,7 +128,7 @@ def _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi):
     return fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
 
 
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _covariance2d(cov_cam, j00, j02, j11, j12, eps2d):
     """J W J^T + eps2d I as (s00, s01, s11)."""
     s00 = j00 * j00 * cov_cam[0, 0] + 2.0 * j00 * j02 * cov_cam[0, 2] + j02 * j02 * cov_cam[2, 2] + eps2d
@@ -353,7 +361,7 @@ def pixel_rects(means2d, radii, width, height, tile_size, rects, tile_counts) ->
 
     A pixel u belongs when its centre u + 0.5 lies in [mean - radius, mean + radius]; the radius box
     holds every pixel with alpha >= 1/255, so no pixel that could be shaded is lost. Writes rects
-    [C, N, 4] and tile_counts [C * N] (zero for culled Gaussians and boxes without a pixel centre).
+    [C * N, 4] and tile_counts [C * N] (zero for culled Gaussians and boxes without a pixel centre).
     """
     n_cams, n = radii.shape[0], radii.shape[1]
     for cg in prange(n_cams * n):
@@ -369,37 +377,104 @@ def pixel_rects(means2d, radii, width, height, tile_size, rects, tile_counts) ->
         v_hi = min(height - 1, math.floor(means2d[c, g, 1] + ry - 0.5))
         if u_lo > u_hi or v_lo > v_hi:
             continue
-        rects[c, g, 0] = u_lo
-        rects[c, g, 1] = u_hi
-        rects[c, g, 2] = v_lo
-        rects[c, g, 3] = v_hi
+        rects[cg, 0] = u_lo
+        rects[cg, 1] = u_hi
+        rects[cg, 2] = v_lo
+        rects[cg, 3] = v_hi
         tile_counts[cg] = (u_hi // tile_size - u_lo // tile_size + 1) * (v_hi // tile_size - v_lo // tile_size + 1)
 
 
-@njit(parallel=True, **_OPTS)
-def bin_and_sort(rects, tile_counts, depth_bits, tile_size, tiles_x, tiles_y):
-    """Tile lists sorted by (depth, index): returns (tile_offsets [C * tiles + 1], keys [n_isect]).
+@njit(**_OPTS)
+def order_splats(rects, tile_counts, n, tile_size, tiles_x, tiles_y):
+    """Visible (camera, Gaussian) flat indices c * N + g, ordered by the first tile they touch.
 
-    A counting sort by tile (per-chunk histograms, so the scatter needs no atomics) followed by an
-    in-place sort of each tile's keys. depth_bits [C * N] int64 are the float32 bit patterns of the
-    (positive) depths, which order like the depths themselves.
+    Packing splats in this order puts the Gaussians of a tile next to each other in memory; in model
+    order every tile list jumps around the whole model and, past a few hundred thousand Gaussians,
+    compositing waits on cache misses instead of computing. A counting sort: O(C * N + tiles).
     """
-    n_cams, n = rects.shape[0], rects.shape[1]
-    n_total = n_cams * n
     tiles_per_cam = tiles_x * tiles_y
-    n_tiles = n_cams * tiles_per_cam
-    n_chunks = max(1, min(_BINNING_CHUNKS, n_total))
+    n_tiles = (tile_counts.shape[0] // n) * tiles_per_cam
+    starts = np.zeros(n_tiles + 1, np.int64)
+    for cg in range(tile_counts.shape[0]):
+        if tile_counts[cg] > 0:
+            c = cg // n
+            starts[c * tiles_per_cam + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size + 1] += 1
+    for t in range(n_tiles):
+        starts[t + 1] += starts[t]
+    perm = np.empty(starts[n_tiles], np.int64)
+    for cg in range(tile_counts.shape[0]):
+        if tile_counts[cg] > 0:
+            c = cg // n
+            t = c * tiles_per_cam + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size
+            perm[starts[t]] = cg
+            starts[t] += 1
+    return perm
+
+
+@njit(parallel=True, **_OPTS)
+def pack_splats(perm, n, rects, slot_offsets, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
+    """Float (SF_*) and int (SI_*) records of each packed splat j, gathered in one pass."""
+    for j in prange(perm.shape[0]):
+        cg = perm[j]
+        c = cg // n
+        g = cg - c * n
+        opacity = np.float64(opacities[g])
+        splat_f[j, SF_MX] = means2d[c, g, 0]
+        splat_f[j, SF_MY] = means2d[c, g, 1]
+        splat_f[j, SF_A] = conics[c, g, 0]
+        splat_f[j, SF_B] = conics[c, g, 1]
+        splat_f[j, SF_C] = conics[c, g, 2]
+        splat_f[j, SF_OPACITY] = opacity
+        splat_f[j, SF_TWO_LOG] = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
+        splat_i[j, SI_U_LO] = rects[cg, 0]
+        splat_i[j, SI_U_HI] = rects[cg, 1]
+        splat_i[j, SI_V_LO] = rects[cg, 2]
+        splat_i[j, SI_V_HI] = rects[cg, 3]
+        splat_i[j, SI_TX0] = rects[cg, 0] // tile_size
+        splat_i[j, SI_TY0] = rects[cg, 2] // tile_size
+        splat_i[j, SI_TILES_W] = rects[cg, 1] // tile_size - rects[cg, 0] // tile_size + 1
+        splat_i[j, SI_SLOT] = slot_offsets[j]
+
+
+@njit(parallel=True, **_OPTS)
+def gather_rows(perm, n, values, out) -> None:
+    """out[j] = values[c, g] for packed splat j = (c, g); values [C, N, D], out [M, D]."""
+    for j in prange(perm.shape[0]):
+        c = perm[j] // n
+        g = perm[j] - c * n
+        for d in range(values.shape[2]):
+            out[j, d] = values[c, g, d]
+
+
+@njit(parallel=True, **_OPTS)
+def scatter_rows(perm, packed, out) -> None:
+    """out[perm[j]] = packed[j]; packed [M, D], out [C * N, D] (rows not in perm keep their value)."""
+    for j in prange(perm.shape[0]):
+        for d in range(packed.shape[1]):
+            out[perm[j], d] = packed[j, d]
+
+
+@njit(parallel=True, **_OPTS)
+def bin_and_sort(splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_per_cam, n_tiles):
+    """Per-tile lists of packed splat indices in depth order, ties by Gaussian index.
+
+    Returns (tile_offsets [n_tiles + 1], ids [n_isect]); tile t owns ids[tile_offsets[t]:tile_offsets[t + 1]].
+    A counting sort by tile (per-chunk histograms, so the scatter needs no atomics), then an in-place
+    sort of each tile's int64 keys (float32 depth bits << 32 | Gaussian index; depths are positive, so
+    their bit patterns order like the values), whose low half is finally swapped for the packed index.
+    """
+    n_splats = perm.shape[0]
+    n_chunks = max(1, min(_BINNING_CHUNKS, n_splats))
     hist = np.zeros((n_chunks, n_tiles), np.int64)
     for chunk in prange(n_chunks):
-        lo, hi = _chunk_bounds(chunk, n_chunks, n_total)
-        for cg in range(lo, hi):
-            if tile_counts[cg] == 0:
-                continue
-            c = cg // n
-            g = cg - c * n
-            for ty in range(rects[c, g, 2] // tile_size, rects[c, g, 3] // tile_size + 1):
-                for tx in range(rects[c, g, 0] // tile_size, rects[c, g, 1] // tile_size + 1):
-                    hist[chunk, c * tiles_per_cam + ty * tiles_x + tx] += 1
+        lo, hi = _chunk_bounds(chunk, n_chunks, n_splats)
+        for j in range(lo, hi):
+            base = (perm[j] // n) * tiles_per_cam
+            tiles_w = splat_i[j, SI_TILES_W]
+            for s in range(slot_offsets[j + 1] - slot_offsets[j]):
+                row = s // tiles_w
+                t = base + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
+                hist[chunk, t] += 1
     tile_offsets = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
     running = 0
@@ -409,23 +484,29 @@ def bin_and_sort(rects, tile_counts, depth_bits, tile_size, tiles_x, tiles_y):
             cursor[chunk, t] = running
             running += hist[chunk, t]
     tile_offsets[n_tiles] = running
-    keys = np.empty(running, np.int64)
+    ids = np.empty(running, np.int64)
     for chunk in prange(n_chunks):
-        lo, hi = _chunk_bounds(chunk, n_chunks, n_total)
-        for cg in range(lo, hi):
-            if tile_counts[cg] == 0:
-                continue
-            c = cg // n
-            g = cg - c * n
-            key = (depth_bits[cg] << 32) | g
-            for ty in range(rects[c, g, 2] // tile_size, rects[c, g, 3] // tile_size + 1):
-                for tx in range(rects[c, g, 0] // tile_size, rects[c, g, 1] // tile_size + 1):
-                    t = c * tiles_per_cam + ty * tiles_x + tx
-                    keys[cursor[chunk, t]] = key
-                    cursor[chunk, t] += 1
+        lo, hi = _chunk_bounds(chunk, n_chunks, n_splats)
+        for j in range(lo, hi):
+            cg = perm[j]
+            base = (cg // n) * tiles_per_cam
+            key = (depth_bits[cg] << 32) | (cg - (cg // n) * n)
+            tiles_w = splat_i[j, SI_TILES_W]
+            for s in range(slot_offsets[j + 1] - slot_offsets[j]):
+                row = s // tiles_w
+                t = base + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
+                ids[cursor[chunk, t]] = key
+                cursor[chunk, t] += 1
+    packed_index = np.empty(depth_bits.shape[0], np.int64)
+    for j in prange(n_splats):
+        packed_index[perm[j]] = j
     for t in prange(n_tiles):
-        keys[tile_offsets[t] : tile_offsets[t + 1]].sort()
-    return tile_offsets, keys
+        segment = ids[tile_offsets[t] : tile_offsets[t + 1]]
+        segment.sort()
+        cam_base = (t // tiles_per_cam) * n
+        for k in range(segment.shape[0]):
+            segment[k] = packed_index[cam_base + (segment[k] & _KEY_INDEX_MASK)]
+    return tile_offsets, ids
 
 
 @njit(**_OPTS)
@@ -461,28 +542,9 @@ def balance_tiles(tile_offsets, n_bins):
     return work, work_offsets
 
 
-@njit(**_OPTS)
-def _row_span(py, mx, my, a, b, det_conic, two_log, col_lo, col_hi):
-    """Pixel columns of row py where sigma <= log(255 opacity), clipped to [col_lo, col_hi].
-
-    Solving the quadratic in dx per row visits only pixels inside the ellipse instead of its whole
-    bounding box (a 4/pi saving for round splats, far more for thin diagonal ones).
-    """
-    dy = py + 0.5 - my
-    disc = a * two_log - dy * dy * det_conic
-    if disc < 0.0:
-        return 1, 0
-    root = math.sqrt(disc)
-    x_lo = mx + (-b * dy - root) / a - 0.5 - _SPAN_MARGIN
-    x_hi = mx + (-b * dy + root) / a - 0.5 + _SPAN_MARGIN
-    # Clip in float first so that huge spans cannot overflow the integer conversion.
-    px0 = max(col_lo, math.ceil(max(x_lo, col_lo - 1.0)))
-    px1 = min(col_hi, math.floor(min(x_hi, col_hi + 1.0)))
-    return px0, px1
-
-
-@njit(**_OPTS)
+@njit(inline="always", **_OPTS)
 def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
+    """(camera, tile x, tile y, first and last pixel column and row) of a global tile id."""
     c = tile // tiles_per_cam
     local = tile - c * tiles_per_cam
     ty = local // tiles_x
@@ -492,28 +554,87 @@ def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
     return c, tx, ty, x0, y0, min(width, x0 + tile_size) - 1, min(height, y0 + tile_size) - 1
 
 
-@njit(**_OPTS)
-def _slot(rect, gauss_offset, tx, ty, tile_size) -> int:
-    tx0 = rect[0] // tile_size
-    ty0 = rect[2] // tile_size
-    return gauss_offset + (ty - ty0) * (rect[1] // tile_size - tx0 + 1) + (tx - tx0)
+@njit(inline="always", **_OPTS)
+def _slot(splat_i, j, tx, ty) -> int:
+    """Slot of packed splat j in tile (tx, ty): its first slot plus the tile's row-major offset."""
+    return splat_i[j, SI_SLOT] + (ty - splat_i[j, SI_TY0]) * splat_i[j, SI_TILES_W] + (tx - splat_i[j, SI_TX0])
+
+
+@njit(inline="always", **_OPTS)
+def _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
+    """Lists the pixels of tile [x0, x1] x [y0, y1] where splat j may reach alpha >= 1/255.
+
+    That is sigma <= ln(255 opacity), the ellipse inside the splat's radius box. Every box pixel is
+    evaluated and the buffer cursor advances only past those inside (branch-free compaction): with the
+    same trip count on every row this beats solving each row's span, whose square root and
+    unpredictable loop bounds cost more than the ~27% of box pixels they skip. Writes the tile-local
+    pixel index, offsets from the mean and sigma of each listed pixel; returns how many there are.
+    """
+    mx, my = splat_f[j, SF_MX], splat_f[j, SF_MY]
+    a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
+    limit = 0.5 * splat_f[j, SF_TWO_LOG] + _SIGMA_MARGIN
+    col_lo = max(x0, splat_i[j, SI_U_LO])
+    col_hi = min(x1, splat_i[j, SI_U_HI])
+    m = 0
+    for py in range(max(y0, splat_i[j, SI_V_LO]), min(y1, splat_i[j, SI_V_HI]) + 1):
+        dy = py + 0.5 - my
+        row = (py - y0) * tile_size - x0
+        half_c_dy2 = 0.5 * cc * dy * dy
+        for px in range(col_lo, col_hi + 1):
+            dx = px + 0.5 - mx
+            sigma = 0.5 * a * dx * dx + half_c_dy2 + b * dx * dy
+            buf_p[m] = row + px
+            buf_dx[m] = dx
+            buf_dy[m] = dy
+            buf_sigma[m] = sigma
+            m += sigma <= limit
+    return m
+
+
+@njit(inline="always", **_OPTS)
+def _exp_neg(sigma, out, m) -> None:
+    """out[:m] = exp(-sigma[:m]) to ~1e-15 relative for sigma in [0, 8], branch-free so it vectorises.
+
+    libm's exp is a scalar call and costs about as much as the rest of the compositing. Here
+    exp(-s) = (e^-0.5 exp(-y))^8 with y = s / 8 - 0.5 in [-0.5, 0.5] (degree-13 Taylor, 7e-16).
+    sigma < 0 gives 1 and sigma > 8 gives e^-8, which no opacity <= 1 lifts to 1/255: callers test
+    sigma < 0 themselves and the alpha threshold rejects the rest, as exact exp would.
+    """
+    for i in range(m):
+        y = min(max(sigma[i], 0.0), 8.0) * 0.125 - 0.5
+        p = 1.0 / 6227020800.0
+        p = p * -y + 1.0 / 479001600.0
+        p = p * -y + 1.0 / 39916800.0
+        p = p * -y + 1.0 / 3628800.0
+        p = p * -y + 1.0 / 362880.0
+        p = p * -y + 1.0 / 40320.0
+        p = p * -y + 1.0 / 5040.0
+        p = p * -y + 1.0 / 720.0
+        p = p * -y + 1.0 / 120.0
+        p = p * -y + 1.0 / 24.0
+        p = p * -y + 1.0 / 6.0
+        p = p * -y + 0.5
+        p = p * -y + 1.0
+        p = (p * -y + 1.0) * _EXP_MINUS_HALF
+        p = p * p
+        p = p * p
+        out[i] = p * p
 
 
 @njit(parallel=True, **_OPTS)
 def rasterize_forward(
-    means2d, conics, colors, opacities, backgrounds, rects, gauss_offsets, tile_offsets, keys,
-    work, work_offsets, width, height, tile_size, tiles_x,
+    splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
     out_colors, out_transmittance, out_last, slot_counts,
 ) -> None:
-    """Front-to-back alpha compositing, one tile at a time, Gaussian-major inside a tile.
+    """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
 
-    Each pixel sees its Gaussians in the tile's depth order, exactly as a per-pixel loop would; walking
-    Gaussians in the outer loop lets each visit only the pixels inside its own ellipse. Writes
-    out_colors [C, H, W, D], out_transmittance [C, H, W] f64 (final T), out_last [C, H, W] int64 (key
-    index of the last contributor, -1 if none) and slot_counts [n_isect] (pixels each slot shaded).
+    Each pixel sees its splats in the tile's depth order, exactly as a per-pixel loop would; walking
+    splats in the outer loop lets each visit only the pixels inside its own ellipse and batch their
+    exponentials. Writes out_colors [C, H, W, D], out_transmittance [C, H, W] (final T), out_last
+    [C, H, W] int64 (position in `ids` of the last contributor, -1 if none) and slot_counts [n_isect]
+    (pixels each slot shaded).
     """
-    n = means2d.shape[1]
-    depth = colors.shape[2]
+    depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
     for bin_ in prange(work_offsets.shape[0] - 1):
@@ -521,6 +642,11 @@ def rasterize_forward(
         acc = np.empty((n_px, depth))
         last = np.empty(n_px, np.int64)
         done = np.empty(n_px, np.bool_)
+        buf_p = np.empty(n_px, np.int64)
+        buf_dx = np.empty(n_px)
+        buf_dy = np.empty(n_px)
+        buf_sigma = np.empty(n_px)
+        buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
             c, tx, ty, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
@@ -532,41 +658,30 @@ def rasterize_forward(
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 if n_live == 0:
                     break
-                g = keys[k] & _KEY_INDEX_MASK
-                rect = rects[c, g]
-                mx, my = means2d[c, g, 0], means2d[c, g, 1]
-                a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
-                opacity = np.float64(opacities[g])
-                two_log = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
-                det_conic = a * cc - b * b
+                j = ids[k]
+                m = _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma)
+                _exp_neg(buf_sigma, buf_vis, m)
+                opacity = splat_f[j, SF_OPACITY]
                 shaded = 0
-                for py in range(max(y0, rect[2]), min(y1, rect[3]) + 1):
-                    px0, px1 = _row_span(py, mx, my, a, b, det_conic, two_log, max(x0, rect[0]), min(x1, rect[1]))
-                    dy = py + 0.5 - my
-                    row = (py - y0) * tile_size - x0
-                    for px in range(px0, px1 + 1):
-                        p = row + px
-                        if done[p]:
-                            continue
-                        dx = px + 0.5 - mx
-                        sigma = 0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy
-                        if sigma < 0.0:
-                            continue
-                        alpha = min(ALPHA_MAX, opacity * math.exp(-sigma))
-                        if alpha < ALPHA_THRESHOLD:
-                            continue
-                        next_t = trans[p] * (1.0 - alpha)
-                        if next_t <= TRANSMITTANCE_MIN:
-                            done[p] = True
-                            n_live -= 1
-                            continue
-                        weight = alpha * trans[p]
-                        for d in range(depth):
-                            acc[p, d] += weight * colors[c, g, d]
-                        trans[p] = next_t
-                        last[p] = k
-                        shaded += 1
-                slot_counts[_slot(rect, gauss_offsets[c * n + g], tx, ty, tile_size)] = shaded
+                for i in range(m):
+                    p = buf_p[i]
+                    if done[p] or buf_sigma[i] < 0.0:
+                        continue
+                    alpha = min(ALPHA_MAX, opacity * buf_vis[i])
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    next_t = trans[p] * (1.0 - alpha)
+                    if next_t <= TRANSMITTANCE_MIN:
+                        done[p] = True
+                        n_live -= 1
+                        continue
+                    weight = alpha * trans[p]
+                    for d in range(depth):
+                        acc[p, d] += weight * splat_c[j, d]
+                    trans[p] = next_t
+                    last[p] = k
+                    shaded += 1
+                slot_counts[_slot(splat_i, j, tx, ty)] = shaded
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
@@ -578,8 +693,7 @@ def rasterize_forward(
 
 @njit(parallel=True, **_OPTS)
 def rasterize_backward(
-    means2d, conics, colors, opacities, backgrounds, rects, gauss_offsets, tile_offsets, keys,
-    work, work_offsets, width, height, tile_size, tiles_x,
+    splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
     transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
 ) -> None:
     """Back-to-front VJP of `rasterize_forward` (3DGS): T is recovered by dividing by (1 - alpha).
@@ -587,18 +701,21 @@ def rasterize_backward(
     v_out_colors [C, H, W, D] and v_out_alphas [C, H, W] come in; slot_grads [n_isect, 6 + D]
     (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
     """
-    n = means2d.shape[1]
-    depth = colors.shape[2]
+    depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
     for bin_ in prange(work_offsets.shape[0] - 1):
         trans = np.empty(n_px)
-        t_final = np.empty(n_px)
         behind = np.empty((n_px, depth))
         v_px = np.empty((n_px, depth))
-        v_t_final = np.empty(n_px)
+        v_t_term = np.empty(n_px)
         last = np.empty(n_px, np.int64)
         v_color = np.empty(depth)
+        buf_p = np.empty(n_px, np.int64)
+        buf_dx = np.empty(n_px)
+        buf_dy = np.empty(n_px)
+        buf_sigma = np.empty(n_px)
+        buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
             c, tx, ty, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
@@ -607,24 +724,22 @@ def rasterize_backward(
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
                     trans[p] = transmittance[c, py, px]
-                    t_final[p] = trans[p]
                     last[p] = last_ids[c, py, px]
                     k_max = max(k_max, last[p])
-                    # alpha = 1 - T and colour += T * background both depend on T through T_final.
+                    # alpha = 1 - T and colour += T * background both depend on every splat through
+                    # T_final; d T_final / d alpha_i = -T_final / (1 - alpha_i).
                     v_t = -v_out_alphas[c, py, px]
                     for d in range(depth):
                         behind[p, d] = 0.0
                         v_px[p, d] = v_out_colors[c, py, px, d]
                         v_t += backgrounds[c, d] * v_px[p, d]
-                    v_t_final[p] = v_t
+                    v_t_term[p] = trans[p] * v_t
             for k in range(k_max, tile_offsets[tile] - 1, -1):
-                g = keys[k] & _KEY_INDEX_MASK
-                rect = rects[c, g]
-                mx, my = means2d[c, g, 0], means2d[c, g, 1]
-                a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
-                opacity = np.float64(opacities[g])
-                two_log = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
-                det_conic = a * cc - b * b
+                j = ids[k]
+                m = _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma)
+                _exp_neg(buf_sigma, buf_vis, m)
+                opacity = splat_f[j, SF_OPACITY]
+                a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
                 v_mx = 0.0
                 v_my = 0.0
                 v_a = 0.0
@@ -632,43 +747,36 @@ def rasterize_backward(
                 v_c = 0.0
                 v_opacity = 0.0
                 v_color[:] = 0.0
-                for py in range(max(y0, rect[2]), min(y1, rect[3]) + 1):
-                    px0, px1 = _row_span(py, mx, my, a, b, det_conic, two_log, max(x0, rect[0]), min(x1, rect[1]))
-                    dy = py + 0.5 - my
-                    row = (py - y0) * tile_size - x0
-                    for px in range(px0, px1 + 1):
-                        p = row + px
-                        if k > last[p]:
-                            continue
-                        dx = px + 0.5 - mx
-                        sigma = 0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy
-                        if sigma < 0.0:
-                            continue
-                        vis = math.exp(-sigma)
-                        raw_alpha = opacity * vis
-                        alpha = min(ALPHA_MAX, raw_alpha)
-                        if alpha < ALPHA_THRESHOLD:
-                            continue
-                        inv_one_minus = 1.0 / (1.0 - alpha)
-                        trans[p] *= inv_one_minus
-                        t_here = trans[p]
-                        weight = alpha * t_here
-                        v_alpha = -t_final[p] * inv_one_minus * v_t_final[p]
-                        for d in range(depth):
-                            col = colors[c, g, d]
-                            v_color[d] += weight * v_px[p, d]
-                            v_alpha += (col * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
-                            behind[p, d] += col * weight
-                        # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
-                        if raw_alpha <= ALPHA_MAX:
-                            v_sigma = -raw_alpha * v_alpha
-                            v_a += 0.5 * v_sigma * dx * dx
-                            v_b += v_sigma * dx * dy
-                            v_c += 0.5 * v_sigma * dy * dy
-                            v_mx -= v_sigma * (a * dx + b * dy)
-                            v_my -= v_sigma * (b * dx + cc * dy)
-                            v_opacity += vis * v_alpha
-                s = _slot(rect, gauss_offsets[c * n + g], tx, ty, tile_size)
+                for i in range(m):
+                    p = buf_p[i]
+                    if k > last[p] or buf_sigma[i] < 0.0:
+                        continue
+                    vis = buf_vis[i]
+                    raw_alpha = opacity * vis
+                    alpha = min(ALPHA_MAX, raw_alpha)
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    inv_one_minus = 1.0 / (1.0 - alpha)
+                    trans[p] *= inv_one_minus
+                    t_here = trans[p]
+                    weight = alpha * t_here
+                    v_alpha = -inv_one_minus * v_t_term[p]
+                    for d in range(depth):
+                        col = splat_c[j, d]
+                        v_color[d] += weight * v_px[p, d]
+                        v_alpha += (col * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
+                        behind[p, d] += col * weight
+                    # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
+                    if raw_alpha <= ALPHA_MAX:
+                        dx, dy = buf_dx[i], buf_dy[i]
+                        v_sigma = -raw_alpha * v_alpha
+                        v_a += 0.5 * v_sigma * dx * dx
+                        v_b += v_sigma * dx * dy
+                        v_c += 0.5 * v_sigma * dy * dy
+                        v_mx -= v_sigma * (a * dx + b * dy)
+                        v_my -= v_sigma * (b * dx + cc * dy)
+                        v_opacity += vis * v_alpha
+                s = _slot(splat_i, j, tx, ty)
                 slot_grads[s, 0] = v_mx
                 slot_grads[s, 1] = v_my
                 slot_grads[s, 2] = v_a
@@ -680,19 +788,19 @@ def rasterize_backward(
 
 
 @njit(parallel=True, **_OPTS)
-def sum_slot_rows(slot_values, gauss_offsets, out) -> None:
-    """out[i, :] = sum of slot_values[s, :] over Gaussian i's slots gauss_offsets[i]:gauss_offsets[i + 1]."""
-    for i in prange(out.shape[0]):
-        for s in range(gauss_offsets[i], gauss_offsets[i + 1]):
-            for j in range(out.shape[1]):
-                out[i, j] += slot_values[s, j]
+def sum_slot_rows(slot_values, slot_offsets, out) -> None:
+    """out[j, :] = sum of slot_values[s, :] over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
+    for j in prange(out.shape[0]):
+        for s in range(slot_offsets[j], slot_offsets[j + 1]):
+            for col in range(out.shape[1]):
+                out[j, col] += slot_values[s, col]
 
 
 @njit(parallel=True, **_OPTS)
-def sum_slot_counts(slot_counts, gauss_offsets, out) -> None:
-    """out[i] = sum of slot_counts over Gaussian i's slots gauss_offsets[i]:gauss_offsets[i + 1]."""
-    for i in prange(out.shape[0]):
+def sum_slot_counts(slot_counts, slot_offsets, out) -> None:
+    """out[j] = sum of slot_counts over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
+    for j in prange(out.shape[0]):
         total = 0
-        for s in range(gauss_offsets[i], gauss_offsets[i + 1]):
+        for s in range(slot_offsets[j], slot_offsets[j + 1]):
             total += slot_counts[s]
-        out[i] = total
+        out[j] = total

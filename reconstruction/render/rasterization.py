@@ -23,94 +23,128 @@ N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mea
 
 @dataclass(frozen=True)
 class TileBins:
-    """Depth-sorted per-tile Gaussian lists of C cameras (see `_cpu_kernels` for the layout)."""
+    """Packed visible splats of C cameras and their depth-sorted per-tile lists (see `_cpu_kernels`)."""
 
     tile_size: int
     tiles_x: int
     tiles_y: int
-    rects: np.ndarray  # [C, N, 4] int32 pixel ranges (u_lo, u_hi, v_lo, v_hi)
-    gauss_offsets: np.ndarray  # [C * N + 1] int64, first slot of each (camera, Gaussian)
+    perm: np.ndarray  # [M] int64, packed splat j -> flat c * N + g
+    splat_f: np.ndarray  # [M, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
+    splat_i: np.ndarray  # [M, SI_COLUMNS] int64 records (pixel and tile rects, first slot)
+    slot_offsets: np.ndarray  # [M + 1] int64, splat j owns slots slot_offsets[j]:slot_offsets[j + 1]
     tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
-    keys: np.ndarray  # [n_isect] int64, (depth bits << 32) | gaussian index, sorted per tile
+    ids: np.ndarray  # [n_isect] int64 packed splat indices, depth-sorted within each tile
     work: np.ndarray  # [C * tiles_y * tiles_x] tile ids grouped into per-thread bins
     work_offsets: np.ndarray  # [n_bins + 1]
 
     @property
     def n_isects(self) -> int:
-        return int(self.keys.shape[0])
+        return int(self.ids.shape[0])
+
+    def gather(self, values: Tensor) -> np.ndarray:
+        """[C, N, D] per camera and Gaussian -> [M, D] per packed splat."""
+        out = np.empty((self.perm.shape[0], values.shape[2]))
+        kernels.gather_rows(self.perm, values.shape[1], to_numpy(values), out)
+        return out
+
+    def scatter(self, packed: np.ndarray, n_cams: int, n: int) -> Tensor:
+        """[M, D] per packed splat -> [C, N, D] per camera and Gaussian (zeros where not visible)."""
+        out = np.zeros((n_cams * n, packed.shape[1]), packed.dtype)
+        kernels.scatter_rows(self.perm, packed, out)
+        return torch.from_numpy(out).view(n_cams, n, packed.shape[1])
 
 
-def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int) -> TileBins:
-    """Assigns visible Gaussians to the tiles their radius box covers and sorts each tile by depth.
+def bin_gaussians(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
+    tile_size: int,
+) -> TileBins:
+    """Packs the visible Gaussians and sorts each tile's list by depth, ties by Gaussian index.
 
     Args:
-        means2d: [C, N, 2] float64; radii: [C, N, 2] int32; depths: [C, N] float64.
+        means2d: [C, N, 2], conics: [C, N, 3], opacities: [N], depths: [C, N] (float64, from
+            `project_gaussians`); radii: [C, N, 2] int32.
 
-    Ties in depth (after rounding to float32, as gsplat sorts) are broken by Gaussian index.
+    Depths are compared after rounding to float32, as gsplat sorts them.
     """
     n_cams, n = radii.shape[:2]
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
-    rects = np.zeros((n_cams, n, 4), np.int32)
+    rects = np.zeros((n_cams * n, 4), np.int64)
     tile_counts = np.zeros(n_cams * n, np.int64)
     kernels.pixel_rects(to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects, tile_counts)
-    gauss_offsets = np.zeros(n_cams * n + 1, np.int64)
-    np.cumsum(tile_counts, out=gauss_offsets[1:])
-    # Depths of visible Gaussians are > near_plane > 0, whose float32 bit patterns sort like the values.
+    perm = kernels.order_splats(rects, tile_counts, n, tile_size, tiles_x, tiles_y)
+    slot_offsets = np.zeros(perm.shape[0] + 1, np.int64)
+    np.cumsum(tile_counts[perm], out=slot_offsets[1:])
+    splat_f = np.empty((perm.shape[0], kernels.SF_COLUMNS))
+    splat_i = np.empty((perm.shape[0], kernels.SI_COLUMNS), np.int64)
+    kernels.pack_splats(
+        perm, n, rects, slot_offsets, tile_size, to_numpy(means2d), to_numpy(conics), to_numpy(opacities),
+        splat_f, splat_i,
+    )
+    # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
     depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
-    tile_offsets, keys = kernels.bin_and_sort(rects, tile_counts, depth_bits, tile_size, tiles_x, tiles_y)
+    tile_offsets, ids = kernels.bin_and_sort(
+        splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_x * tiles_y, n_cams * tiles_x * tiles_y
+    )
     work, work_offsets = kernels.balance_tiles(tile_offsets, numba.get_num_threads())
-    return TileBins(tile_size, tiles_x, tiles_y, rects, gauss_offsets, tile_offsets, keys, work, work_offsets)
+    return TileBins(
+        tile_size, tiles_x, tiles_y, perm, splat_f, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets
+    )
 
 
 class _RasterizeToPixels(torch.autograd.Function):
+    """Compositing of the splats packed in `bins`; means2d, conics and opacities are the tensors the
+    bins were built from (taken as inputs only so that autograd routes their gradients)."""
+
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height):
         n_cams, n, depth = colors.shape
+        splat_c = bins.gather(colors)
         out_colors = np.empty((n_cams, height, width, depth))
         transmittance = np.empty((n_cams, height, width))
         last_ids = np.empty((n_cams, height, width), np.int64)
-        slot_counts = np.zeros(bins.n_isects, np.int32)
-        args = (
-            to_numpy(means2d), to_numpy(conics), to_numpy(colors), to_numpy(opacities), to_numpy(backgrounds),
-            bins.rects, bins.gauss_offsets, bins.tile_offsets, bins.keys, bins.work, bins.work_offsets,
-            width, height, bins.tile_size, bins.tiles_x,
+        slot_counts = np.zeros(bins.n_isects, np.int64)
+        kernels.rasterize_forward(
+            bins.splat_f, splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
+            to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
+            out_colors, transmittance, last_ids, slot_counts,
         )
-        kernels.rasterize_forward(*args, out_colors, transmittance, last_ids, slot_counts)
-        counts = np.empty(n_cams * n, np.int64)
-        kernels.sum_slot_counts(slot_counts, bins.gauss_offsets, counts)
+        counts = np.empty((bins.perm.shape[0], 1), np.int64)
+        kernels.sum_slot_counts(slot_counts, bins.slot_offsets, counts[:, 0])
 
-        ctx.save_for_backward(means2d, conics, colors, opacities, backgrounds)
+        ctx.save_for_backward(backgrounds)
         ctx.bins = bins
-        ctx.image_size = (width, height)
+        ctx.shape = (n_cams, n, width, height)
+        ctx.splat_c = splat_c
         ctx.transmittance = transmittance
         ctx.last_ids = last_ids
         render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
-        counts_t = torch.from_numpy(counts).view(n_cams, n)
+        counts_t = bins.scatter(counts, n_cams, n)[..., 0]
         ctx.mark_non_differentiable(counts_t)
         return torch.from_numpy(out_colors), render_alphas, counts_t
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_render_colors, v_render_alphas, _v_counts):
-        means2d, conics, colors, opacities, backgrounds = ctx.saved_tensors
+        (backgrounds,) = ctx.saved_tensors
         bins: TileBins = ctx.bins
-        width, height = ctx.image_size
-        n_cams, n, depth = colors.shape
-        slot_grads = np.zeros((bins.n_isects, N_GRAD_GEOMETRY + depth))
+        n_cams, n, width, height = ctx.shape
+        n_cols = N_GRAD_GEOMETRY + ctx.splat_c.shape[1]
+        slot_grads = np.zeros((bins.n_isects, n_cols))
         v_colors_np = to_numpy(v_render_colors)
         kernels.rasterize_backward(
-            to_numpy(means2d), to_numpy(conics), to_numpy(colors), to_numpy(opacities), to_numpy(backgrounds),
-            bins.rects, bins.gauss_offsets, bins.tile_offsets, bins.keys, bins.work, bins.work_offsets,
-            width, height, bins.tile_size, bins.tiles_x,
-            ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]),
-            slot_grads,
+            bins.splat_f, ctx.splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
+            to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
+            ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
-        grads = np.zeros((n_cams * n, N_GRAD_GEOMETRY + depth))
-        kernels.sum_slot_rows(slot_grads, bins.gauss_offsets, grads)
-        grads_t = torch.from_numpy(grads).view(n_cams, n, -1)
+        grads = np.zeros((bins.perm.shape[0], n_cols))
+        kernels.sum_slot_rows(slot_grads, bins.slot_offsets, grads)
+        grads_t = bins.scatter(grads, n_cams, n)
         v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
-        return grads_t[..., 0:2], grads_t[..., 2:5], grads_t[..., N_GRAD_GEOMETRY:], grads_t[..., 5].sum(0), v_backgrounds, None, None, None
+        return (
+            grads_t[..., 0:2], grads_t[..., 2:5], grads_t[..., N_GRAD_GEOMETRY:], grads_t[..., 5].sum(0), v_backgrounds,
+            None, None, None,
+        )
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active):
@@ -228,7 +262,7 @@ def rasterize(
         backgrounds = torch.zeros(n_cams, colors.shape[-1], dtype=torch.float64)
     backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
 
-    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height, tile_size)
+    bins = bin_gaussians(proj.means2d, proj.conics, opacities, proj.radii, proj.depths, width, height, tile_size)
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
         proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height
     )
