@@ -139,9 +139,13 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     lr["shN"] = 1e-3
     choices["learning_rates"] = _choice(lr, "paper rates, with pose, deformation and higher-SH rates raised for ~10x fewer iterations")
     anneal = int(0.6 * iters[2])
+    # Neighbour colour differences of a given texture grow with splat spacing (~N^-1/2), so their
+    # squares grow ~1/N: scaling λ_SH by N / 600k keeps the paper's smoothing strength per surface.
+    lambda_sh = min(1.0, n / PAPER.num_splats)
+    choices["lambda_sh"] = _choice(round(lambda_sh, 5), f"paper's 1.0 scaled by {n} / 600k splats: the same smoothing per unit of surface")
     preset = Preset(
         name=name, num_splats=n, sh_degree=degree, field=fc, iters_pose=iters[0], iters_deform=iters[1],
-        iters_photo=iters[2], plateau=not preview, dropout_anneal=anneal, lr=lr, refine_steps=50 if preview else 100,
+        iters_photo=iters[2], plateau=not preview, dropout_anneal=anneal, lr=lr, lambda_sh=lambda_sh, refine_steps=50 if preview else 100,
         image_scale=scale, mask_scale=mask_scale, checkpoint_every=100,
     )
     choices["dropout"] = _choice({"p0": preset.dropout_p0, "anneal_iters": anneal},

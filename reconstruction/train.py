@@ -4,7 +4,8 @@ Stage I (geometric warm-up, silhouettes only): L_mask on the rendered alpha; fir
 correction alone ("pose"), then pose + deformation field ("deform"). Stage II ("photo"): L_rgb on
 random-background composites + λ_mask L_mask + λ_SH L_SH, with splat dropout on the RGB render
 (the mask render uses every splat); pose, field, scales, opacities and SH all learn, each group
-with its own Adam learning rate. Means and quaternions never learn.
+with its own Adam learning rate. Stage II starts from SH DC colours projected from the training
+images at the Stage-I poses. Means and quaternions never learn.
 
 One random training view per iteration (as 3DGS). Non-finite losses or gradients skip the step
 (counted, never applied). A checkpoint written every `checkpoint_every` iterations and at each
@@ -32,7 +33,7 @@ from reconstruction.losses import composite, dropout_active, dropout_fraction, m
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.render import rasterize
-from reconstruction.splats import CanonicalSplats, knn_indices
+from reconstruction.splats import CanonicalSplats, knn_indices, project_colors, rgb_to_sh_dc
 
 STAGES = ("pose", "deform", "photo")
 ProgressFn = Callable[[str, int, int, float], None]
@@ -175,6 +176,17 @@ def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views, pose_mod
             "pose_mode": pose_mode, "c2w": np.round(views.c2w, 9).tolist()}
 
 
+@torch.no_grad()
+def _recolor(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor) -> None:
+    """SH DC from the training images projected at the Stage-I poses and deformed means: colours
+    projected at the registration's poses would sit where the object was, not where it is now."""
+    means = model.means().numpy()
+    viewmats = model.viewmats(c2w_init, torch.arange(len(views.images))).numpy().astype(np.float64)
+    rgb = project_colors(means, splats.normals, views.images, views.masks, viewmats, views.Ks)
+    seen = ~np.all(rgb == 0.5, axis=1)
+    model.sh0[torch.from_numpy(seen), 0] = torch.tensor(rgb_to_sh_dc(rgb[seen]), dtype=torch.float32)
+
+
 def train(
     views: Views,
     splats: CanonicalSplats,
@@ -232,6 +244,8 @@ def train(
         hist = state["history"].setdefault(stage, [])
         t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
         imgs, cov, ks, w, h = mask_data if stage != "photo" else photo_data
+        if stage == "photo" and state["it"] == 0:
+            _recolor(model, splats, views, c2w_init)
         last: dict = {}
         it = state["it"]
         while it < cap:
