@@ -74,6 +74,7 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
            "train_s": float(twin.timings_s.get("total", train_s)), "mean": report["mean"], "mean_refined": report.get("mean_refined"),
            "refine": report["views"][0].get("refine", {})}
     doc["refine"].pop("c2w_object", None)
+    cache.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(cache, doc)
     return doc
 
