@@ -168,8 +168,10 @@ def project_colors(
         if masks is not None:
             vis &= masks[i].reshape(-1)[flat]
         idx, flat = idx[vis], flat[vis]
-        acc[idx] += images[i].reshape(-1, 3)[flat]
-        cnt[idx] += 1
+        vals = images[i].reshape(-1, 3)[flat]
+        good = np.all(np.isfinite(vals), 1)  # a corrupt pixel must not poison a splat's colour
+        acc[idx[good]] += vals[good]
+        cnt[idx[good]] += 1
     out = np.full((len(pts), 3), default)
     seen = cnt > 0
     out[seen] = acc[seen] / cnt[seen, None]
