@@ -271,6 +271,13 @@ def registration_report(
     }
 
 
+def half_turn(axis: str) -> np.ndarray:
+    """The 180-degree rotation [3, 3] about the object frame's 'x', 'y' or 'z' axis (a symmetry to allow)."""
+    if axis not in ("x", "y", "z"):
+        raise ValueError(f"symmetry axis must be x, y or z, got {axis!r}")
+    return np.diag([1.0 if a == axis else -1.0 for a in "xyz"])
+
+
 def select_views(n: int, max_views: int | None) -> list[int]:
     """Indices of at most `max_views` of n views, evenly spread over the capture order (all when None)."""
     if max_views is None or max_views >= n:
@@ -311,12 +318,14 @@ def evaluate_twin(
     refine_steps: int = PAPER_REFINE_STEPS,
     refine_lr: float = REFINE_LR,
     gt: dict | None = None,
+    symmetries: Sequence[np.ndarray] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """The whole protocol for a `Twin` on held-out views whose cameras are in the rig frame.
 
     Cameras go to the object frame through the twin's refined `sim3_rig_to_object`; with `gt` (the
-    synthetic rig's gt.json dict) the twin's training cameras are also scored against the truth.
+    synthetic rig's gt.json dict) the twin's training cameras are also scored against the truth,
+    against the closest of `symmetries` (object-frame rotations [3, 3]) when given.
     Returns `evaluate_views`' report plus "registration" when `gt` is given and "num_splats".
     """
     t0 = time.perf_counter()
@@ -326,6 +335,6 @@ def evaluate_twin(
     report["num_splats"] = int(twin.num_splats)
     if gt is not None:
         est, ref, cam_names = gt_train_poses(twin.cameras, gt)
-        report["registration"] = {"cameras": cam_names, **registration_report(est, ref)}
+        report["registration"] = {"cameras": cam_names, **registration_report(est, ref, symmetries)}
     report["timings_s"]["total"] = time.perf_counter() - t0
     return report

@@ -83,6 +83,7 @@ def test_evaluate_max_views_without_refinement(scene, tmp_path):
     ("no_views", "transforms.json"),
     ("bad_gt", "--gt"),
     ("out_is_dir", "is a directory"),
+    ("symmetry_without_gt", "--symmetry needs --gt"),
 ])
 def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragment):
     twin, views, out = scene / "twin", scene / "heldout", tmp_path / "m.json"
@@ -94,6 +95,8 @@ def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragm
     elif case == "bad_gt":
         (tmp_path / "gt.json").write_text("{not json")
         extra = ["--gt", str(tmp_path / "gt.json")]
+    elif case == "symmetry_without_gt":
+        extra = ["--symmetry", "z"]
     else:
         out = tmp_path
     rc = main(["evaluate", str(twin), "--views", str(views), "--out", str(out), "--refine-steps", "0", *extra])

@@ -19,6 +19,7 @@ from reconstruction.evaluation import (
     evaluate_twin,
     evaluate_views,
     gt_train_poses,
+    half_turn,
     refine_camera_pose,
     render_rgba,
     select_views,
@@ -155,6 +156,17 @@ def test_registration_against_gt_matches_cameras_by_name(twin):
                         gt={"train_c2w_object": [c.tolist() for c in truth]})["registration"]
     assert rep["rotation_deg"] == pytest.approx([3.0, 0.0], abs=1e-9)
     assert rep["center_pct"] == pytest.approx([0.0, 0.0], abs=1e-9)
+    # A registration turned 180 deg about the object's z axis is right for a z-symmetric object.
+    flipped = [TwinCamera(c.file_path, c.camera_id, c.K, W, H, np.diag([-1.0, -1.0, 1.0, 1.0]) @ truth[int(c.camera_id[3:])])
+               for c in cams]
+    twin2.cameras = flipped
+    gt = {"train_c2w_object": [c.tolist() for c in truth]}
+    plain = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt=gt)["registration"]
+    sym = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt=gt,
+                        symmetries=[half_turn("x"), half_turn("z")])["registration"]
+    assert plain["rotation_deg_median"] == pytest.approx(180.0) and plain["symmetry"] is None
+    assert sym["rotation_deg_median"] == pytest.approx(0.0, abs=1e-9) and sym["symmetry"] == 1
+    assert sym["center_pct_median"] == pytest.approx(0.0, abs=1e-9)
     with pytest.raises(ValueError, match="no ground-truth pose"):
         gt_train_poses([TwinCamera("images/x.png", "left", twin.cameras[0].K, W, H, truth[0])], {"train_c2w_object": truth})
 
