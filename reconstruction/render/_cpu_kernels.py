@@ -4,7 +4,9 @@ Geometry and compositing run in float64 whatever the input dtype: a float32 pixe
 x = 500 px is off by up to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the
 rasterizer promises. Kernels take numpy arrays and write into preallocated outputs. Parallel loops run
 over fixed chunks (of Gaussians) or balanced bins (of tiles), and every sum is taken in an order that
-does not depend on the thread count, so results are bit-identical on 2 or 64 threads.
+does not depend on the thread count, so results are bit-identical on 2 or 64 threads. Kernels that
+run in parallel take a leading (lo, hi) range of their parallel index and are driven by
+`_parallel.parallel_for`.
 
 Conventions shared by all kernels:
 - conic (a, b, c) is the inverse 2D covariance [[a, b], [b, c]]; sigma = 0.5 (a dx^2 + c dy^2) + b dx dy
@@ -25,7 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 ALPHA_MAX = 0.999
@@ -35,7 +37,7 @@ TRANSMITTANCE_MIN = 1e-4
 _SIGMA_MARGIN = 1e-9
 # Fixed chunk counts make the order of floating-point sums independent of the thread count.
 GAUSSIAN_CHUNKS = 256
-_BINNING_CHUNKS = 64
+BINNING_CHUNKS = 64
 _KEY_INDEX_MASK = 0xFFFFFFFF
 _EXP_MINUS_HALF = math.exp(-0.5)
 
@@ -46,7 +48,8 @@ SF_COLUMNS = 7
 SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI, SI_TX0, SI_TY0, SI_TILES_W, SI_SLOT = range(8)
 SI_COLUMNS = 8
 
-_OPTS = {"cache": True, "error_model": "numpy"}
+# nogil: the kernels run on plain threads (see `_parallel`); error_model numpy: no ZeroDivision checks.
+_OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
 
 @njit(inline="always", **_OPTS)
@@ -142,9 +145,9 @@ def _covariance2d(cov_cam, j00, j02, j11, j12, eps2d):
     return s00, s01, s11
 
 
-@njit(parallel=True, **_OPTS)
+@njit(**_OPTS)
 def project_forward(
-    means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far, eps2d,
+    chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far, eps2d,
     means2d, conics, depths, radii,
 ) -> None:
     """Projects N Gaussians into C cameras; culled entries keep the zeros they were allocated with.
@@ -155,13 +158,12 @@ def project_forward(
     """
     n = means.shape[0]
     n_cams = viewmats.shape[0]
-    n_chunks = max(1, min(GAUSSIAN_CHUNKS, n))
-    for chunk in prange(n_chunks):
-        rot = np.empty((3, 3))
-        factor = np.empty((3, 3))
-        cov = np.empty((3, 3))
-        tmp = np.empty((3, 3))
-        cov_cam = np.empty((3, 3))
+    rot = np.empty((3, 3))
+    factor = np.empty((3, 3))
+    cov = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    cov_cam = np.empty((3, 3))
+    for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         for g in range(lo, hi):
             opacity = np.float64(opacities[g])
@@ -203,9 +205,9 @@ def project_forward(
                 radii[c, g, 1] = ry
 
 
-@njit(parallel=True, **_OPTS)
+@njit(**_OPTS)
 def project_backward(
-    means, quats, scales, viewmats, Ks, width, height, radii, conics, v_means2d, v_conics,
+    chunk_lo, chunk_hi, means, quats, scales, viewmats, Ks, width, height, radii, conics, v_means2d, v_conics,
     v_means, v_quats, v_scales, v_viewmats_chunks,
 ) -> None:
     """VJP of `project_forward` for the visible entries.
@@ -217,16 +219,16 @@ def project_backward(
     n = means.shape[0]
     n_cams = viewmats.shape[0]
     n_chunks = v_viewmats_chunks.shape[0]
-    for chunk in prange(n_chunks):
-        rot = np.empty((3, 3))
-        factor = np.empty((3, 3))
-        cov = np.empty((3, 3))
-        tmp = np.empty((3, 3))
-        cov_cam = np.empty((3, 3))
-        v_cov = np.empty((3, 3))
-        v_w = np.empty((3, 3))
-        rw = np.empty((3, 3))
-        v_factor = np.empty((3, 3))
+    rot = np.empty((3, 3))
+    factor = np.empty((3, 3))
+    cov = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    cov_cam = np.empty((3, 3))
+    v_cov = np.empty((3, 3))
+    v_w = np.empty((3, 3))
+    rw = np.empty((3, 3))
+    v_factor = np.empty((3, 3))
+    for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         for g in range(lo, hi):
             seen = False
@@ -355,16 +357,16 @@ def project_backward(
             v_quats[g, 3] = (vz - z * dot) / qnorm
 
 
-@njit(parallel=True, **_OPTS)
-def pixel_rects(means2d, radii, width, height, tile_size, rects, tile_counts) -> None:
+@njit(**_OPTS)
+def pixel_rects(lo, hi, means2d, radii, width, height, tile_size, rects, tile_counts) -> None:
     """Pixel range of each visible Gaussian's radius box and the number of tiles it touches.
 
     A pixel u belongs when its centre u + 0.5 lies in [mean - radius, mean + radius]; the radius box
     holds every pixel with alpha >= 1/255, so no pixel that could be shaded is lost. Writes rects
     [C * N, 4] and tile_counts [C * N] (zero for culled Gaussians and boxes without a pixel centre).
     """
-    n_cams, n = radii.shape[0], radii.shape[1]
-    for cg in prange(n_cams * n):
+    n = radii.shape[1]
+    for cg in range(lo, hi):
         c = cg // n
         g = cg - c * n
         tile_counts[cg] = 0
@@ -385,36 +387,53 @@ def pixel_rects(means2d, radii, width, height, tile_size, rects, tile_counts) ->
 
 
 @njit(**_OPTS)
-def order_splats(rects, tile_counts, n, tile_size, tiles_x, tiles_y):
-    """Visible (camera, Gaussian) flat indices c * N + g, ordered by the first tile they touch.
+def bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, tiles_y):
+    """Keys (float32 depth bits << 32 | Gaussian index) of the visible splats, bucketed by first tile.
 
-    Packing splats in this order puts the Gaussians of a tile next to each other in memory; in model
-    order every tile list jumps around the whole model and, past a few hundred thousand Gaussians,
-    compositing waits on cache misses instead of computing. A counting sort: O(C * N + tiles).
+    Returns (starts [n_tiles + 1], keys [M]); `sort_tile_keys` then orders each bucket. Packing splats
+    in that order puts a tile's splats next to each other in memory, in the order its depth-sorted
+    list visits them; in model order every tile list jumps around the whole model and, past a few
+    hundred thousand Gaussians, compositing waits on cache misses instead of computing.
     """
-    tiles_per_cam = tiles_x * tiles_y
-    n_tiles = (tile_counts.shape[0] // n) * tiles_per_cam
+    n_tiles = (tile_counts.shape[0] // n) * tiles_x * tiles_y
     starts = np.zeros(n_tiles + 1, np.int64)
+    first_tile = np.empty(tile_counts.shape[0], np.int64)
     for cg in range(tile_counts.shape[0]):
         if tile_counts[cg] > 0:
-            c = cg // n
-            starts[c * tiles_per_cam + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size + 1] += 1
+            t = (cg // n) * tiles_x * tiles_y + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size
+            first_tile[cg] = t
+            starts[t + 1] += 1
     for t in range(n_tiles):
         starts[t + 1] += starts[t]
-    perm = np.empty(starts[n_tiles], np.int64)
+    keys = np.empty(starts[n_tiles], np.int64)
+    cursor = starts[:-1].copy()
     for cg in range(tile_counts.shape[0]):
         if tile_counts[cg] > 0:
-            c = cg // n
-            t = c * tiles_per_cam + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size
-            perm[starts[t]] = cg
-            starts[t] += 1
-    return perm
+            t = first_tile[cg]
+            keys[cursor[t]] = (depth_bits[cg] << 32) | (cg - (cg // n) * n)
+            cursor[t] += 1
+    return starts, keys
 
 
-@njit(parallel=True, **_OPTS)
-def pack_splats(perm, n, rects, slot_offsets, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
+@njit(**_OPTS)
+def sort_tile_keys(lo, hi, offsets, keys, n, tiles_per_cam, lookup, out) -> None:
+    """Sorts each tile's keys (depth, then Gaussian index) and writes out[k] = lookup[c * N + g].
+
+    Keys are float32 depth bits << 32 | g; depths are positive, so their bit patterns order like the
+    values. Tiles lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
+    """
+    for t in range(lo, hi):
+        segment = keys[offsets[t] : offsets[t + 1]]
+        segment.sort()
+        cam_base = (t // tiles_per_cam) * n
+        for k in range(segment.shape[0]):
+            out[offsets[t] + k] = lookup[cam_base + (segment[k] & _KEY_INDEX_MASK)]
+
+
+@njit(**_OPTS)
+def pack_splats(lo, hi, perm, n, rects, slot_offsets, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
     """Float (SF_*) and int (SI_*) records of each packed splat j, gathered in one pass."""
-    for j in prange(perm.shape[0]):
+    for j in range(lo, hi):
         cg = perm[j]
         c = cg // n
         g = cg - c * n
@@ -436,84 +455,67 @@ def pack_splats(perm, n, rects, slot_offsets, tile_size, means2d, conics, opacit
         splat_i[j, SI_SLOT] = slot_offsets[j]
 
 
-@njit(parallel=True, **_OPTS)
-def gather_rows(perm, n, values, out) -> None:
+@njit(**_OPTS)
+def gather_rows(lo, hi, perm, n, values, out) -> None:
     """out[j] = values[c, g] for packed splat j = (c, g); values [C, N, D], out [M, D]."""
-    for j in prange(perm.shape[0]):
+    for j in range(lo, hi):
         c = perm[j] // n
         g = perm[j] - c * n
         for d in range(values.shape[2]):
             out[j, d] = values[c, g, d]
 
 
-@njit(parallel=True, **_OPTS)
-def scatter_rows(perm, packed, out) -> None:
+@njit(**_OPTS)
+def scatter_rows(lo, hi, perm, packed, out) -> None:
     """out[perm[j]] = packed[j]; packed [M, D], out [C * N, D] (rows not in perm keep their value)."""
-    for j in prange(perm.shape[0]):
+    for j in range(lo, hi):
         for d in range(packed.shape[1]):
             out[perm[j], d] = packed[j, d]
 
 
-@njit(parallel=True, **_OPTS)
-def bin_and_sort(splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_per_cam, n_tiles):
-    """Per-tile lists of packed splat indices in depth order, ties by Gaussian index.
+@njit(**_OPTS)
+def _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam) -> int:
+    """Global tile id of packed splat j's s-th slot."""
+    tiles_w = splat_i[j, SI_TILES_W]
+    row = s // tiles_w
+    return (perm[j] // n) * tiles_per_cam + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
 
-    Returns (tile_offsets [n_tiles + 1], ids [n_isect]); tile t owns ids[tile_offsets[t]:tile_offsets[t + 1]].
-    A counting sort by tile (per-chunk histograms, so the scatter needs no atomics), then an in-place
-    sort of each tile's int64 keys (float32 depth bits << 32 | Gaussian index; depths are positive, so
-    their bit patterns order like the values), whose low half is finally swapped for the packed index.
-    """
-    n_splats = perm.shape[0]
-    n_chunks = max(1, min(_BINNING_CHUNKS, n_splats))
-    hist = np.zeros((n_chunks, n_tiles), np.int64)
-    for chunk in prange(n_chunks):
-        lo, hi = _chunk_bounds(chunk, n_chunks, n_splats)
+
+@njit(**_OPTS)
+def tile_histogram(chunk_lo, chunk_hi, n_chunks, splat_i, slot_offsets, perm, n, tiles_x, tiles_per_cam, hist) -> None:
+    """hist[chunk, t] = number of slots of chunk's splats in tile t (a counting sort's first pass)."""
+    for chunk in range(chunk_lo, chunk_hi):
+        lo, hi = _chunk_bounds(chunk, n_chunks, perm.shape[0])
         for j in range(lo, hi):
-            base = (perm[j] // n) * tiles_per_cam
-            tiles_w = splat_i[j, SI_TILES_W]
             for s in range(slot_offsets[j + 1] - slot_offsets[j]):
-                row = s // tiles_w
-                t = base + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
-                hist[chunk, t] += 1
-    tile_offsets = np.empty(n_tiles + 1, np.int64)
-    cursor = np.empty((n_chunks, n_tiles), np.int64)
-    running = 0
-    for t in range(n_tiles):
-        tile_offsets[t] = running
-        for chunk in range(n_chunks):
-            cursor[chunk, t] = running
-            running += hist[chunk, t]
-    tile_offsets[n_tiles] = running
-    ids = np.empty(running, np.int64)
-    for chunk in prange(n_chunks):
-        lo, hi = _chunk_bounds(chunk, n_chunks, n_splats)
+                hist[chunk, _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam)] += 1
+
+
+@njit(**_OPTS)
+def scatter_tile_keys(
+    chunk_lo, chunk_hi, n_chunks, splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_per_cam, cursor, keys,
+) -> None:
+    """Writes each slot's key (float32 depth bits << 32 | g) at its chunk's cursor for its tile.
+
+    cursor [n_chunks, n_tiles] starts at each chunk's first position inside each tile's segment, so
+    chunks scatter without atomics and a tile's keys arrive in chunk order.
+    """
+    for chunk in range(chunk_lo, chunk_hi):
+        lo, hi = _chunk_bounds(chunk, n_chunks, perm.shape[0])
         for j in range(lo, hi):
             cg = perm[j]
-            base = (cg // n) * tiles_per_cam
             key = (depth_bits[cg] << 32) | (cg - (cg // n) * n)
-            tiles_w = splat_i[j, SI_TILES_W]
             for s in range(slot_offsets[j + 1] - slot_offsets[j]):
-                row = s // tiles_w
-                t = base + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
-                ids[cursor[chunk, t]] = key
+                t = _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam)
+                keys[cursor[chunk, t]] = key
                 cursor[chunk, t] += 1
-    packed_index = np.empty(depth_bits.shape[0], np.int64)
-    for j in prange(n_splats):
-        packed_index[perm[j]] = j
-    for t in prange(n_tiles):
-        segment = ids[tile_offsets[t] : tile_offsets[t + 1]]
-        segment.sort()
-        cam_base = (t // tiles_per_cam) * n
-        for k in range(segment.shape[0]):
-            segment[k] = packed_index[cam_base + (segment[k] & _KEY_INDEX_MASK)]
-    return tile_offsets, ids
 
 
 @njit(**_OPTS)
 def balance_tiles(tile_offsets, n_bins):
     """Greedy longest-first assignment of tiles to n_bins work bins by intersection count.
 
-    Returns (work [n_tiles] tile ids grouped by bin, work_offsets [n_bins + 1]); prange over bins then
+    Returns (work [n_tiles] tile ids grouped by bin, work_offsets [n_bins + 1]); running one bin per thread then
     gives each thread about the same number of pixel-Gaussian pairs, whereas a static split over tiles
     hands the object's tiles to one thread and the empty border to the other.
     """
@@ -621,9 +623,9 @@ def _exp_neg(sigma, out, m) -> None:
         out[i] = p * p
 
 
-@njit(parallel=True, **_OPTS)
+@njit(**_OPTS)
 def rasterize_forward(
-    splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
+    bin_lo, bin_hi, splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
     out_colors, out_transmittance, out_last, slot_counts,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
@@ -637,7 +639,7 @@ def rasterize_forward(
     depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
-    for bin_ in prange(work_offsets.shape[0] - 1):
+    for bin_ in range(bin_lo, bin_hi):
         trans = np.empty(n_px)
         acc = np.empty((n_px, depth))
         last = np.empty(n_px, np.int64)
@@ -691,9 +693,9 @@ def rasterize_forward(
                     out_last[c, py, px] = last[p]
 
 
-@njit(parallel=True, **_OPTS)
+@njit(**_OPTS)
 def rasterize_backward(
-    splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
+    bin_lo, bin_hi, splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
     transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
 ) -> None:
     """Back-to-front VJP of `rasterize_forward` (3DGS): T is recovered by dividing by (1 - alpha).
@@ -704,7 +706,7 @@ def rasterize_backward(
     depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
-    for bin_ in prange(work_offsets.shape[0] - 1):
+    for bin_ in range(bin_lo, bin_hi):
         trans = np.empty(n_px)
         behind = np.empty((n_px, depth))
         v_px = np.empty((n_px, depth))
@@ -787,19 +789,19 @@ def rasterize_backward(
                     slot_grads[s, 6 + d] = v_color[d]
 
 
-@njit(parallel=True, **_OPTS)
-def sum_slot_rows(slot_values, slot_offsets, out) -> None:
+@njit(**_OPTS)
+def sum_slot_rows(lo, hi, slot_values, slot_offsets, out) -> None:
     """out[j, :] = sum of slot_values[s, :] over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
-    for j in prange(out.shape[0]):
+    for j in range(lo, hi):
         for s in range(slot_offsets[j], slot_offsets[j + 1]):
             for col in range(out.shape[1]):
                 out[j, col] += slot_values[s, col]
 
 
-@njit(parallel=True, **_OPTS)
-def sum_slot_counts(slot_counts, slot_offsets, out) -> None:
+@njit(**_OPTS)
+def sum_slot_counts(lo, hi, slot_counts, slot_offsets, out) -> None:
     """out[j] = sum of slot_counts over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
-    for j in prange(out.shape[0]):
+    for j in range(lo, hi):
         total = 0
         for s in range(slot_offsets[j], slot_offsets[j + 1]):
             total += slot_counts[s]

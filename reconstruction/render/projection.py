@@ -16,6 +16,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
+from reconstruction.render._parallel import parallel_for
 
 
 class Projection(NamedTuple):
@@ -40,7 +41,9 @@ class _ProjectGaussians(torch.autograd.Function):
         conics = np.zeros((n_cams, n, 3))
         depths = np.zeros((n_cams, n))
         radii = np.zeros((n_cams, n, 2), np.int32)
-        kernels.project_forward(
+        n_chunks = max(1, min(kernels.GAUSSIAN_CHUNKS, n))
+        parallel_for(
+            kernels.project_forward, n_chunks, n_chunks,
             to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(opacities), to_numpy(active),
             to_numpy(viewmats), to_numpy(Ks), width, height, near, far, eps2d,
             means2d, conics, depths, radii,
@@ -62,8 +65,8 @@ class _ProjectGaussians(torch.autograd.Function):
         v_quats = np.zeros((n, 4))
         v_scales = np.zeros((n, 3))
         v_view_chunks = np.zeros((n_chunks, n_cams, 3, 4))
-        kernels.project_backward(
-            to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(viewmats), to_numpy(Ks),
+        parallel_for(
+            kernels.project_backward, n_chunks, to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(viewmats), to_numpy(Ks),
             *ctx.image_size, to_numpy(radii), to_numpy(conics), to_numpy(v_means2d), to_numpy(v_conics),
             v_means, v_quats, v_scales, v_view_chunks,
         )

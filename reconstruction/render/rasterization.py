@@ -8,16 +8,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
+from reconstruction.render._parallel import num_threads, parallel_for
 from reconstruction.render.projection import project_gaussians, to_numpy
 from reconstruction.render.sh import eval_sh, num_sh_bases
 
+# Below this many items per thread, per-splat passes run on the calling thread alone.
+_GRAIN = 4096
 N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity
 
 
@@ -41,16 +43,20 @@ class TileBins:
     def n_isects(self) -> int:
         return int(self.ids.shape[0])
 
+    @property
+    def n_bins(self) -> int:
+        return int(self.work_offsets.shape[0] - 1)
+
     def gather(self, values: Tensor) -> np.ndarray:
         """[C, N, D] per camera and Gaussian -> [M, D] per packed splat."""
         out = np.empty((self.perm.shape[0], values.shape[2]))
-        kernels.gather_rows(self.perm, values.shape[1], to_numpy(values), out)
+        parallel_for(kernels.gather_rows, out.shape[0], self.perm, values.shape[1], to_numpy(values), out, grain=_GRAIN)
         return out
 
     def scatter(self, packed: np.ndarray, n_cams: int, n: int) -> Tensor:
         """[M, D] per packed splat -> [C, N, D] per camera and Gaussian (zeros where not visible)."""
         out = np.zeros((n_cams * n, packed.shape[1]), packed.dtype)
-        kernels.scatter_rows(self.perm, packed, out)
+        parallel_for(kernels.scatter_rows, packed.shape[0], self.perm, packed, out, grain=_GRAIN)
         return torch.from_numpy(out).view(n_cams, n, packed.shape[1])
 
 
@@ -69,24 +75,50 @@ def bin_gaussians(
     n_cams, n = radii.shape[:2]
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
+    tiles_per_cam = tiles_x * tiles_y
+    n_tiles = n_cams * tiles_per_cam
     rects = np.zeros((n_cams * n, 4), np.int64)
     tile_counts = np.zeros(n_cams * n, np.int64)
-    kernels.pixel_rects(to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects, tile_counts)
-    perm = kernels.order_splats(rects, tile_counts, n, tile_size, tiles_x, tiles_y)
-    slot_offsets = np.zeros(perm.shape[0] + 1, np.int64)
-    np.cumsum(tile_counts[perm], out=slot_offsets[1:])
-    splat_f = np.empty((perm.shape[0], kernels.SF_COLUMNS))
-    splat_i = np.empty((perm.shape[0], kernels.SI_COLUMNS), np.int64)
-    kernels.pack_splats(
-        perm, n, rects, slot_offsets, tile_size, to_numpy(means2d), to_numpy(conics), to_numpy(opacities),
-        splat_f, splat_i,
+    parallel_for(
+        kernels.pixel_rects, n_cams * n, to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects,
+        tile_counts, grain=_GRAIN,
     )
     # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
     depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
-    tile_offsets, ids = kernels.bin_and_sort(
-        splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_x * tiles_y, n_cams * tiles_x * tiles_y
+    starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, tiles_y)
+    perm = np.empty(keys.shape[0], np.int64)
+    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, n, tiles_per_cam, np.arange(n_cams * n), perm)
+
+    n_splats = perm.shape[0]
+    slot_offsets = np.zeros(n_splats + 1, np.int64)
+    np.cumsum(tile_counts[perm], out=slot_offsets[1:])
+    splat_f = np.empty((n_splats, kernels.SF_COLUMNS))
+    splat_i = np.empty((n_splats, kernels.SI_COLUMNS), np.int64)
+    parallel_for(
+        kernels.pack_splats, n_splats, perm, n, rects, slot_offsets, tile_size, to_numpy(means2d), to_numpy(conics),
+        to_numpy(opacities), splat_f, splat_i, grain=_GRAIN,
     )
-    work, work_offsets = kernels.balance_tiles(tile_offsets, numba.get_num_threads())
+
+    # Counting sort of all (splat, tile) slots by tile: per-chunk histograms, then each chunk scatters
+    # from its own cursors, then every tile's keys are sorted by (depth, index).
+    n_chunks = max(1, min(kernels.BINNING_CHUNKS, n_splats))
+    tile_args = (splat_i, slot_offsets, perm, n)
+    hist = np.zeros((n_chunks, n_tiles), np.int64)
+    parallel_for(kernels.tile_histogram, n_chunks, n_chunks, *tile_args, tiles_x, tiles_per_cam, hist)
+    cursor = np.zeros(n_chunks * n_tiles, np.int64)
+    np.cumsum(hist.T.reshape(-1)[:-1], out=cursor[1:])
+    tile_offsets = np.append(cursor[::n_chunks], slot_offsets[-1])
+    cursor = np.ascontiguousarray(cursor.reshape(n_tiles, n_chunks).T)
+    keys = np.empty(slot_offsets[-1], np.int64)
+    parallel_for(
+        kernels.scatter_tile_keys, n_chunks, n_chunks, *tile_args, depth_bits, tiles_x, tiles_per_cam, cursor, keys
+    )
+    packed_index = np.empty(n_cams * n, np.int64)
+    packed_index[perm] = np.arange(n_splats)
+    ids = np.empty_like(keys)
+    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, n, tiles_per_cam, packed_index, ids)
+
+    work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads())
     return TileBins(
         tile_size, tiles_x, tiles_y, perm, splat_f, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets
     )
@@ -104,13 +136,13 @@ class _RasterizeToPixels(torch.autograd.Function):
         transmittance = np.empty((n_cams, height, width))
         last_ids = np.empty((n_cams, height, width), np.int64)
         slot_counts = np.zeros(bins.n_isects, np.int64)
-        kernels.rasterize_forward(
-            bins.splat_f, splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
+        parallel_for(
+            kernels.rasterize_forward, bins.n_bins, bins.splat_f, splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
             to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
             out_colors, transmittance, last_ids, slot_counts,
         )
         counts = np.empty((bins.perm.shape[0], 1), np.int64)
-        kernels.sum_slot_counts(slot_counts, bins.slot_offsets, counts[:, 0])
+        parallel_for(kernels.sum_slot_counts, counts.shape[0], slot_counts, bins.slot_offsets, counts[:, 0], grain=_GRAIN)
 
         ctx.save_for_backward(backgrounds)
         ctx.bins = bins
@@ -132,13 +164,13 @@ class _RasterizeToPixels(torch.autograd.Function):
         n_cols = N_GRAD_GEOMETRY + ctx.splat_c.shape[1]
         slot_grads = np.zeros((bins.n_isects, n_cols))
         v_colors_np = to_numpy(v_render_colors)
-        kernels.rasterize_backward(
-            bins.splat_f, ctx.splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
+        parallel_for(
+            kernels.rasterize_backward, bins.n_bins, bins.splat_f, ctx.splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
             to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
             ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
         grads = np.zeros((bins.perm.shape[0], n_cols))
-        kernels.sum_slot_rows(slot_grads, bins.slot_offsets, grads)
+        parallel_for(kernels.sum_slot_rows, grads.shape[0], slot_grads, bins.slot_offsets, grads, grain=_GRAIN)
         grads_t = bins.scatter(grads, n_cams, n)
         v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
         return (
