@@ -416,16 +416,32 @@ def bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, 
 
 
 @njit(**_OPTS)
-def sort_tile_keys(lo, hi, offsets, keys, n, tiles_per_cam, lookup, out) -> None:
-    """Sorts each tile's keys (depth, then Gaussian index) and writes out[k] = lookup[c * N + g].
+def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, lookup, out) -> None:
+    """Sorts each tile's keys by depth, then Gaussian index, and writes out[k] = lookup[c * N + g].
 
-    Keys are float32 depth bits << 32 | g; depths are positive, so their bit patterns order like the
-    values. Tiles lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
+    Keys are float32 depth bits << 32 | g (depths are positive, so the bits order like the values), so
+    one int64 sort does nearly everything; runs whose float32 depths tie are then re-sorted by the
+    float64 depths [C * N], since float32 rounding merges depths that differ and the order of
+    overlapping splats changes the image. Tiles lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
     """
     for t in range(lo, hi):
         segment = keys[offsets[t] : offsets[t + 1]]
         segment.sort()
         cam_base = (t // tiles_per_cam) * n
+        run = 0
+        for k in range(1, segment.shape[0] + 1):
+            if k < segment.shape[0] and segment[k] >> 32 == segment[run] >> 32:
+                continue
+            # Stable insertion sort of the run segment[run:k] (already in index order) by float64 depth.
+            for i in range(run + 1, k):
+                key = segment[i]
+                depth = depths[cam_base + (key & _KEY_INDEX_MASK)]
+                m = i
+                while m > run and depths[cam_base + (segment[m - 1] & _KEY_INDEX_MASK)] > depth:
+                    segment[m] = segment[m - 1]
+                    m -= 1
+                segment[m] = key
+            run = k
         for k in range(segment.shape[0]):
             out[offsets[t] + k] = lookup[cam_base + (segment[k] & _KEY_INDEX_MASK)]
 
@@ -515,9 +531,9 @@ def scatter_tile_keys(
 def balance_tiles(tile_offsets, n_bins):
     """Greedy longest-first assignment of tiles to n_bins work bins by intersection count.
 
-    Returns (work [n_tiles] tile ids grouped by bin, work_offsets [n_bins + 1]); running one bin per thread then
-    gives each thread about the same number of pixel-Gaussian pairs, whereas a static split over tiles
-    hands the object's tiles to one thread and the empty border to the other.
+    Returns (work [n_tiles] tile ids grouped by bin, work_offsets [n_bins + 1]). Bins of about equal
+    cost let threads share the work evenly; contiguous runs of tiles would not, since the object's
+    tiles carry nearly all of it.
     """
     n_tiles = tile_offsets.shape[0] - 1
     cost = np.empty(n_tiles, np.int64)

@@ -1,18 +1,23 @@
-"""Parallel-for over numba kernels on plain threads.
+"""Parallel-for over numba kernels on plain threads, with dynamic scheduling.
 
 numba's own `prange` runs on a second OpenMP runtime beside torch's, and both spin-wait at barriers:
 on a 2-core machine torch's workers, still spinning after each torch op, starved numba's and a
 forward+backward at 20k Gaussians went from ~50 ms to a ~500 ms median. Plain threads running
 `nogil` kernels block instead of spinning, and kernels without parfor lowering compile ~3x faster.
+Work is cut into a few parts per thread that threads take as they free up, so a thread that loses
+its core for a while (to torch's spinning workers or another process) delays only its current part.
 """
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
+
+PARTS_PER_THREAD = 4
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
@@ -34,18 +39,27 @@ def _executor(workers: int) -> ThreadPoolExecutor:
 
 
 def parallel_for(kernel: Callable[..., None], n: int, *args, grain: int = 1) -> None:
-    """Runs kernel(lo, hi, *args) over contiguous parts of range(n), one per thread.
+    """Runs kernel(lo, hi, *args) over contiguous parts of range(n) on up to `num_threads()` threads.
 
-    The calling thread takes the first part. Parts have at least `grain` items, so small inputs run
-    on the calling thread alone; the split never changes results, since kernels write disjoint outputs.
+    Parts have at least `grain` items (small inputs run on the calling thread alone) and are handed
+    out in order to whichever thread is free. Kernels write disjoint outputs per index, so neither
+    the split nor the schedule changes results.
     """
-    parts = max(1, min(num_threads(), n // max(1, grain)))
-    if parts == 1:
+    threads = num_threads()
+    parts = max(1, min(threads * PARTS_PER_THREAD, n // max(1, grain)))
+    if parts == 1 or threads == 1:
         kernel(0, n, *args)
         return
     bounds = [i * n // parts for i in range(parts + 1)]
-    pool = _executor(parts - 1)
-    futures = [pool.submit(kernel, bounds[i], bounds[i + 1], *args) for i in range(1, parts)]
-    kernel(bounds[0], bounds[1], *args)
-    for future in futures:
-        future.result()
+    counter = itertools.count()  # next() is atomic under the GIL
+
+    def worker() -> None:
+        while (i := next(counter)) < parts:
+            kernel(bounds[i], bounds[i + 1], *args)
+
+    futures = [_executor(threads - 1).submit(worker) for _ in range(min(threads, parts) - 1)]
+    try:
+        worker()
+    finally:
+        for future in futures:
+            future.result()

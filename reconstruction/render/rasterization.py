@@ -14,7 +14,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
-from reconstruction.render._parallel import num_threads, parallel_for
+from reconstruction.render._parallel import PARTS_PER_THREAD, num_threads, parallel_for
 from reconstruction.render.projection import project_gaussians, to_numpy
 from reconstruction.render.sh import eval_sh, num_sh_bases
 
@@ -70,7 +70,7 @@ def bin_gaussians(
         means2d: [C, N, 2], conics: [C, N, 3], opacities: [N], depths: [C, N] (float64, from
             `project_gaussians`); radii: [C, N, 2] int32.
 
-    Depths are compared after rounding to float32, as gsplat sorts them.
+    Depths are compared in float64 (gsplat compares float32 depths, which merges near ties).
     """
     n_cams, n = radii.shape[:2]
     tiles_x = -(-width // tile_size)
@@ -87,7 +87,8 @@ def bin_gaussians(
     depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
     starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, tiles_y)
     perm = np.empty(keys.shape[0], np.int64)
-    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, n, tiles_per_cam, np.arange(n_cams * n), perm)
+    depths_flat = to_numpy(depths).reshape(-1)
+    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, depths_flat, n, tiles_per_cam, np.arange(n_cams * n), perm)
 
     n_splats = perm.shape[0]
     slot_offsets = np.zeros(n_splats + 1, np.int64)
@@ -116,9 +117,9 @@ def bin_gaussians(
     packed_index = np.empty(n_cams * n, np.int64)
     packed_index[perm] = np.arange(n_splats)
     ids = np.empty_like(keys)
-    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, n, tiles_per_cam, packed_index, ids)
+    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, depths_flat, n, tiles_per_cam, packed_index, ids)
 
-    work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads())
+    work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
         tile_size, tiles_x, tiles_y, perm, splat_f, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets
     )

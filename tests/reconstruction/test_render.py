@@ -280,6 +280,19 @@ def test_equal_depths_break_ties_by_index():
     assert (a - b).abs().max() > 1e-2
 
 
+def test_depths_that_tie_only_in_float32_keep_their_float64_order():
+    # Depths 3 + 2^-23 (Gaussian 0) and 3 (Gaussian 1) round to the same float32: still 1 goes first.
+    scene = random_scene(2, seed=18, n_cams=1, width=16, height=16)
+    scene["viewmats"] = torch.eye(4)[None]
+    scene["viewmats"][0, 2, 3] = 2.0
+    scene["means"] = torch.tensor([[0.0, 0.0, 1.0 + 2.0**-23], [0.01, 0.0, 1.0]])
+    scene["scales"] = torch.full((2, 3), 0.2)
+    scene["opacities"] = torch.tensor([0.9, 0.9])
+    scene["colors"] = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    colors, _, _, _ = assert_matches(scene)
+    assert colors[0, 8, 8, 2] > colors[0, 8, 8, 0]  # the blue Gaussian is in front
+
+
 def test_everything_off_screen():
     scene = random_scene(20, seed=9, n_cams=2, width=17, height=16)
     scene["means"] = scene["means"] * 0.1 + torch.tensor([40.0, 0.0, 0.0])
