@@ -15,10 +15,10 @@ Conventions shared by all kernels:
 - rects [C * N, 4] are inclusive pixel ranges (u_lo, u_hi, v_lo, v_hi) of the pixel centres inside the
   radius box, clipped to the image; tiles follow as pixel // tile_size.
 - Compositing works on "packed splats": the visible (camera, Gaussian) pairs, ordered by first tile
-  (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int64 record
+  (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int32 record
   (SI_* columns) and its colour row, so a tile's splats sit close together in memory.
-- A "slot" is one (splat, tile) intersection, laid out splat-major: splat j's first slot plus the
-  row-major index of the tile inside its tile rectangle. Kernels that run per tile write per-slot
+- A "slot" is one (splat, tile) intersection, laid out splat-major: splat j owns slots
+  slot_offsets[j]:slot_offsets[j + 1], one per tile of its tile rectangle in row-major order. Kernels that run per tile write per-slot
   partial results and a per-splat pass sums them, which needs no atomics.
 """
 
@@ -44,9 +44,9 @@ _EXP_MINUS_HALF = math.exp(-0.5)
 # Columns of the packed float record: mean2d, conic, opacity, 2 ln(255 opacity).
 SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_TWO_LOG = range(7)
 SF_COLUMNS = 7
-# Columns of the packed int record: pixel rect, tile rect origin and width, first slot.
-SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI, SI_TX0, SI_TY0, SI_TILES_W, SI_SLOT = range(8)
-SI_COLUMNS = 8
+# Columns of the packed int record: pixel rect, tile rect origin and width.
+SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI, SI_TX0, SI_TY0, SI_TILES_W = range(7)
+SI_COLUMNS = 7
 
 # nogil: the kernels run on plain threads (see `_parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -387,7 +387,7 @@ def pixel_rects(lo, hi, means2d, radii, width, height, tile_size, rects, tile_co
 
 
 @njit(**_OPTS)
-def bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, tiles_y):
+def bucket_by_first_tile(rects, tile_counts, depth_bits, n_cams, n, tile_size, tiles_x, tiles_y):
     """Keys (float32 depth bits << 32 | Gaussian index) of the visible splats, bucketed by first tile.
 
     Returns (starts [n_tiles + 1], keys [M]); `sort_tile_keys` then orders each bucket. Packing splats
@@ -395,7 +395,7 @@ def bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, 
     list visits them; in model order every tile list jumps around the whole model and, past a few
     hundred thousand Gaussians, compositing waits on cache misses instead of computing.
     """
-    n_tiles = (tile_counts.shape[0] // n) * tiles_x * tiles_y
+    n_tiles = n_cams * tiles_x * tiles_y
     starts = np.zeros(n_tiles + 1, np.int64)
     first_tile = np.empty(tile_counts.shape[0], np.int64)
     for cg in range(tile_counts.shape[0]):
@@ -447,7 +447,7 @@ def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, lookup, out)
 
 
 @njit(**_OPTS)
-def pack_splats(lo, hi, perm, n, rects, slot_offsets, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
+def pack_splats(lo, hi, perm, n, rects, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
     """Float (SF_*) and int (SI_*) records of each packed splat j, gathered in one pass."""
     for j in range(lo, hi):
         cg = perm[j]
@@ -468,25 +468,18 @@ def pack_splats(lo, hi, perm, n, rects, slot_offsets, tile_size, means2d, conics
         splat_i[j, SI_TX0] = rects[cg, 0] // tile_size
         splat_i[j, SI_TY0] = rects[cg, 2] // tile_size
         splat_i[j, SI_TILES_W] = rects[cg, 1] // tile_size - rects[cg, 0] // tile_size + 1
-        splat_i[j, SI_SLOT] = slot_offsets[j]
 
 
 @njit(**_OPTS)
 def gather_rows(lo, hi, perm, n, values, out) -> None:
-    """out[j] = values[c, g] for packed splat j = (c, g); values [C, N, D], out [M, D]."""
+    """out[j] = values[c, g] for packed splat j = (c, g); values [C, N, D], or [1, N, D] shared by all
+    cameras; out [M, D]."""
+    shared = values.shape[0] == 1
     for j in range(lo, hi):
         c = perm[j] // n
         g = perm[j] - c * n
         for d in range(values.shape[2]):
-            out[j, d] = values[c, g, d]
-
-
-@njit(**_OPTS)
-def scatter_rows(lo, hi, perm, packed, out) -> None:
-    """out[perm[j]] = packed[j]; packed [M, D], out [C * N, D] (rows not in perm keep their value)."""
-    for j in range(lo, hi):
-        for d in range(packed.shape[1]):
-            out[perm[j], d] = packed[j, d]
+            out[j, d] = values[0 if shared else c, g, d]
 
 
 @njit(**_OPTS)
@@ -573,9 +566,9 @@ def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
 
 
 @njit(inline="always", **_OPTS)
-def _slot(splat_i, j, tx, ty) -> int:
+def _slot(splat_i, slot_offsets, j, tx, ty) -> int:
     """Slot of packed splat j in tile (tx, ty): its first slot plus the tile's row-major offset."""
-    return splat_i[j, SI_SLOT] + (ty - splat_i[j, SI_TY0]) * splat_i[j, SI_TILES_W] + (tx - splat_i[j, SI_TX0])
+    return slot_offsets[j] + (ty - splat_i[j, SI_TY0]) * splat_i[j, SI_TILES_W] + (tx - splat_i[j, SI_TX0])
 
 
 @njit(inline="always", **_OPTS)
@@ -641,8 +634,8 @@ def _exp_neg(sigma, out, m) -> None:
 
 @njit(**_OPTS)
 def rasterize_forward(
-    bin_lo, bin_hi, splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
-    out_colors, out_transmittance, out_last, slot_counts,
+    bin_lo, bin_hi, splat_f, splat_c, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets, tile_size,
+    tiles_x, backgrounds, width, height, out_colors, out_transmittance, out_last, slot_counts,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
 
@@ -699,7 +692,7 @@ def rasterize_forward(
                     trans[p] = next_t
                     last[p] = k
                     shaded += 1
-                slot_counts[_slot(splat_i, j, tx, ty)] = shaded
+                slot_counts[_slot(splat_i, slot_offsets, j, tx, ty)] = shaded
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
@@ -711,8 +704,8 @@ def rasterize_forward(
 
 @njit(**_OPTS)
 def rasterize_backward(
-    bin_lo, bin_hi, splat_f, splat_c, splat_i, tile_offsets, ids, work, work_offsets, backgrounds, width, height, tile_size, tiles_x,
-    transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
+    bin_lo, bin_hi, splat_f, splat_c, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets, tile_size,
+    tiles_x, backgrounds, width, height, transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
 ) -> None:
     """Back-to-front VJP of `rasterize_forward` (3DGS): T is recovered by dividing by (1 - alpha).
 
@@ -794,7 +787,7 @@ def rasterize_backward(
                         v_mx -= v_sigma * (a * dx + b * dy)
                         v_my -= v_sigma * (b * dx + cc * dy)
                         v_opacity += vis * v_alpha
-                s = _slot(splat_i, j, tx, ty)
+                s = _slot(splat_i, slot_offsets, j, tx, ty)
                 slot_grads[s, 0] = v_mx
                 slot_grads[s, 1] = v_my
                 slot_grads[s, 2] = v_a
@@ -806,19 +799,19 @@ def rasterize_backward(
 
 
 @njit(**_OPTS)
-def sum_slot_rows(lo, hi, slot_values, slot_offsets, out) -> None:
-    """out[j, :] = sum of slot_values[s, :] over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
+def sum_slot_rows(lo, hi, slot_values, slot_offsets, perm, out) -> None:
+    """out[perm[j], :] = sum of slot_values[s, :] over splat j's slots; out [C * N, K] (zeros elsewhere)."""
     for j in range(lo, hi):
         for s in range(slot_offsets[j], slot_offsets[j + 1]):
             for col in range(out.shape[1]):
-                out[j, col] += slot_values[s, col]
+                out[perm[j], col] += slot_values[s, col]
 
 
 @njit(**_OPTS)
-def sum_slot_counts(lo, hi, slot_counts, slot_offsets, out) -> None:
-    """out[j] = sum of slot_counts over splat j's slots slot_offsets[j]:slot_offsets[j + 1]."""
+def sum_slot_counts(lo, hi, slot_counts, slot_offsets, perm, out) -> None:
+    """out[perm[j]] = sum of slot_counts over splat j's slots; out [C * N] (zeros elsewhere)."""
     for j in range(lo, hi):
         total = 0
         for s in range(slot_offsets[j], slot_offsets[j + 1]):
             total += slot_counts[s]
-        out[j] = total
+        out[perm[j]] = total

@@ -32,7 +32,7 @@ class TileBins:
     tiles_y: int
     perm: np.ndarray  # [M] int64, packed splat j -> flat c * N + g
     splat_f: np.ndarray  # [M, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
-    splat_i: np.ndarray  # [M, SI_COLUMNS] int64 records (pixel and tile rects, first slot)
+    splat_i: np.ndarray  # [M, SI_COLUMNS] int32 records (pixel and tile rects)
     slot_offsets: np.ndarray  # [M + 1] int64, splat j owns slots slot_offsets[j]:slot_offsets[j + 1]
     tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
     ids: np.ndarray  # [n_isect] int64 packed splat indices, depth-sorted within each tile
@@ -47,17 +47,22 @@ class TileBins:
     def n_bins(self) -> int:
         return int(self.work_offsets.shape[0] - 1)
 
+    @property
+    def n_splats(self) -> int:
+        return int(self.perm.shape[0])
+
+    def compositing_args(self, splat_c: np.ndarray) -> tuple:
+        """Leading arguments of the compositing kernels, with the packed colours splat_c [M, D]."""
+        return (
+            self.splat_f, splat_c, self.splat_i, self.slot_offsets, self.tile_offsets, self.ids, self.work,
+            self.work_offsets, self.tile_size, self.tiles_x,
+        )
+
     def gather(self, values: Tensor) -> np.ndarray:
-        """[C, N, D] per camera and Gaussian -> [M, D] per packed splat."""
+        """[C, N, D] (or [1, N, D] shared by the cameras) per Gaussian -> [M, D] per packed splat."""
         out = np.empty((self.perm.shape[0], values.shape[2]))
         parallel_for(kernels.gather_rows, out.shape[0], self.perm, values.shape[1], to_numpy(values), out, grain=_GRAIN)
         return out
-
-    def scatter(self, packed: np.ndarray, n_cams: int, n: int) -> Tensor:
-        """[M, D] per packed splat -> [C, N, D] per camera and Gaussian (zeros where not visible)."""
-        out = np.zeros((n_cams * n, packed.shape[1]), packed.dtype)
-        parallel_for(kernels.scatter_rows, packed.shape[0], self.perm, packed, out, grain=_GRAIN)
-        return torch.from_numpy(out).view(n_cams, n, packed.shape[1])
 
 
 def bin_gaussians(
@@ -77,7 +82,7 @@ def bin_gaussians(
     tiles_y = -(-height // tile_size)
     tiles_per_cam = tiles_x * tiles_y
     n_tiles = n_cams * tiles_per_cam
-    rects = np.zeros((n_cams * n, 4), np.int64)
+    rects = np.zeros((n_cams * n, 4), np.int32)
     tile_counts = np.zeros(n_cams * n, np.int64)
     parallel_for(
         kernels.pixel_rects, n_cams * n, to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects,
@@ -85,7 +90,7 @@ def bin_gaussians(
     )
     # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
     depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
-    starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n, tile_size, tiles_x, tiles_y)
+    starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n_cams, n, tile_size, tiles_x, tiles_y)
     perm = np.empty(keys.shape[0], np.int64)
     depths_flat = to_numpy(depths).reshape(-1)
     parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, depths_flat, n, tiles_per_cam, np.arange(n_cams * n), perm)
@@ -94,9 +99,9 @@ def bin_gaussians(
     slot_offsets = np.zeros(n_splats + 1, np.int64)
     np.cumsum(tile_counts[perm], out=slot_offsets[1:])
     splat_f = np.empty((n_splats, kernels.SF_COLUMNS))
-    splat_i = np.empty((n_splats, kernels.SI_COLUMNS), np.int64)
+    splat_i = np.empty((n_splats, kernels.SI_COLUMNS), np.int32)
     parallel_for(
-        kernels.pack_splats, n_splats, perm, n, rects, slot_offsets, tile_size, to_numpy(means2d), to_numpy(conics),
+        kernels.pack_splats, n_splats, perm, n, rects, tile_size, to_numpy(means2d), to_numpy(conics),
         to_numpy(opacities), splat_f, splat_i, grain=_GRAIN,
     )
 
@@ -126,33 +131,36 @@ def bin_gaussians(
 
 
 class _RasterizeToPixels(torch.autograd.Function):
-    """Compositing of the splats packed in `bins`; means2d, conics and opacities are the tensors the
-    bins were built from (taken as inputs only so that autograd routes their gradients)."""
+    """Compositing of the splats packed in `bins`.
+
+    means2d, conics and opacities are the tensors the bins were built from, taken as inputs so that
+    autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
+    """
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height):
-        n_cams, n, depth = colors.shape
+        n_cams, n = means2d.shape[:2]
+        depth = colors.shape[2]
         splat_c = bins.gather(colors)
         out_colors = np.empty((n_cams, height, width, depth))
         transmittance = np.empty((n_cams, height, width))
         last_ids = np.empty((n_cams, height, width), np.int64)
         slot_counts = np.zeros(bins.n_isects, np.int64)
         parallel_for(
-            kernels.rasterize_forward, bins.n_bins, bins.splat_f, splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
-            to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
-            out_colors, transmittance, last_ids, slot_counts,
+            kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(splat_c), to_numpy(backgrounds),
+            width, height, out_colors, transmittance, last_ids, slot_counts,
         )
-        counts = np.empty((bins.perm.shape[0], 1), np.int64)
-        parallel_for(kernels.sum_slot_counts, counts.shape[0], slot_counts, bins.slot_offsets, counts[:, 0], grain=_GRAIN)
+        counts = np.zeros(n_cams * n, np.int64)
+        parallel_for(kernels.sum_slot_counts, bins.n_splats, slot_counts, bins.slot_offsets, bins.perm, counts, grain=_GRAIN)
 
         ctx.save_for_backward(backgrounds)
         ctx.bins = bins
-        ctx.shape = (n_cams, n, width, height)
+        ctx.shapes = (n_cams, n, colors.shape[0], width, height)
         ctx.splat_c = splat_c
         ctx.transmittance = transmittance
         ctx.last_ids = last_ids
         render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
-        counts_t = bins.scatter(counts, n_cams, n)[..., 0]
+        counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
         return torch.from_numpy(out_colors), render_alphas, counts_t
 
@@ -161,23 +169,22 @@ class _RasterizeToPixels(torch.autograd.Function):
     def backward(ctx, v_render_colors, v_render_alphas, _v_counts):
         (backgrounds,) = ctx.saved_tensors
         bins: TileBins = ctx.bins
-        n_cams, n, width, height = ctx.shape
+        n_cams, n, color_cams, width, height = ctx.shapes
         n_cols = N_GRAD_GEOMETRY + ctx.splat_c.shape[1]
         slot_grads = np.zeros((bins.n_isects, n_cols))
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
-            kernels.rasterize_backward, bins.n_bins, bins.splat_f, ctx.splat_c, bins.splat_i, bins.tile_offsets, bins.ids, bins.work, bins.work_offsets,
-            to_numpy(backgrounds), width, height, bins.tile_size, bins.tiles_x,
-            ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
+            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.splat_c), to_numpy(backgrounds),
+            width, height, ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
-        grads = np.zeros((bins.perm.shape[0], n_cols))
-        parallel_for(kernels.sum_slot_rows, grads.shape[0], slot_grads, bins.slot_offsets, grads, grain=_GRAIN)
-        grads_t = bins.scatter(grads, n_cams, n)
+        grads = np.zeros((n_cams * n, n_cols))
+        parallel_for(kernels.sum_slot_rows, bins.n_splats, slot_grads, bins.slot_offsets, bins.perm, grads, grain=_GRAIN)
+        grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
+        v_colors = grads_t[..., N_GRAD_GEOMETRY:]
+        if color_cams == 1:
+            v_colors = v_colors.sum(0, keepdim=True)
         v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
-        return (
-            grads_t[..., 0:2], grads_t[..., 2:5], grads_t[..., N_GRAD_GEOMETRY:], grads_t[..., 5].sum(0), v_backgrounds,
-            None, None, None,
-        )
+        return grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active):
@@ -290,7 +297,7 @@ def rasterize(
         dirs = means[None, :, :] - campos[:, None, :]
         colors = torch.clamp_min(eval_sh(sh_degree, colors, dirs) + 0.5, 0.0)
     if colors.dim() == 2:
-        colors = colors.expand(n_cams, -1, -1)
+        colors = colors[None]
     if backgrounds is None:
         backgrounds = torch.zeros(n_cams, colors.shape[-1], dtype=torch.float64)
     backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
