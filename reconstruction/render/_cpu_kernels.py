@@ -13,7 +13,7 @@ Conventions shared by all kernels:
   with (dx, dy) = pixel centre - mean2d.
 - A Gaussian is visible in a camera iff its radius_x > 0 (projection culls with both radii zero).
 - rects [C * N, 4] are inclusive pixel ranges (u_lo, u_hi, v_lo, v_hi) of the pixel centres inside the
-  radius box, clipped to the image; tiles follow as pixel // tile_size.
+  bounding box of the alpha >= 1/255 ellipse, clipped to the image; tiles follow as pixel // tile_size.
 - Compositing works on "packed splats": the visible (camera, Gaussian) pairs, ordered by first tile
   (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int32 record
   (SI_* columns) and its colour row, so a tile's splats sit close together in memory.
@@ -35,6 +35,8 @@ TRANSMITTANCE_MIN = 1e-4
 # Pixels are listed when sigma <= ln(255 opacity) + this margin, far above the rounding of either
 # side, so the per-pixel alpha test (not the listing) decides every borderline pixel.
 _SIGMA_MARGIN = 1e-9
+# Relative and absolute widening of the closed-form ellipse extents, far above their rounding error.
+_EXTENT_MARGIN = 1e-9
 # Fixed chunk counts make the order of floating-point sums independent of the thread count.
 GAUSSIAN_CHUNKS = 256
 BINNING_CHUNKS = 64
@@ -358,12 +360,14 @@ def project_backward(
 
 
 @njit(**_OPTS)
-def pixel_rects(lo, hi, means2d, radii, width, height, tile_size, rects, tile_counts) -> None:
-    """Pixel range of each visible Gaussian's radius box and the number of tiles it touches.
+def pixel_rects(lo, hi, means2d, conics, opacities, radii, width, height, tile_size, rects, tile_counts) -> None:
+    """Pixel range of each visible Gaussian's alpha >= 1/255 ellipse and the number of tiles it touches.
 
-    A pixel u belongs when its centre u + 0.5 lies in [mean - radius, mean + radius]; the radius box
-    holds every pixel with alpha >= 1/255, so no pixel that could be shaded is lost. Writes rects
-    [C * N, 4] and tile_counts [C * N] (zero for culled Gaussians and boxes without a pixel centre).
+    The ellipse sigma <= ln(255 opacity) spans |dx| <= sqrt(2 ln(255 opacity) cov2d_xx) (likewise y);
+    that is the extent gsplat's radius rounds up, so these rects hold every pixel the radius box
+    holds that could be shaded, and for small splats cover about half the pixels. A pixel u belongs
+    when its centre u + 0.5 is inside. Writes rects [C * N, 4] (u_lo, u_hi, v_lo, v_hi, clipped to the
+    image) and tile_counts [C * N] (zero for culled Gaussians and rects without a pixel centre).
     """
     n = radii.shape[1]
     for cg in range(lo, hi):
@@ -372,11 +376,17 @@ def pixel_rects(lo, hi, means2d, radii, width, height, tile_size, rects, tile_co
         tile_counts[cg] = 0
         if radii[c, g, 0] <= 0:
             continue
-        rx, ry = np.float64(radii[c, g, 0]), np.float64(radii[c, g, 1])
-        u_lo = max(0, math.ceil(means2d[c, g, 0] - rx - 0.5))
-        u_hi = min(width - 1, math.floor(means2d[c, g, 0] + rx - 0.5))
-        v_lo = max(0, math.ceil(means2d[c, g, 1] - ry - 0.5))
-        v_hi = min(height - 1, math.floor(means2d[c, g, 1] + ry - 0.5))
+        a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
+        two_log_over_det = 2.0 * math.log(np.float64(opacities[g]) / ALPHA_THRESHOLD) / (a * cc - b * b)
+        ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+        ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+        # Clip in float first so that huge extents cannot overflow the integer conversion.
+        u_lo = math.ceil(max(means2d[c, g, 0] - ext_x - 0.5, -1.0))
+        u_hi = math.floor(min(means2d[c, g, 0] + ext_x - 0.5, np.float64(width)))
+        v_lo = math.ceil(max(means2d[c, g, 1] - ext_y - 0.5, -1.0))
+        v_hi = math.floor(min(means2d[c, g, 1] + ext_y - 0.5, np.float64(height)))
+        u_lo, u_hi = max(0, u_lo), min(width - 1, u_hi)
+        v_lo, v_hi = max(0, v_lo), min(height - 1, v_hi)
         if u_lo > u_hi or v_lo > v_hi:
             continue
         rects[cg, 0] = u_lo

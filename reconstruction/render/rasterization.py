@@ -85,8 +85,8 @@ def bin_gaussians(
     rects = np.zeros((n_cams * n, 4), np.int32)
     tile_counts = np.zeros(n_cams * n, np.int64)
     parallel_for(
-        kernels.pixel_rects, n_cams * n, to_numpy(means2d), to_numpy(radii), width, height, tile_size, rects,
-        tile_counts, grain=_GRAIN,
+        kernels.pixel_rects, n_cams * n, to_numpy(means2d), to_numpy(conics), to_numpy(opacities), to_numpy(radii),
+        width, height, tile_size, rects, tile_counts, grain=_GRAIN,
     )
     # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
     depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
