@@ -269,7 +269,8 @@ def run_one(mesh_path: Path, size: int, n: int, focal: float, torch_iters: int) 
     torch_ms = time_iterations(baseline, min_seconds=0.0, min_iters=torch_iters, max_iters=torch_iters)
     # The baseline is timed in float32; its image is compared in float64, where the two must agree.
     with torch.no_grad():
-        rgb, alpha = torch_tiled_rasterize(*(v.double() for v in g.values()), viewmat[0].double(), K[0].double(), size, size)
+        g64 = [v.double() for v in g.values()]
+        rgb, alpha = torch_tiled_rasterize(*g64, viewmat[0].double(), K[0].double(), size, size)
     return {
         "size": size,
         "n": n,
@@ -317,7 +318,8 @@ def main() -> int:
         print(f"{size}x{size}: focal {focal:.1f} px gives {100 * coverage:.0f}% coverage", flush=True)
         for n in args.counts:
             torch_iters = 3 if n <= 20_000 else 1
-            cmd = [sys.executable, __file__, "--mesh", str(args.mesh), "--one", str(size), str(n), str(focal), str(torch_iters)]
+            one = [str(size), str(n), str(focal), str(torch_iters)]
+            cmd = [sys.executable, __file__, "--mesh", str(args.mesh), "--one", *one]
             out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
             row = json.loads(out.strip().splitlines()[-1])
             rows.append(row)
@@ -339,7 +341,8 @@ def main() -> int:
         gflops = r["pairs"] * FLOPS_PER_PAIR / (r["ms"] * 1e-3) / 1e9
         best = max(best, gflops)
         lines.append(
-            f"| {r['size']}² | {r['n'] // 1000}k | {r['ms']:.1f} | {r['torch_ms']:.0f} | {r['torch_ms'] / r['ms']:.0f}x "
+            f"| {r['size']}² | {r['n'] // 1000}k | {r['ms']:.1f} | {r['torch_ms']:.0f} "
+            f"| {r['torch_ms'] / r['ms']:.0f}x "
             f"| {r['peak_rss_mib']:.0f} ({r['working_mib']:.0f}) | {100 * r['coverage']:.0f}% | {r['n_isects']:,} "
             f"| {r['pairs']:,} | {gflops:.2f} | {r['max_diff']:.1e} |"
         )

@@ -1,12 +1,11 @@
 """Numba CPU kernels of the rasterizer: projection, tile binning, compositing and their VJPs.
 
-Geometry and compositing run in float64 whatever the input dtype: a float32 pixel-space mean near
-x = 500 px is off by up to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the
-rasterizer promises. Kernels take numpy arrays and write into preallocated outputs. Parallel loops run
-over fixed chunks (of Gaussians) or balanced bins (of tiles), and every sum is taken in an order that
-does not depend on the thread count, so results are bit-identical on 2 or 64 threads. Kernels that
-run in parallel take a leading (lo, hi) range of their parallel index and are driven by
-`_parallel.parallel_for`.
+Every float array is float64 (callers cast): a float32 pixel-space mean near x = 500 px is off by up
+to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the rasterizer promises.
+Kernels take numpy arrays and write into preallocated outputs. Those that run in parallel take a
+leading (lo, hi) range of their parallel index and are driven by `_parallel.parallel_for`; they write
+disjoint outputs per index, and sums run over fixed chunks (of Gaussians) or per slot, so results
+are bit-identical whatever the thread count.
 
 Conventions shared by all kernels:
 - conic (a, b, c) is the inverse 2D covariance [[a, b], [b, c]]; sigma = 0.5 (a dx^2 + c dy^2) + b dx dy
@@ -18,8 +17,9 @@ Conventions shared by all kernels:
   (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int32 record
   (SI_* columns) and its colour row, so a tile's splats sit close together in memory.
 - A "slot" is one (splat, tile) intersection, laid out splat-major: splat j owns slots
-  slot_offsets[j]:slot_offsets[j + 1], one per tile of its tile rectangle in row-major order. Kernels that run per tile write per-slot
-  partial results and a per-splat pass sums them, which needs no atomics.
+  slot_offsets[j]:slot_offsets[j + 1], one per tile of its tile rectangle in row-major order.
+  Kernels that run per tile write per-slot partial results and a per-splat pass sums them, which
+  needs no atomics.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def _chunk_bounds(chunk: int, n_chunks: int, n: int) -> tuple[int, int]:
 @njit(inline="always", **_OPTS)
 def _rotation_and_factor(quat, scale, rot, factor) -> float:
     """Writes R(q / |q|) into rot [3, 3] and M = R diag(scale) into factor [3, 3]; returns |q|."""
-    norm = math.sqrt(np.float64(quat[0]) ** 2 + np.float64(quat[1]) ** 2 + np.float64(quat[2]) ** 2 + np.float64(quat[3]) ** 2)
+    norm = math.sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3])
     w = quat[0] / norm
     x = quat[1] / norm
     y = quat[2] / norm
@@ -78,7 +78,7 @@ def _rotation_and_factor(quat, scale, rot, factor) -> float:
     rot[2, 2] = 1.0 - 2.0 * (x * x + y * y)
     for i in range(3):
         for j in range(3):
-            factor[i, j] = rot[i, j] * np.float64(scale[j])
+            factor[i, j] = rot[i, j] * scale[j]
     return norm
 
 
@@ -93,11 +93,9 @@ def _covariance(factor, cov) -> None:
 @njit(inline="always", **_OPTS)
 def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
     """Camera-frame mean R m + t (returned) and covariance R cov R^T (written to cov_cam)."""
-    # Widen first: float32 * float32 stays float32 in numba (and so does float() of a float32).
-    x, y, z = np.float64(mean[0]), np.float64(mean[1]), np.float64(mean[2])
-    mx = np.float64(viewmat[0, 0]) * x + np.float64(viewmat[0, 1]) * y + np.float64(viewmat[0, 2]) * z + np.float64(viewmat[0, 3])
-    my = np.float64(viewmat[1, 0]) * x + np.float64(viewmat[1, 1]) * y + np.float64(viewmat[1, 2]) * z + np.float64(viewmat[1, 3])
-    mz = np.float64(viewmat[2, 0]) * x + np.float64(viewmat[2, 1]) * y + np.float64(viewmat[2, 2]) * z + np.float64(viewmat[2, 3])
+    mx = viewmat[0, 0] * mean[0] + viewmat[0, 1] * mean[1] + viewmat[0, 2] * mean[2] + viewmat[0, 3]
+    my = viewmat[1, 0] * mean[0] + viewmat[1, 1] * mean[1] + viewmat[1, 2] * mean[2] + viewmat[1, 3]
+    mz = viewmat[2, 0] * mean[0] + viewmat[2, 1] * mean[1] + viewmat[2, 2] * mean[2] + viewmat[2, 3]
     for i in range(3):
         for j in range(3):
             tmp[i, j] = viewmat[i, 0] * cov[0, j] + viewmat[i, 1] * cov[1, j] + viewmat[i, 2] * cov[2, j]
@@ -149,8 +147,8 @@ def _covariance2d(cov_cam, j00, j02, j11, j12, eps2d):
 
 @njit(**_OPTS)
 def project_forward(
-    chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far, eps2d,
-    means2d, conics, depths, radii,
+    chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far,
+    eps2d, means2d, conics, depths, radii,
 ) -> None:
     """Projects N Gaussians into C cameras; culled entries keep the zeros they were allocated with.
 
@@ -168,7 +166,7 @@ def project_forward(
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         for g in range(lo, hi):
-            opacity = np.float64(opacities[g])
+            opacity = opacities[g]
             # `not >=` also culls NaN opacities.
             if not active[g] or not opacity >= ALPHA_THRESHOLD:
                 continue
@@ -180,8 +178,8 @@ def project_forward(
                 mx, my, mz = _to_camera(viewmats[c], means[g], cov, tmp, cov_cam)
                 if not (mz > near and mz < far):
                     continue
-                fx, fy = np.float64(Ks[c, 0, 0]), np.float64(Ks[c, 1, 1])
-                cx, cy = np.float64(Ks[c, 0, 2]), np.float64(Ks[c, 1, 2])
+                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+                cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
                 x_lo, x_hi, y_lo, y_hi = _clamp_limits(fx, fy, cx, cy, width, height)
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 s00, s01, s11 = _covariance2d(cov_cam, j00, j02, j11, j12, eps2d)
@@ -249,8 +247,8 @@ def project_backward(
                     continue
                 vm = viewmats[c]
                 mx, my, mz = _to_camera(vm, means[g], cov, tmp, cov_cam)
-                fx, fy = np.float64(Ks[c, 0, 0]), np.float64(Ks[c, 1, 1])
-                cx, cy = np.float64(Ks[c, 0, 2]), np.float64(Ks[c, 1, 2])
+                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+                cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
                 x_lo, x_hi, y_lo, y_hi = _clamp_limits(fx, fy, cx, cy, width, height)
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
@@ -327,13 +325,15 @@ def project_backward(
             # cov = M M^T with M = R diag(s): dL/dM = 2 v_cov M.
             for i in range(3):
                 for j in range(3):
-                    v_factor[i, j] = 2.0 * (v_cov[i, 0] * factor[0, j] + v_cov[i, 1] * factor[1, j] + v_cov[i, 2] * factor[2, j])
+                    v_factor[i, j] = 2.0 * (
+                        v_cov[i, 0] * factor[0, j] + v_cov[i, 1] * factor[1, j] + v_cov[i, 2] * factor[2, j]
+                    )
             for j in range(3):
                 v_scales[g, j] = v_factor[0, j] * rot[0, j] + v_factor[1, j] * rot[1, j] + v_factor[2, j] * rot[2, j]
             # dL/dR, then through R(q) of the unit quaternion, then through the normalisation.
             for i in range(3):
                 for j in range(3):
-                    v_factor[i, j] *= np.float64(scales[g, j])
+                    v_factor[i, j] *= scales[g, j]
             w = quats[g, 0] / qnorm
             x = quats[g, 1] / qnorm
             y = quats[g, 2] / qnorm
@@ -377,14 +377,14 @@ def pixel_rects(lo, hi, means2d, conics, opacities, radii, width, height, tile_s
         if radii[c, g, 0] <= 0:
             continue
         a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
-        two_log_over_det = 2.0 * math.log(np.float64(opacities[g]) / ALPHA_THRESHOLD) / (a * cc - b * b)
+        two_log_over_det = 2.0 * math.log(opacities[g] / ALPHA_THRESHOLD) / (a * cc - b * b)
         ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
         ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
         # Clip in float first so that huge extents cannot overflow the integer conversion.
         u_lo = math.ceil(max(means2d[c, g, 0] - ext_x - 0.5, -1.0))
-        u_hi = math.floor(min(means2d[c, g, 0] + ext_x - 0.5, np.float64(width)))
+        u_hi = math.floor(min(means2d[c, g, 0] + ext_x - 0.5, 1.0 * width))
         v_lo = math.ceil(max(means2d[c, g, 1] - ext_y - 0.5, -1.0))
-        v_hi = math.floor(min(means2d[c, g, 1] + ext_y - 0.5, np.float64(height)))
+        v_hi = math.floor(min(means2d[c, g, 1] + ext_y - 0.5, 1.0 * height))
         u_lo, u_hi = max(0, u_lo), min(width - 1, u_hi)
         v_lo, v_hi = max(0, v_lo), min(height - 1, v_hi)
         if u_lo > u_hi or v_lo > v_hi:
@@ -463,7 +463,7 @@ def pack_splats(lo, hi, perm, n, rects, tile_size, means2d, conics, opacities, s
         cg = perm[j]
         c = cg // n
         g = cg - c * n
-        opacity = np.float64(opacities[g])
+        opacity = opacities[g]
         splat_f[j, SF_MX] = means2d[c, g, 0]
         splat_f[j, SF_MY] = means2d[c, g, 1]
         splat_f[j, SF_A] = conics[c, g, 0]
@@ -497,7 +497,8 @@ def _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam) -> int:
     """Global tile id of packed splat j's s-th slot."""
     tiles_w = splat_i[j, SI_TILES_W]
     row = s // tiles_w
-    return (perm[j] // n) * tiles_per_cam + (splat_i[j, SI_TY0] + row) * tiles_x + splat_i[j, SI_TX0] + s - row * tiles_w
+    tx = splat_i[j, SI_TX0] + s - row * tiles_w
+    return (perm[j] // n) * tiles_per_cam + (splat_i[j, SI_TY0] + row) * tiles_x + tx
 
 
 @njit(**_OPTS)

@@ -66,8 +66,9 @@ class _ProjectGaussians(torch.autograd.Function):
         v_scales = np.zeros((n, 3))
         v_view_chunks = np.zeros((n_chunks, n_cams, 3, 4))
         parallel_for(
-            kernels.project_backward, n_chunks, to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(viewmats), to_numpy(Ks),
-            *ctx.image_size, to_numpy(radii), to_numpy(conics), to_numpy(v_means2d), to_numpy(v_conics),
+            kernels.project_backward, n_chunks, to_numpy(means), to_numpy(quats), to_numpy(scales),
+            to_numpy(viewmats), to_numpy(Ks), *ctx.image_size, to_numpy(radii), to_numpy(conics),
+            to_numpy(v_means2d), to_numpy(v_conics),
             v_means, v_quats, v_scales, v_view_chunks,
         )
         v_viewmats = torch.zeros(viewmats.shape, dtype=torch.float64)

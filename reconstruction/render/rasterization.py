@@ -93,7 +93,8 @@ def bin_gaussians(
     starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n_cams, n, tile_size, tiles_x, tiles_y)
     perm = np.empty(keys.shape[0], np.int64)
     depths_flat = to_numpy(depths).reshape(-1)
-    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, depths_flat, n, tiles_per_cam, np.arange(n_cams * n), perm)
+    identity = np.arange(n_cams * n)
+    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, depths_flat, n, tiles_per_cam, identity, perm)
 
     n_splats = perm.shape[0]
     slot_offsets = np.zeros(n_splats + 1, np.int64)
@@ -151,7 +152,9 @@ class _RasterizeToPixels(torch.autograd.Function):
             width, height, out_colors, transmittance, last_ids, slot_counts,
         )
         counts = np.zeros(n_cams * n, np.int64)
-        parallel_for(kernels.sum_slot_counts, bins.n_splats, slot_counts, bins.slot_offsets, bins.perm, counts, grain=_GRAIN)
+        parallel_for(
+            kernels.sum_slot_counts, bins.n_splats, slot_counts, bins.slot_offsets, bins.perm, counts, grain=_GRAIN
+        )
 
         ctx.save_for_backward(backgrounds)
         ctx.bins = bins
@@ -178,7 +181,9 @@ class _RasterizeToPixels(torch.autograd.Function):
             width, height, ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
         grads = np.zeros((n_cams * n, n_cols))
-        parallel_for(kernels.sum_slot_rows, bins.n_splats, slot_grads, bins.slot_offsets, bins.perm, grads, grain=_GRAIN)
+        parallel_for(
+            kernels.sum_slot_rows, bins.n_splats, slot_grads, bins.slot_offsets, bins.perm, grads, grain=_GRAIN
+        )
         grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
         v_colors = grads_t[..., N_GRAD_GEOMETRY:]
         if color_cams == 1:

@@ -25,10 +25,14 @@ _C3_A = -0.5900435899266435
 _C3_ZZZ = (1.865881662950577, -1.119528997770346)
 
 
-def num_sh_bases(degree: int) -> int:
-    """Number of SH coefficients per channel for `degree` (0 -> 1, 1 -> 4, 2 -> 9, 3 -> 16)."""
+def _check_degree(degree: int) -> None:
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise ValueError(f"SH degree must be between 0 and {MAX_SH_DEGREE}, got {degree}")
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of SH coefficients per channel for `degree` (0 -> 1, 1 -> 4, 2 -> 9, 3 -> 16)."""
+    _check_degree(degree)
     return (degree + 1) ** 2
 
 
@@ -42,7 +46,7 @@ def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     Returns:
         [..., (degree + 1) ** 2] basis values, ordered (l, m) = (0, 0), (1, -1), (1, 0), (1, 1), ...
     """
-    num_sh_bases(degree)  # validates the degree
+    _check_degree(degree)
     out = [torch.full_like(dirs[..., 0], _C0)]
     if degree >= 1:
         x, y, z = dirs.unbind(-1)

@@ -304,7 +304,8 @@ def test_everything_off_screen():
 
 def test_no_gaussians_at_all():
     scene = random_scene(0, seed=19, n_cams=2, width=9, height=7)
-    colors, alphas, meta = rasterize(*[scene[k] for k in PARAMS[:-1]], scene["Ks"], 9, 7, backgrounds=scene["backgrounds"])
+    args = [scene[k] for k in PARAMS[:-1]] + [scene["Ks"]]
+    colors, alphas, meta = rasterize(*args, 9, 7, backgrounds=scene["backgrounds"])
     assert torch.equal(colors, scene["backgrounds"][:, None, None, :].expand_as(colors)) and alphas.eq(0).all()
     assert meta["radii"].shape == (2, 0, 2) and meta["visibility_counts"].shape == (2, 0)
 
