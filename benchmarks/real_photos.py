@@ -61,7 +61,11 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     if cache.exists():
         return json.loads(cache.read_text())
     capture = read_capture(capture_dir)
-    train_idx = [i for i in range(len(capture)) if i != held]
+    # The engine trains on views of one image size; a photo taken in the other orientation (the
+    # espresso set has one portrait shot) is held out for scoring but never trained on.
+    sizes = [(f.camera.width, f.camera.height) for f in capture.frames]
+    common = max(set(sizes), key=sizes.count)
+    train_idx = [i for i in range(len(capture)) if i != held and sizes[i] == common]
     twin_dir = work / "twins" / capture_dir.name / f"{args.preset}-{held:02d}"
     t0 = time.perf_counter()
     if not (twin_dir / "twin.json").exists():
@@ -71,7 +75,7 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     twin = load_twin(twin_dir)
     images, masks, cams = load_views(capture, [held])
     report = evaluate_twin(twin, cams, images, masks, names=[capture.frames[held].camera_id], refine_steps=args.refine_steps)
-    doc = {"held": held, "train_views": train_idx, "pose_mode": twin.pose_mode, "num_splats": twin.num_splats,
+    doc = {"held": held, "train_views": train_idx, "skipped_sizes": [i for i in range(len(capture)) if sizes[i] != common], "pose_mode": twin.pose_mode, "num_splats": twin.num_splats,
            "train_s": float(twin.timings_s.get("total", train_s)), "mean": report["mean"], "mean_refined": report.get("mean_refined"),
            "refine": report["views"][0].get("refine", {})}
     doc["refine"].pop("c2w_object", None)
