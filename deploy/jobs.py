@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -71,7 +72,9 @@ class JobStore:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.max_attempts = max_attempts
-        self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        # One connection shared by the service and the kiosk's threads, serialised by a lock.
+        self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+        self._lock = threading.RLock()
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)
@@ -82,13 +85,18 @@ class JobStore:
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
-        self._db.execute("BEGIN IMMEDIATE")
-        try:
-            yield self._db
-        except BaseException:
-            self._db.execute("ROLLBACK")
-            raise
-        self._db.execute("COMMIT")
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
+        with self._lock:
+            return self._db.execute(sql, args).fetchall()
 
     def _recover(self) -> int:
         """Interrupted steps go back to pending; their jobs back to queued. Returns how many."""
@@ -112,22 +120,23 @@ class JobStore:
 
     def count(self, status: str | None = None) -> int:
         if status is None:
-            return self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0]
-        return self._db.execute("SELECT COUNT(*) FROM jobs WHERE status=?", (status,)).fetchone()[0]
+            return self._query("SELECT COUNT(*) FROM jobs")[0][0]
+        return self._query("SELECT COUNT(*) FROM jobs WHERE status=?", (status,))[0][0]
 
     def get(self, job_id: int) -> Job:
-        row = self._db.execute("SELECT id, capture_id, capture_path, status, attempts, error FROM jobs WHERE id=?", (job_id,)).fetchone()
-        if row is None:
+        rows = self._query("SELECT id, capture_id, capture_path, status, attempts, error FROM jobs WHERE id=?", (job_id,))
+        if not rows:
             raise KeyError(f"no job {job_id}")
+        row = rows[0]
         steps = {
             s: {"status": st, "started": a, "finished": b, "output": json.loads(o)}
-            for s, st, a, b, o in self._db.execute("SELECT step, status, started, finished, output FROM steps WHERE job_id=?", (job_id,))
+            for s, st, a, b, o in self._query("SELECT step, status, started, finished, output FROM steps WHERE job_id=?", (job_id,))
         }
         return Job(row[0], row[1], row[2], row[3], row[4], row[5], steps)
 
     def jobs(self, status: str | None = None) -> list[Job]:
         q = "SELECT id FROM jobs" + (" WHERE status=?" if status else "") + " ORDER BY id"
-        return [self.get(r[0]) for r in self._db.execute(q, (status,) if status else ())]
+        return [self.get(r[0]) for r in self._query(q, (status,) if status else ())]
 
     def claim_next(self) -> Job | None:
         """The oldest queued job, marked running (one attempt more), or None."""

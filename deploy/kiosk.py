@@ -138,5 +138,5 @@ class Kiosk(App):
         self.refresh_state()
 
     async def action_quit(self) -> None:
-        self.backend.close()
+        # The backend belongs to whoever started the kiosk; it closes it after the screen is gone.
         self.exit()

@@ -116,6 +116,8 @@ class Acquisition:
     settings: CameraSettings | None = None
     clock: Callable[[], int] = time.monotonic_ns
     counts: dict = field(default_factory=lambda: dict.fromkeys(OUTCOMES, 0))
+    # Empty-rig frames per camera, stored with every capture so masks come from background subtraction.
+    backgrounds: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         ids = [c.camera_id for c in self.cameras]
@@ -159,7 +161,7 @@ class Acquisition:
         if problems:
             return self._quarantine(event, capture_id, "; ".join(problems), data, meta)
         try:
-            self.store.commit(capture_id, data, meta)
+            self.store.commit(capture_id, data, meta, backgrounds={k: v for k, v in self.backgrounds.items() if k in frames} or None)
         except (OSError, ValueError, StoreError) as e:
             what = "disk full while writing" if is_enospc(e) else "write failed"
             return self._quarantine(event, capture_id, f"{what}: {e}", data, meta)

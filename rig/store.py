@@ -113,14 +113,15 @@ class CaptureStore:
 
     # ---- writing -----------------------------------------------------------------------------
 
-    def commit(self, capture_id: str, frames: Sequence[FrameData], meta: dict) -> StoredCapture:
-        """Write, verify and publish a capture. On failure nothing appears under captures/ and the error is raised."""
+    def commit(self, capture_id: str, frames: Sequence[FrameData], meta: dict, backgrounds: dict | None = None) -> StoredCapture:
+        """Write, verify and publish a capture (with the rig's empty-rig `backgrounds` per camera, when
+        given). On failure nothing appears under captures/ and the error is raised."""
         incoming = self.root / INCOMING / capture_id
         final = self.root / CAPTURES / capture_id
         if final.exists():
             raise StoreError(f"capture id {capture_id} is already in the store; ids are never reused")
         try:
-            write_capture(incoming, frames, meta={**meta, "capture_id": capture_id})
+            write_capture(incoming, frames, backgrounds=backgrounds, meta={**meta, "capture_id": capture_id})
             os.rename(incoming, final)
             fsync_dir(final.parent)
             fsync_dir(incoming.parent)

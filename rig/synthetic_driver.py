@@ -70,6 +70,32 @@ class SyntheticRig:
         self._seq: int | None = None
         self._images: np.ndarray | None = None
         self._t0 = 0
+        self._knocks: dict[int, np.ndarray] = {}
+
+    def knock(self, index: int, rotation: np.ndarray) -> None:
+        """Camera `index` physically turns by `rotation` [3, 3] (in its own frame) while its calibration,
+        what `camera` reports, stays as it was: the drift the calibration keeper must notice."""
+        with self._lock:
+            self._knocks[index] = np.asarray(rotation, np.float64) @ self._knocks.get(index, np.eye(3))
+            self._seq = None
+
+    def set_calibration(self, index: int, c2w: np.ndarray) -> None:
+        """The rig's calibration of camera `index` becomes `c2w` (a recalibration or a drift
+        correction); the camera itself stays where it physically is."""
+        with self._lock:
+            true_r = self.true_camera(index).c2w[:3, :3]
+            self.cameras[index] = self.cameras[index].with_c2w(c2w)
+            self._knocks[index] = np.asarray(c2w, np.float64)[:3, :3].T @ true_r
+            self._seq = None
+
+    def true_camera(self, index: int) -> Camera:
+        """Where camera `index` really is (its calibration plus any knock)."""
+        cam = self.cameras[index]
+        if index not in self._knocks:
+            return cam
+        c2w = cam.c2w.copy()
+        c2w[:3, :3] = c2w[:3, :3] @ self._knocks[index]
+        return cam.with_c2w(c2w)
 
     @classmethod
     def from_mesh(cls, mesh, n_views: int, *, width: int = 640, height: int = 480, fov_deg: float = 45.0, elevations_deg=(15.0, 40.0), **kw) -> "SyntheticRig":
@@ -95,11 +121,19 @@ class SyntheticRig:
         with self._lock:
             if self._seq != seq:
                 sim3 = self.sim3_rig_to_object(seq)
-                cams_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in self.cameras]
+                true = [self.true_camera(i) for i in range(len(self.cameras))]
+                cams_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in true]
                 self._t0 = time.monotonic_ns()
                 rgb, _ = self._gl.submit(self.scene.render, cams_obj, noise_std=self.noise_std, seed=self.seed + seq).result()
                 self._images, self._seq = np.asarray(rgb), seq
             return self._images, self._t0
+
+    def empty_views(self) -> np.ndarray:
+        """RGB uint8 [V, H, W, 3] of the rig with no part in it (what background subtraction compares with)."""
+        with self._lock:
+            cams = [self.true_camera(i) for i in range(len(self.cameras))]
+            rgb, _ = self._gl.submit(self.scene.render, cams, noise_std=self.noise_std, seed=self.seed, object_visible=False).result()
+        return np.asarray(rgb)
 
     def drivers(self, prefix: str = "cam") -> list["SyntheticCamera"]:
         return [SyntheticCamera(f"{prefix}{i:02d}", self, i) for i in range(len(self.cameras))]

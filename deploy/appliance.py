@@ -1,0 +1,250 @@
+"""The appliance behind the kiosk: rig acquisition, the calibration keeper and the pipeline service,
+each on its own thread, summarised as one `ApplianceState` the operator screen draws.
+
+`SimulatedAppliance` runs all of it on the synthetic rig (the bundled sample's part on a simulated
+conveyor) with a software trigger, so anyone can try the appliance without hardware. Its empty-rig
+monitor views (the textured rig frame around the cameras) feed the keeper's drift check after every
+capture; `knock(camera, degrees)` turns a camera physically, as a bump during maintenance would.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deploy.kiosk_state import Alarm, ApplianceState, CameraStatus, Progress, Verdict, drift_alarm, grade_twin
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class SimulatedAppliance:
+    """Synthetic rig + software trigger + keeper + service (`preset`), under `work_dir` (a temp dir by default)."""
+
+    def __init__(
+        self,
+        work_dir: str | Path | None = None,
+        *,
+        views: int = 8,
+        size: tuple[int, int] = (320, 240),
+        preset: str = "preview",
+        interval_s: float = 20.0,
+        library_meshes: str | Path | None = None,
+    ) -> None:
+        from calibration.calibfile import CalibrationDoc, CalibrationStore
+        from calibration.keeper import Keeper
+        from calibration.simulated import rig_frame_scene
+        from deploy.service import PipelineService
+        from deploy.steps import PipelineConfig, make_step_runner
+        from reconstruction.library import build_library, load_library
+        from rig.acquisition import Acquisition, open_cameras
+        from rig.assembly import simulated_cameras
+        from rig.camera import CameraSettings
+        from rig.store import CaptureStore
+        from rig.triggers import SoftwareTrigger
+
+        self._own_dir = work_dir is None
+        self.dir = Path(tempfile.mkdtemp(prefix="cadsplat-kiosk-")) if work_dir is None else Path(work_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.interval_s = interval_s
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._watching = threading.Event()
+        self._acked: set[str] = set()
+        self._message = "starting"
+        self._progress: Progress | None = None
+        self._stage_t0 = 0.0
+        self._last_trigger = "none yet"
+        self._checks: dict[str, dict] = {}
+        self._keeper_note = ""
+
+        lib_dir = self.dir / "library"
+        if not (lib_dir / "library.json").exists():
+            build_library(library_meshes or REPO / "sample" / "library_meshes", lib_dir, progress=False)
+        load_library(lib_dir)
+
+        drivers, self.rig = simulated_cameras(views, *size)
+        self.drivers = drivers
+        settings = open_cameras(drivers, CameraSettings(*size))
+        self.store = CaptureStore(self.dir / "store", min_free_bytes=256 << 20)
+
+        calib_path = self.dir / "calibration.json"
+        store = CalibrationStore(calib_path)
+        if not calib_path.exists():
+            store.commit(CalibrationDoc({d.camera_id: d.camera for d in drivers}, source="board"))
+        self.keeper = Keeper(calib_path)
+        self._walls, _ = rig_frame_scene(np.random.default_rng(0), fiducials=False)
+        self.keeper.set_reference(self._monitor_views())
+
+        self.software_trigger = SoftwareTrigger()
+        empty = self.rig.empty_views()
+        self.acquisition = Acquisition(drivers, self.store, rig_id="simulated-rig", calibration_id=self._calibration_id(), settings=settings,
+                                       backgrounds={d.camera_id: empty[i] for i, d in enumerate(drivers)})
+        cfg = PipelineConfig(str(lib_dir), preset, export_formats=("ply", "glb"))
+        self.service = PipelineService(self.store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
+                                       on_event=self._on_service_event)
+        self._threads = [
+            threading.Thread(target=self._acquire, name="kiosk-acquisition", daemon=True),
+            threading.Thread(target=self._serve, name="kiosk-service", daemon=True),
+            threading.Thread(target=self._auto_trigger, name="kiosk-trigger", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+        self._message = "ready: press t to take a capture, w to start watching the line"
+
+    # ---- rig and keeper ------------------------------------------------------------------------
+
+    def _calibration_id(self) -> str:
+        return f"calibration-v{self.keeper.store.load().version:04d}"
+
+    def _monitor_views(self) -> dict[str, np.ndarray]:
+        """Each camera's view of the empty rig frame from where it really is."""
+        from calibration.simulated import render_planes
+
+        return {d.camera_id: render_planes(self.rig.true_camera(i), self._walls, supersample=2) for i, d in enumerate(self.drivers)}
+
+    def knock(self, camera: str, degrees: float, axis=(0.3, 1.0, 0.2)) -> None:
+        from calibration.so3 import axis_angle_to_matrix
+
+        a = np.asarray(axis, np.float64)
+        index = [d.camera_id for d in self.drivers].index(camera)
+        self.rig.knock(index, axis_angle_to_matrix(np.radians(degrees) * a / np.linalg.norm(a)))
+
+    def _check_drift(self, capture_id: str) -> None:
+        rec = self.keeper.check(self._monitor_views(), capture=capture_id)
+        with self._lock:
+            self._checks = rec.get("cameras", {})
+            self._keeper_note = rec["action"] if rec["action"] not in ("none", "reference set") else ""
+        if rec["action"].startswith("corrected"):
+            calib = self.keeper.store.load()
+            for i, d in enumerate(self.drivers):
+                self.rig.set_calibration(i, calib.cameras[d.camera_id].c2w)
+            self.acquisition.calibration_id = self._calibration_id()
+
+    def _acquire(self) -> None:
+        def outcome(out) -> None:
+            with self._lock:
+                self._last_trigger = f"#{out.trigger.seq} {time.strftime('%H:%M:%S')} {out.status}"
+            if out.status == "committed":
+                self._check_drift(out.capture_id)
+
+        self.acquisition.run(self.software_trigger, self._stop, on_outcome=outcome)
+
+    def _auto_trigger(self) -> None:
+        while not self._stop.is_set():
+            if self._watching.is_set():
+                self.software_trigger.fire({"source": "line"})
+                self._stop.wait(self.interval_s)
+            else:
+                self._stop.wait(0.1)
+
+    # ---- service -------------------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            if not self.service.run_once():
+                self._stop.wait(0.5)
+
+    def _on_progress(self, stage: str, i: int, n: int) -> None:
+        now = time.monotonic()
+        with self._lock:
+            p = self._progress
+            if p is None or p.stage != stage:
+                self._stage_t0 = now
+            frac = (i + 1) / max(n, 1)
+            eta = (now - self._stage_t0) / frac * (1 - frac) if frac > 0.02 else None
+            self._progress = Progress(p.capture_id if p else "", stage, frac, eta)
+
+    def _on_service_event(self, e) -> None:
+        with self._lock:
+            if e.kind == "step-started":
+                self._progress = Progress(e.capture_id, e.step, 0.0)
+            elif e.kind in ("job-done", "job-failed"):
+                self._progress = None
+            if e.kind == "job-failed":
+                self._message = f"capture {e.capture_id} could not be turned into a twin: {e.detail.get('error', '')}"
+
+    # ---- ApplianceBackend ----------------------------------------------------------------------
+
+    def state(self) -> ApplianceState:
+        from calibration.keeper import RECALIBRATE
+
+        with self._lock:
+            checks = dict(self._checks)
+            progress, last_trigger, note = self._progress, self._last_trigger, self._keeper_note
+        cams = []
+        for d in self.drivers:
+            c = checks.get(d.camera_id, {})
+            cams.append(CameraStatus(d.camera_id, d.health().ok, c.get("status", "—"), c.get("rotation_deg"), c.get("effect_px")))
+        alarms = [a for a in (drift_alarm(c) for c in cams) if a]
+        if note and not any(c.calibration == RECALIBRATE for c in cams):
+            alarms.append(Alarm(f"keeper:{note}", f"Calibration keeper {note}."))
+        if self.store.alarm:
+            alarms.append(Alarm("disk", self.store.alarm))
+        for job in self.service.jobs.jobs("failed"):
+            alarms.append(Alarm(f"job:{job.id}", f"Capture {job.capture_id} failed ({job.error}) — press r to re-run."))
+        alarms = tuple(Alarm(a.key, a.text, a.key in self._acked) for a in alarms)
+        done = self.service.jobs.jobs("done")
+        verdict = None
+        if done:
+            job = done[-1]
+            reg, rec = job.steps["register"]["output"], job.steps["reconstruct"]["output"]
+            grade, advice = grade_twin(reg["score"], rec["fit_iou"])
+            preview = Path(rec["twin"]) / "renders"
+            first = sorted(preview.glob("*.png"))
+            verdict = Verdict(job.capture_id, rec["model_id"], reg["score"], rec["fit_iou"], grade, advice, str(first[0]) if first else "")
+        queued = tuple(j.capture_id for j in self.service.jobs.jobs("queued"))
+        return ApplianceState(
+            watching=self._watching.is_set(),
+            trigger_source=f"software (line every {self.interval_s:.0f}s)" if self._watching.is_set() else "software",
+            last_trigger=last_trigger,
+            cameras=tuple(cams),
+            captures=len(self.store.capture_ids()),
+            quarantined=len(self.store.quarantined_ids()),
+            disk_free_gb=self.store.disk_free() / 1e9,
+            queue=queued,
+            progress=progress,
+            last_twin=verdict,
+            alarms=alarms,
+            message=self._message,
+        )
+
+    def toggle_watch(self) -> None:
+        if self._watching.is_set():
+            self._watching.clear()
+            self._message = "stopped watching the line"
+        else:
+            self._watching.set()
+            self._message = "watching the line"
+
+    def trigger(self) -> None:
+        self.software_trigger.fire({"source": "kiosk"})
+        self._message = "capture requested"
+
+    def rerun(self) -> None:
+        failed = self.service.jobs.jobs("failed")
+        if not failed:
+            self._message = "nothing to re-run: no job has failed"
+            return
+        self.service.jobs.retry(failed[-1].id)
+        self._message = f"re-running {failed[-1].capture_id}"
+
+    def acknowledge(self) -> None:
+        for a in self.state().alarms:
+            self._acked.add(a.key)
+
+    def close(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self.service.stop()
+        for t in self._threads:
+            t.join(timeout=60)
+        self.acquisition.close()
+        self.rig.close()
+        if self._own_dir:
+            shutil.rmtree(self.dir, ignore_errors=True)
