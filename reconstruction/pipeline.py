@@ -134,7 +134,8 @@ def reconstruct(
     viewmats = np.stack([np.linalg.inv(c) for c in c2w_init])
     probe = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, seed=seed)
     rgb = project_colors(probe.means, probe.normals, images, masks, viewmats, Ks)
-    splats = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, rgb=rgb, seed=seed)
+    splats = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, rgb=rgb,
+                         opacity=cfg.init_opacity, seed=seed)
     choices["sh_init"] = {"value": "projected", "why": "SH DC from the training images projected at the registered poses "
                           "(facing views, inside masks, z-buffered); neutral grey where no view sees a splat"}
     timings["init"] = time.perf_counter() - t

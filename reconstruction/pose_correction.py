@@ -1,12 +1,16 @@
 """Learnable camera-pose correction (paper 3.3, eq. (pose)), acting on camera-to-object poses.
 
-`global`: one Sim(3) delta shared by all cameras of a calibrated rig, c -> R_δ (s c) + t_δ and
-R -> R_δ R, with R_δ from a 6D vector by Gram-Schmidt (Zhou et al. 2019) and s = exp(Δs); ten
+`global`: one Sim(3) delta shared by all cameras of a calibrated rig, c -> s R_δ (c - p) + p + u t_δ
+and R -> R_δ R, with R_δ from a 6D vector by Gram-Schmidt (Zhou et al. 2019) and s = exp(Δs); ten
 parameters, identity at init. The refined registration is then ΔSim3 ∘ sim3_rig_to_object_init.
+The pivot p (the object's centre) and the length unit u (its radius) condition the problem: rotating
+and scaling about the object rather than the CAD origin decouples them from translation, and a
+translation measured in object radii makes one learning rate mean the same for a screw and a car.
 
 `per_camera`: an independent SE(3) delta per camera for rough poses. It multiplies on the camera's
 side (c2w @ Δ) so a rotation turns the camera about its own centre and a translation moves it along
-its own axes: per-view pointing errors are then decoupled from the camera's distance to the object.
+its own axes (in units u): per-view pointing errors are then decoupled from the camera's distance
+to the object.
 """
 
 from __future__ import annotations
@@ -45,8 +49,10 @@ def viewmats_from_c2w(c2w: torch.Tensor) -> torch.Tensor:
 class PoseCorrection(nn.Module):
     """Corrects camera-to-object poses c2w [C, 4, 4] (OpenCV axes). Identity at initialisation."""
 
-    def __init__(self, num_cameras: int, mode: str = "global"):
+    def __init__(self, num_cameras: int, mode: str = "global", *, pivot: np.ndarray | None = None, unit: float = 1.0):
         super().__init__()
+        if not unit > 0:
+            raise ValueError(f"pose correction length unit must be positive, got {unit}")
         if mode not in POSE_MODES:
             raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {mode!r}")
         self.mode = mode
@@ -56,6 +62,8 @@ class PoseCorrection(nn.Module):
         self.t = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
         # Only the global mode carries a scale (the rig-to-CAD unit ambiguity); per-camera is SE(3).
         self.log_scale = nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=mode == "global")
+        self.register_buffer("pivot", torch.zeros(3, dtype=torch.float64) if pivot is None else torch.tensor(pivot, dtype=torch.float64))
+        self.register_buffer("unit", torch.tensor(float(unit), dtype=torch.float64))
 
     def forward(self, c2w: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
         """Corrected c2w [C, 4, 4] (float64) for cameras `index` [C] (default: all)."""
@@ -64,12 +72,12 @@ class PoseCorrection(nn.Module):
         if self.mode == "global":
             rd = rotation_6d_to_matrix(self.r6[0])
             r_out = rd @ r_in
-            c_out = (torch.exp(self.log_scale) * c_in) @ rd.T + self.t[0]
+            c_out = (torch.exp(self.log_scale) * (c_in - self.pivot)) @ rd.T + self.pivot + self.unit * self.t[0]
         else:
             sel = torch.arange(len(c2w)) if index is None else index
             rd = rotation_6d_to_matrix(self.r6[sel])
             r_out = r_in @ rd
-            c_out = c_in + (r_in @ self.t[sel, :, None])[..., 0]
+            c_out = c_in + self.unit * (r_in @ self.t[sel, :, None])[..., 0]
         out = torch.zeros_like(c2w)
         out[:, :3, :3] = r_out
         out[:, :3, 3] = c_out
@@ -82,7 +90,9 @@ class PoseCorrection(nn.Module):
         if self.mode != "global":
             return Sim3.identity()
         r = rotation_6d_to_matrix(self.r6[0]).numpy()
-        return Sim3(float(torch.exp(self.log_scale)), r, self.t[0].numpy())
+        s = float(torch.exp(self.log_scale))
+        p = self.pivot.numpy()
+        return Sim3(s, r, p - s * r @ p + float(self.unit) * self.t[0].numpy())
 
 
 def choose_pose_mode(meta: dict, override: str | None = None) -> tuple[str, str]:

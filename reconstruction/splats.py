@@ -191,12 +191,15 @@ def init_splats(
     sh_degree: int,
     face_part: np.ndarray | None = None,
     rgb: np.ndarray | None = None,
+    opacity: float = 0.5,
     seed: int = 0,
 ) -> CanonicalSplats:
     """Splats on the mesh surface: area-uniform means, face normals, shortest-arc quats, disk scales,
-    opacity 0.5 (logit 0), SH DC from `rgb` [N, 3] when given (see `project_colors`) else neutral grey
+    `opacity` (the paper's 0.5 by default), SH DC from `rgb` [N, 3] when given (see `project_colors`) else neutral grey
     0.5 (DC 0), higher SH bands 0. `face_part` [F] labels each face with its CAD part (default all 0).
     """
+    if not 0.0 < opacity < 1.0:
+        raise ValueError(f"initial opacity must lie strictly between 0 and 1, got {opacity}")
     rng = np.random.default_rng(seed)
     means, face_index, bary = sample_surface(vertices, faces, n, rng)
     _, face_normals = face_areas_normals(vertices, faces)
@@ -211,7 +214,7 @@ def init_splats(
         normals=normals.astype(np.float32),
         quats=normals_to_quats(normals).astype(np.float32),
         log_scales=disk_log_scales(means).astype(np.float32),
-        opacity_logits=np.zeros(n, np.float32),
+        opacity_logits=np.full(n, np.log(opacity / (1.0 - opacity)), np.float32),
         sh=sh,
         face_index=face_index.astype(np.int64),
         barycentrics=bary.astype(np.float32),

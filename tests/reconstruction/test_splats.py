@@ -156,3 +156,12 @@ def test_knn_excludes_self():
     assert idx.shape == (100, 20)
     assert not np.any(idx == np.arange(100)[:, None])
     assert knn_indices(pts[:5], 20).shape == (5, 4)
+
+
+def test_initial_opacity_is_stored_as_a_logit():
+    v, f = box()
+    s = init_splats(v, f, 500, sh_degree=0, opacity=0.9, seed=0)
+    np.testing.assert_allclose(1 / (1 + np.exp(-s.opacity_logits)), 0.9, rtol=1e-6)
+    for bad in (0.0, 1.0, 1.5):
+        with pytest.raises(ValueError, match="opacity"):
+            init_splats(v, f, 10, sh_degree=0, opacity=bad)

@@ -45,7 +45,7 @@ def sample_scene(n_views=5, noise_deg=3.0, size=None):
 def tiny_preset(pose=25, deform=15, photo=20):
     stats = SceneStats(5, 320, 240, (5000,) * 5, 120.0)
     p, _ = resolve_preset("preview", stats)
-    return replace(p, num_splats=3000, iters_pose=pose, iters_deform=deform, iters_photo=photo, dropout_anneal=10,
+    return replace(p, num_splats=3000, iters_pose=pose, iters_deform=deform, iters_photo=photo, dropout_p0=0.5, dropout_anneal=10,
                    field=FieldConfig(2, 32, 10, 256), checkpoint_every=10)
 
 
@@ -135,10 +135,18 @@ def test_cpu_preset_sizes_from_the_scene():
     pb, cb = resolve_preset("cpu", big)
     assert ps.num_splats < pb.num_splats <= 15_000
     assert ps.sh_degree == 0 and pb.sh_degree == 2
-    assert pb.image_scale == 0.4 and ps.image_scale == 0.8
+    assert pb.image_scale == 0.6 and ps.image_scale == 1.0
+    assert pb.views_per_iter == 0 and pb.init_opacity == 0.9
     assert all("why" in c and "value" in c for c in cb.values())
     paper, _ = resolve_preset("paper", big)
     assert (paper.num_splats, paper.sh_degree, paper.iters_pose, paper.iters_deform, paper.iters_photo) == (600_000, 3, 3000, 3000, 24_000)
     assert paper.lr == {"deformation": 1.6e-5, "pose": 5e-4, "scales": 5e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 1.25e-4}
     with pytest.raises(ValueError, match="unknown preset"):
         resolve_preset("fast", big)
+
+
+def test_one_random_view_per_iteration_as_the_paper():
+    views, parts, _ = sample_scene(n_views=3)
+    splats = init_splats(parts.vertices, parts.faces, 1000, sh_degree=0, seed=0)
+    res = train(views, splats, replace(tiny_preset(pose=6, deform=4, photo=6), views_per_iter=1))
+    assert res.iterations == {"pose": 6, "deform": 4, "photo": 6} and finite_model(res.model)
