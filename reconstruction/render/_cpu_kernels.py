@@ -1,5 +1,11 @@
 """Numba CPU kernels of the rasterizer: projection, tile binning, compositing and their VJPs.
 
+Why numba: the same forward compositing kernel ported to C++ (g++ -O3 -march=native, same data
+layout) ran within 4% of this one (8.1 vs 8.0 ms at 20k Gaussians / 256^2, 110 vs 115 ms at
+600k / 512^2, one thread), so a C++ torch extension would buy no speed for a compiler at install time
+and a build in CI; NVIDIA Warp runs CPU kernels on one thread with no SIMD (NVIDIA/warp#1309).
+numba's `cache=True` keeps the one-off compile (~20 s for all kernels) out of every later process.
+
 Every float array is float64 (callers cast): a float32 pixel-space mean near x = 500 px is off by up
 to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the rasterizer promises.
 Kernels take numpy arrays and write into preallocated outputs. Those that run in parallel take a
