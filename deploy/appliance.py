@@ -1,7 +1,7 @@
 """The appliance behind the kiosk: rig acquisition, the calibration keeper and the pipeline service,
 each on its own thread, summarised as one `ApplianceState` the operator screen draws.
 
-`SimulatedAppliance` runs all of it on the synthetic rig (the bundled sample's part on a simulated
+`Appliance.from_config` runs a real rig from its `rig.toml`; `Appliance.simulated` runs all of it on the synthetic rig (the bundled sample's part on a simulated
 conveyor) with a software trigger, so anyone can try the appliance without hardware. Its empty-rig
 monitor views (the textured rig frame around the cameras) feed the keeper's drift check after every
 capture; `knock(camera, degrees)` turns a camera physically, as a bump during maintenance would.
@@ -22,34 +22,38 @@ from deploy.kiosk_state import Alarm, ApplianceState, CameraStatus, Progress, Ve
 REPO = Path(__file__).resolve().parents[1]
 
 
-class SimulatedAppliance:
-    """Synthetic rig + software trigger + keeper + service (`preset`), under `work_dir` (a temp dir by default)."""
+class Appliance:
+    """Cameras + trigger + capture store + calibration keeper + pipeline service, under `work_dir`.
+
+    `monitor_views()` returns each camera's current view of the empty rig frame for the drift check;
+    without it the keeper checks the committed capture's own images (background features).
+    """
 
     def __init__(
         self,
-        work_dir: str | Path | None = None,
+        drivers,
+        trigger_source,
+        store,
+        keeper,
+        library_dir: Path,
+        work_dir: Path,
         *,
-        views: int = 8,
-        size: tuple[int, int] = (320, 240),
         preset: str = "preview",
         interval_s: float = 20.0,
-        library_meshes: str | Path | None = None,
+        backgrounds: dict[str, np.ndarray] | None = None,
+        monitor_views=None,
+        rig=None,
+        rig_id: str = "rig",
+        owns_dir: bool = False,
+        closers=(),
     ) -> None:
-        from calibration.calibfile import CalibrationDoc, CalibrationStore
-        from calibration.keeper import Keeper
-        from calibration.simulated import rig_frame_scene
         from deploy.service import PipelineService
         from deploy.steps import PipelineConfig, make_step_runner
-        from reconstruction.library import build_library, load_library
         from rig.acquisition import Acquisition, open_cameras
-        from rig.assembly import simulated_cameras
         from rig.camera import CameraSettings
-        from rig.store import CaptureStore
-        from rig.triggers import SoftwareTrigger
 
-        self._own_dir = work_dir is None
-        self.dir = Path(tempfile.mkdtemp(prefix="cadsplat-kiosk-")) if work_dir is None else Path(work_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir = Path(work_dir)
+        self._own_dir = owns_dir
         self.interval_s = interval_s
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -61,31 +65,19 @@ class SimulatedAppliance:
         self._last_trigger = "none yet"
         self._checks: dict[str, dict] = {}
         self._keeper_note = ""
-
-        lib_dir = self.dir / "library"
-        if not (lib_dir / "library.json").exists():
-            build_library(library_meshes or REPO / "sample" / "library_meshes", lib_dir, progress=False)
-        load_library(lib_dir)
-
-        drivers, self.rig = simulated_cameras(views, *size)
-        self.drivers = drivers
-        settings = open_cameras(drivers, CameraSettings(*size))
-        self.store = CaptureStore(self.dir / "store", min_free_bytes=256 << 20)
-
-        calib_path = self.dir / "calibration.json"
-        store = CalibrationStore(calib_path)
-        if not calib_path.exists():
-            store.commit(CalibrationDoc({d.camera_id: d.camera for d in drivers}, source="board"))
-        self.keeper = Keeper(calib_path)
-        self._walls, _ = rig_frame_scene(np.random.default_rng(0), fiducials=False)
-        self.keeper.set_reference(self._monitor_views())
-
-        self.software_trigger = SoftwareTrigger()
-        empty = self.rig.empty_views()
-        self.acquisition = Acquisition(drivers, self.store, rig_id="simulated-rig", calibration_id=self._calibration_id(), settings=settings,
-                                       backgrounds={d.camera_id: empty[i] for i, d in enumerate(drivers)})
-        cfg = PipelineConfig(str(lib_dir), preset, export_formats=("ply", "glb"))
-        self.service = PipelineService(self.store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
+        self.drivers = list(drivers)
+        self.rig = rig
+        self.store = store
+        self.keeper = keeper
+        self.software_trigger = trigger_source
+        self._monitor = monitor_views
+        self._closers = list(closers)
+        first = self.drivers[0].camera
+        settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
+        self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(), settings=settings,
+                                       backgrounds=dict(backgrounds or {}))
+        cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"))
+        self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
                                        on_event=self._on_service_event)
         self._threads = [
             threading.Thread(target=self._acquire, name="kiosk-acquisition", daemon=True),
@@ -94,35 +86,94 @@ class SimulatedAppliance:
         ]
         for t in self._threads:
             t.start()
-        self._message = "ready: press t to take a capture, w to start watching the line"
+        if not self.acquisition.backgrounds:
+            self._message = "no empty-rig frames yet: clear the rig and press b; then t takes a capture"
+        else:
+            self._message = "ready: press t to take a capture, w to start watching the line"
+
+    @classmethod
+    def from_config(cls, config_path: str | Path, library_dir: str | Path, work_dir: str | Path, *, preset: str = "cpu",
+                    interval_s: float = 20.0) -> "Appliance":
+        """The real rig of a `rig.toml` (its cameras, trigger, store and calibration)."""
+        from calibration.keeper import Keeper
+        from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
+        from rig.config import load_config
+
+        cfg = load_config(config_path)
+        if cfg.calibration is None:
+            raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
+        _, calibration = load_rig_calibration(cfg.calibration)
+        drivers = build_cameras(cfg, calibration)
+        trigger = build_trigger(cfg.trigger).start()
+        store = build_store(cfg)
+        work = Path(work_dir)
+        work.mkdir(parents=True, exist_ok=True)
+        return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
+                   backgrounds=_load_backgrounds(work / "background"), rig_id=cfg.rig_id, closers=[trigger.stop])
+
+    @classmethod
+    def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),
+                  preset: str = "preview", interval_s: float = 20.0, library_meshes: str | Path | None = None) -> "Appliance":
+        """The whole appliance on the synthetic rig: the bundled sample's part on a simulated conveyor,
+        a software trigger, and the textured rig frame around the cameras as the keeper's reference."""
+        from calibration.calibfile import CalibrationDoc, CalibrationStore
+        from calibration.keeper import Keeper
+        from calibration.simulated import render_planes, rig_frame_scene
+        from reconstruction.library import build_library
+        from rig.assembly import simulated_cameras
+        from rig.store import CaptureStore
+        from rig.triggers import SoftwareTrigger
+
+        owns = work_dir is None
+        work = Path(tempfile.mkdtemp(prefix="cadsplat-kiosk-")) if owns else Path(work_dir)
+        work.mkdir(parents=True, exist_ok=True)
+        lib_dir = work / "library"
+        if not (lib_dir / "library.json").exists():
+            build_library(library_meshes or REPO / "sample" / "library_meshes", lib_dir, progress=False)
+        drivers, rig = simulated_cameras(views, *size)
+        calib_path = work / "calibration.json"
+        if not calib_path.exists():
+            CalibrationStore(calib_path).commit(CalibrationDoc({d.camera_id: d.camera for d in drivers}, source="board"))
+        keeper = Keeper(calib_path)
+        walls, _ = rig_frame_scene(np.random.default_rng(0), fiducials=False)
+
+        def monitor() -> dict[str, np.ndarray]:
+            return {d.camera_id: render_planes(rig.true_camera(i), walls, supersample=2) for i, d in enumerate(drivers)}
+
+        keeper.set_reference(monitor())
+        empty = rig.empty_views()
+        return cls(drivers, SoftwareTrigger(), CaptureStore(work / "store", min_free_bytes=256 << 20), keeper, lib_dir, work,
+                   preset=preset, interval_s=interval_s, backgrounds={d.camera_id: empty[i] for i, d in enumerate(drivers)},
+                   monitor_views=monitor, rig=rig, rig_id="simulated-rig", owns_dir=owns, closers=[rig.close])
 
     # ---- rig and keeper ------------------------------------------------------------------------
 
     def _calibration_id(self) -> str:
         return f"calibration-v{self.keeper.store.load().version:04d}"
 
-    def _monitor_views(self) -> dict[str, np.ndarray]:
-        """Each camera's view of the empty rig frame from where it really is."""
-        from calibration.simulated import render_planes
-
-        return {d.camera_id: render_planes(self.rig.true_camera(i), self._walls, supersample=2) for i, d in enumerate(self.drivers)}
-
     def knock(self, camera: str, degrees: float, axis=(0.3, 1.0, 0.2)) -> None:
+        """Turn a simulated camera physically (a bump during maintenance); its calibration stays."""
         from calibration.so3 import axis_angle_to_matrix
 
+        if self.rig is None:
+            raise ValueError("only a simulated camera can be knocked")
         a = np.asarray(axis, np.float64)
         index = [d.camera_id for d in self.drivers].index(camera)
         self.rig.knock(index, axis_angle_to_matrix(np.radians(degrees) * a / np.linalg.norm(a)))
 
     def _check_drift(self, capture_id: str) -> None:
-        rec = self.keeper.check(self._monitor_views(), capture=capture_id)
+        from calibration.keeper import capture_images
+
+        views = self._monitor() if self._monitor else capture_images(self.store.read(capture_id))
+        rec = self.keeper.check(views, capture=capture_id)
         with self._lock:
             self._checks = rec.get("cameras", {})
             self._keeper_note = rec["action"] if rec["action"] not in ("none", "reference set") else ""
         if rec["action"].startswith("corrected"):
             calib = self.keeper.store.load()
-            for i, d in enumerate(self.drivers):
-                self.rig.set_calibration(i, calib.cameras[d.camera_id].c2w)
+            if self.rig is not None:
+                for i, d in enumerate(self.drivers):
+                    self.rig.set_calibration(i, calib.cameras[d.camera_id].c2w)
             self.acquisition.calibration_id = self._calibration_id()
 
     def _acquire(self) -> None:
@@ -137,7 +188,8 @@ class SimulatedAppliance:
     def _auto_trigger(self) -> None:
         while not self._stop.is_set():
             if self._watching.is_set():
-                self.software_trigger.fire({"source": "line"})
+                if hasattr(self.software_trigger, "fire"):
+                    self.software_trigger.fire({"source": "line"})
                 self._stop.wait(self.interval_s)
             else:
                 self._stop.wait(0.1)
@@ -150,6 +202,11 @@ class SimulatedAppliance:
                 self._stop.wait(0.5)
 
     def _on_progress(self, stage: str, i: int, n: int) -> None:
+        from deploy.service import StepInterrupted
+
+        if self._stop.is_set():
+            # Closing: leave the step for the next start (the engine resumes from its checkpoint).
+            raise StepInterrupted(stage)
         now = time.monotonic()
         with self._lock:
             p = self._progress
@@ -222,8 +279,31 @@ class SimulatedAppliance:
             self._message = "watching the line"
 
     def trigger(self) -> None:
-        self.software_trigger.fire({"source": "kiosk"})
+        """A capture now, whatever the line's trigger source is (the kiosk button)."""
+        from rig.triggers import TriggerEvent
+
+        src = self.software_trigger
+        if hasattr(src, "fire"):
+            src.fire({"source": "kiosk"})
+        else:
+            src.events.put(TriggerEvent(None, "kiosk", time.monotonic_ns(), {"source": "kiosk"}))
         self._message = "capture requested"
+
+    def take_background(self) -> None:
+        """Store every camera's current frame as the empty-rig background (the rig must be empty)."""
+        seq = -1
+        frames = {}
+        for d in self.drivers:
+            d.arm(seq)
+            frames[d.camera_id] = d.grab(5.0).image
+        self.acquisition.backgrounds = frames
+        if self.rig is None:
+            from calibration.fileio import atomic_write_png
+
+            (self.dir / "background").mkdir(parents=True, exist_ok=True)
+            for cid, img in frames.items():
+                atomic_write_png(self.dir / "background" / f"{cid}.png", img)
+        self._message = f"empty-rig frames taken for {len(frames)} cameras"
 
     def rerun(self) -> None:
         failed = self.service.jobs.jobs("failed")
@@ -245,6 +325,16 @@ class SimulatedAppliance:
         for t in self._threads:
             t.join(timeout=60)
         self.acquisition.close()
-        self.rig.close()
+        for close in self._closers:
+            close()
         if self._own_dir:
             shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def _load_backgrounds(folder: Path) -> dict[str, np.ndarray]:
+    """Empty-rig frames saved by `take_background` (uint8 RGB per camera id)."""
+    from calibration.capture import read_image
+
+    if not folder.exists():
+        return {}
+    return {p.stem: (read_image(p)[..., :3] * 255).round().astype(np.uint8) for p in sorted(folder.glob("*.png"))}

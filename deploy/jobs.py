@@ -172,6 +172,12 @@ class JobStore:
             db.execute("UPDATE jobs SET status=?, error=?, updated=? WHERE id=?", (status, f"{step}: {error}", time.time(), job_id))
         return status
 
+    def interrupt(self, job_id: int, step: str) -> None:
+        """The service stopped mid-step (shutdown, not a failure): the step and job go back, no attempt counted."""
+        with self._tx() as db:
+            db.execute("UPDATE steps SET status='pending', started=NULL WHERE job_id=? AND step=?", (job_id, step))
+            db.execute("UPDATE jobs SET status='queued', attempts=MAX(attempts-1, 0), updated=? WHERE id=?", (time.time(), job_id))
+
     def retry(self, job_id: int) -> None:
         """Operator re-run: a failed or finished job goes back to the queue with fresh attempts."""
         with self._tx() as db:

@@ -2,7 +2,7 @@
 
 Works over SSH, fits 80x24, and reads without colour (NO_COLOR, or `--no-color`): every state is
 also spelled out in words. Keys: w start/stop watching, t take a capture now, r re-run the last
-job, a acknowledge the alarm, q quit.
+failed job, a acknowledge the alarm, b take empty-rig frames (rig empty), q quit.
 """
 
 from __future__ import annotations
@@ -87,6 +87,7 @@ class Kiosk(App):
         Binding("t", "trigger", "Capture now"),
         Binding("r", "rerun", "Re-run"),
         Binding("a", "ack", "Acknowledge"),
+        Binding("b", "background", "Empty-rig frames"),
         Binding("q", "quit", "Quit"),
     ]
 
@@ -131,6 +132,10 @@ class Kiosk(App):
 
     def action_rerun(self) -> None:
         self.backend.rerun()
+        self.refresh_state()
+
+    def action_background(self) -> None:
+        self.backend.take_background()
         self.refresh_state()
 
     def action_ack(self) -> None:

@@ -20,6 +20,10 @@ from typing import Callable, Protocol
 from deploy.jobs import STEPS, Job, JobStore
 
 
+class StepInterrupted(Exception):
+    """Raised from inside a step (e.g. by its progress callback) when the service is stopping."""
+
+
 class StepRunner(Protocol):
     """Runs one step of one job and returns what it produced (JSON-able); raises on failure."""
 
@@ -88,6 +92,9 @@ class PipelineService:
             self.on_event(ServiceEvent("step-started", job.id, job.capture_id, step))
             try:
                 output = self.run_step(step, job, work, previous)
+            except StepInterrupted:
+                self.jobs.interrupt(job.id, step)
+                return "queued"
             except Exception as e:  # a failed step is recorded, retried, then reported: never lost
                 msg = str(e).splitlines()[0] if str(e) else type(e).__name__
                 status = self.jobs.fail_attempt(job.id, step, msg)
@@ -124,6 +131,10 @@ class PipelineService:
             else:
                 self._stop.wait(poll_s)
         return done
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
 
     def stop(self) -> None:
         self._stop.set()

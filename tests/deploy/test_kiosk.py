@@ -36,9 +36,9 @@ async def wait_for(app: Kiosk, pilot, predicate, timeout_s: float) -> str:
 
 @pytest.mark.slow
 def test_simulated_appliance_end_to_end_on_screen(tmp_path):
-    from deploy.appliance import SimulatedAppliance
+    from deploy.appliance import Appliance
 
-    backend = SimulatedAppliance(tmp_path / "appliance", views=6, preset="preview", interval_s=3600)
+    backend = Appliance.simulated(tmp_path / "appliance", views=6, preset="preview", interval_s=3600)
     app = Kiosk(backend)
 
     async def drive() -> tuple[str, str]:

@@ -105,3 +105,20 @@ def test_killed_mid_reconstruction_resumes_from_last_finished_step(tmp_path):
     jobs = JobStore(work / "jobs.sqlite")
     assert [j.status for j in jobs.jobs()] == ["done"]
     assert sorted(p.name for p in (store / "captures").iterdir()) == before
+
+
+def test_stopping_mid_step_requeues_without_spending_an_attempt(tmp_path):
+    from deploy.service import StepInterrupted
+
+    make_captures(tmp_path / "store", 1)
+
+    def runner(step, job, work_dir, previous):
+        if step == "reconstruct":
+            raise StepInterrupted(step)
+        return {}
+
+    svc = PipelineService(tmp_path / "store", tmp_path / "work", runner)
+    svc.run_once()
+    job = svc.jobs.jobs()[0]
+    assert job.status == "queued" and job.attempts == 0 and job.error == ""
+    assert job.steps["register"]["status"] == "done" and job.steps["reconstruct"]["status"] == "pending"
