@@ -11,6 +11,7 @@ its core for a while (to torch's spinning workers or another process) delays onl
 from __future__ import annotations
 
 import itertools
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -27,6 +28,15 @@ _pool_lock = threading.Lock()
 def num_threads() -> int:
     """Threads the rasterizer uses: torch's intra-op thread count, so one setting governs both."""
     return max(1, torch.get_num_threads())
+
+
+def _forget_pool() -> None:
+    """A forked child inherits the pool object but none of its threads: start afresh there."""
+    global _pool, _pool_size, _pool_lock
+    _pool, _pool_size, _pool_lock = None, 0, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _executor(workers: int) -> ThreadPoolExecutor:

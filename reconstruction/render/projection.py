@@ -116,6 +116,8 @@ def project_gaussians(
     Returns:
         `Projection` (float64); means2d and conics carry gradients to means, quats, scales and viewmats.
     """
+    if not near_plane > 0.0:
+        raise ValueError(f"near_plane must be positive, got {near_plane}")
     if active is None:
         active = torch.ones(means.shape[0], dtype=torch.bool)
     f64 = torch.float64

@@ -9,8 +9,10 @@ inputs, as in production; the reference runs on the same values cast to float64.
 from __future__ import annotations
 
 import math
+import os
+import select
+import signal
 
-import numba
 import pytest
 import torch
 
@@ -344,18 +346,44 @@ def test_active_subset_equals_rendering_the_subset():
 
 
 def test_results_do_not_depend_on_thread_count():
-    scene = random_scene(200, seed=14, n_cams=2)
+    # Enough Gaussians that every pass splits across threads (per-splat passes need 4096 per thread).
+    scene = random_scene(12000, seed=14, n_cams=2, width=48, height=40)
     outs = []
-    before = numba.get_num_threads()
-    for threads in sorted({1, before}):
-        numba.set_num_threads(threads)
-        inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS[:-1]}
-        colors, _, _ = rasterize(*inputs.values(), scene["Ks"], scene["width"], scene["height"])
-        colors.square().sum().backward()
-        outs.append((colors, inputs["means"].grad, inputs["viewmats"].grad))
-    numba.set_num_threads(before)
-    for a, b in zip(outs[0], outs[-1]):
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS[:-1]}
+            colors, _, _ = rasterize(*inputs.values(), scene["Ks"], scene["width"], scene["height"])
+            colors.square().sum().backward()
+            outs.append((colors, inputs["means"].grad, inputs["viewmats"].grad))
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(outs[0], outs[1]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_renders_in_a_forked_child():
+    # A child forked after the thread pool started inherits the pool but not its threads.
+    scene = random_scene(5000, seed=20, n_cams=1, width=64, height=64)
+    args = [scene[k] for k in PARAMS[:-1]] + [scene["Ks"], 64, 64]
+    expected = rasterize(*args)[0]
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(read_end)
+        ok = torch.equal(rasterize(*args)[0], expected)
+        os.write(write_end, b"1" if ok else b"0")
+        os._exit(0)
+    os.close(write_end)
+    ready, _, _ = select.select([read_end], [], [], 60.0)
+    answer = os.read(read_end, 1) if ready else b""
+    os.close(read_end)
+    if not ready:
+        os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    assert answer == b"1"
 
 
 def test_projection_meta_matches_gsplat_box_rule():
