@@ -1,8 +1,10 @@
 """Real spherical harmonics up to degree 3, in gsplat's (and 3DGS's) basis order and sign convention.
 
-Pure PyTorch, so autograd reaches both the coefficients and the view directions (and, through them,
-Gaussian means and camera poses). The rasterizer turns the result into a colour as
-clamp(eval_sh(...) + 0.5, min=0), which is 3DGS's convention.
+`eval_sh` is differentiable w.r.t. both the coefficients and the view directions (and, through
+them, Gaussian means and camera poses). On CPU, coefficients [N, K, 3] with directions [..., N, 3]
+(the rasterizer's case) go through fused numba kernels; anything else (CUDA tensors, per-camera
+coefficients) through the same formulas in plain torch. The rasterizer turns the result into a
+colour as clamp(eval_sh(...) + 0.5, min=0), which is 3DGS's convention.
 """
 
 from __future__ import annotations
@@ -10,19 +12,13 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from reconstruction.render import _sh_kernels as kernels
+from reconstruction.render._parallel import parallel_for
 
 MAX_SH_DEGREE = 3
-
-# Basis constants, in the polynomial form gsplat's CUDA kernels use (which assumes unit directions).
-_C0 = 0.2820947917738781
-_C1 = 0.48860251190292
-_C2_XY = 0.5462742152960395
-_C2_Z = -1.092548430592079
-_C2_ZZ = (0.9461746957575601, -0.3153915652525201)
-_C3_Z2 = (-2.285228997322329, 0.4570457994644658)
-_C3_Z = 1.445305721320277
-_C3_A = -0.5900435899266435
-_C3_ZZZ = (1.865881662950577, -1.119528997770346)
+_GRAIN = 2048
 
 
 def _check_degree(degree: int) -> None:
@@ -47,29 +43,55 @@ def sh_bases(degree: int, dirs: Tensor) -> Tensor:
         [..., (degree + 1) ** 2] basis values, ordered (l, m) = (0, 0), (1, -1), (1, 0), (1, 1), ...
     """
     _check_degree(degree)
-    out = [torch.full_like(dirs[..., 0], _C0)]
+    out = [torch.full_like(dirs[..., 0], kernels._C0)]
     if degree >= 1:
         x, y, z = dirs.unbind(-1)
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
+        out += [-kernels._C1 * y, kernels._C1 * z, -kernels._C1 * x]
     if degree >= 2:
         zz = z * z
         c1 = x * x - y * y
         s1 = 2.0 * x * y
-        out += [_C2_XY * s1, _C2_Z * z * y, _C2_ZZ[0] * zz + _C2_ZZ[1], _C2_Z * z * x, _C2_XY * c1]
+        c2_zz, c2_z, c2_xy = kernels._C2_ZZ, kernels._C2_Z, kernels._C2_XY
+        out += [c2_xy * s1, c2_z * z * y, c2_zz[0] * zz + c2_zz[1], c2_z * z * x, c2_xy * c1]
     if degree >= 3:
-        tmp_c = _C3_Z2[0] * zz + _C3_Z2[1]
-        c2 = x * c1 - y * s1
-        s2 = x * s1 + y * c1
+        tmp_c = kernels._C3_Z2[0] * zz + kernels._C3_Z2[1]
+        c3_a, c3_z, c3_zzz = kernels._C3_A, kernels._C3_Z, kernels._C3_ZZZ
         out += [
-            _C3_A * s2,
-            _C3_Z * z * s1,
+            c3_a * (x * s1 + y * c1),
+            c3_z * z * s1,
             tmp_c * y,
-            z * (_C3_ZZZ[0] * zz + _C3_ZZZ[1]),
+            z * (c3_zzz[0] * zz + c3_zzz[1]),
             tmp_c * x,
-            _C3_Z * z * c1,
-            _C3_A * c2,
+            c3_z * z * c1,
+            c3_a * (x * c1 - y * s1),
         ]
     return torch.stack(out, dim=-1)
+
+
+class _EvalSH(torch.autograd.Function):
+    """sh [N, K, 3] float64 along dirs [R, N, 3] float64 -> [R, N, 3], with the numba kernels."""
+
+    @staticmethod
+    def forward(ctx, n_bases, sh, dirs):
+        sh_np, dirs_np = sh.detach().contiguous().numpy(), dirs.detach().contiguous().numpy()
+        out = torch.empty(dirs.shape, dtype=torch.float64)
+        parallel_for(kernels.sh_forward, sh.shape[0], n_bases, sh_np, dirs_np, out.numpy(), grain=_GRAIN)
+        ctx.save_for_backward(sh, dirs)
+        ctx.n_bases = n_bases
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_out):
+        sh, dirs = ctx.saved_tensors
+        v_sh = torch.zeros(sh.shape, dtype=torch.float64)
+        v_dirs = torch.empty(dirs.shape, dtype=torch.float64)
+        parallel_for(
+            kernels.sh_backward, sh.shape[0], ctx.n_bases, sh.detach().contiguous().numpy(),
+            dirs.detach().contiguous().numpy(), v_out.contiguous().numpy(), v_sh.numpy(), v_dirs.numpy(),
+            grain=_GRAIN,
+        )
+        return None, v_sh, v_dirs
 
 
 def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
@@ -80,14 +102,19 @@ def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
             model holding degree-3 coefficients can be evaluated at a lower degree (as in 3DGS's
             progressive SH schedule).
         sh: [..., K, 3] coefficients (K >= (degree + 1) ** 2), broadcastable against dirs.
-        dirs: [..., 3] view directions, any length (normalised here; a zero vector gives the DC term
-            only, without NaN).
+        dirs: [..., 3] view directions, any length (normalised here as F.normalize does, so a zero
+            vector gives finite values and gradients).
 
     Returns:
-        [..., 3] the SH value (no +0.5 offset, no clamping).
+        [..., 3] the SH value (no +0.5 offset, no clamping), in the promoted dtype of the inputs.
     """
     n_bases = num_sh_bases(degree)
     if sh.shape[-2] < n_bases:
         raise ValueError(f"degree {degree} needs {n_bases} SH coefficients per channel, got {sh.shape[-2]}")
-    bases = sh_bases(degree, F.normalize(dirs, dim=-1))
-    return torch.matmul(bases.unsqueeze(-2), sh[..., :n_bases, :]).squeeze(-2)
+    n = sh.shape[0]
+    if not (sh.is_cuda or dirs.is_cuda) and sh.dim() == 3 and dirs.dim() >= 2 and dirs.shape[-2] == n:
+        dtype = torch.promote_types(sh.dtype, dirs.dtype)
+        rows = dirs.to(torch.float64).reshape(-1, n, 3)
+        return _EvalSH.apply(n_bases, sh.to(torch.float64), rows).view(dirs.shape).to(dtype)
+    bases = sh_bases(degree, F.normalize(dirs, dim=-1, eps=kernels.NORMALIZE_EPS))
+    return torch.einsum("...k,...kc->...c", bases, sh[..., :n_bases, :])

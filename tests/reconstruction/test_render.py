@@ -397,13 +397,28 @@ def test_projection_meta_matches_gsplat_box_rule():
     assert torch.equal(proj.radii[0, vis, 0], torch.ceil(extent[vis] * cov_xx[vis].sqrt()).int())
 
 
-def test_eval_sh_matches_textbook_basis():
+@pytest.mark.parametrize("per_camera", [False, True])  # numba kernels / plain-torch path
+def test_eval_sh_matches_textbook_basis(per_camera):
     g = torch.Generator().manual_seed(0)
-    sh = torch.randn(2, 30, 16, 3, dtype=torch.float64, generator=g)
+    sh = torch.randn(*((2,) if per_camera else ()), 30, 16, 3, dtype=torch.float64, generator=g)
     dirs = torch.randn(2, 30, 3, dtype=torch.float64, generator=g) * 3.0
+    weights = torch.randn(2, 30, 3, dtype=torch.float64, generator=g)
     for degree in range(4):
         assert num_sh_bases(degree) == (degree + 1) ** 2
-        assert torch.allclose(eval_sh(degree, sh, dirs), _ref_sh(degree, sh, dirs), atol=1e-12)
+        ours = [t.clone().requires_grad_(True) for t in (sh, dirs)]
+        ref = [t.clone().requires_grad_(True) for t in (sh, dirs)]
+        out, ref_out = eval_sh(degree, *ours), _ref_sh(degree, *ref)
+        assert torch.allclose(out, ref_out, atol=1e-12)
+        (out * weights).sum().backward()
+        (ref_out * weights).sum().backward()
+        assert torch.allclose(ours[0].grad, ref[0].grad, atol=1e-12)
+        # Degree 0 does not depend on the directions: no gradient, or a zero one.
+        dirs_grads = [t.grad if t.grad is not None else torch.zeros_like(t) for t in (ours[1], ref[1])]
+        assert torch.allclose(*dirs_grads, rtol=1e-10, atol=1e-10)
+    # A camera centre on a Gaussian: a zero direction gives finite values and gradients.
+    zero = torch.zeros(2, 30, 3, dtype=torch.float64, requires_grad=True)
+    eval_sh(3, sh, zero).sum().backward()
+    assert torch.isfinite(zero.grad).all()
     with pytest.raises(ValueError):
         num_sh_bases(4)
 
