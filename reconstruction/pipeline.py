@@ -145,6 +145,8 @@ def reconstruct(
     result = train(Views(images, masks, Ks, c2w_init), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
     for stage, secs in result.timings_s.items():
         timings[f"train_{stage}"] = secs
+    choices["stage2_start"] = {"value": result.stage2_start.get("start"), "why": "Stage II starts from whichever of the Stage-I "
+                               "pose+field and the registration gives the lower Stage-II loss on the training views", **result.stage2_start}
     choices["iterations"] = {"value": result.iterations, "why": "stages stop at their cap or when the loss plateaus" if cfg.plateau else "fixed schedule"}
 
     t = time.perf_counter()

@@ -22,7 +22,7 @@ from torch import nn
 from calibration.sim3 import Sim3
 
 POSE_MODES = ("global", "per_camera")
-_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 
 def rotation_6d_to_matrix(r6: torch.Tensor) -> torch.Tensor:
@@ -58,7 +58,7 @@ class PoseCorrection(nn.Module):
         self.mode = mode
         n = 1 if mode == "global" else num_cameras
         self.num_cameras = num_cameras
-        self.r6 = nn.Parameter(torch.tensor([_IDENTITY_6D] * n, dtype=torch.float64))
+        self.r6 = nn.Parameter(torch.tensor([IDENTITY_6D] * n, dtype=torch.float64))
         self.t = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
         # Only the global mode carries a scale (the rig-to-CAD unit ambiguity); per-camera is SE(3).
         self.log_scale = nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=mode == "global")

@@ -33,7 +33,7 @@ from torch import nn
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField
 from reconstruction.losses import composite, dropout_active, dropout_fraction, mask_l1, photometric_loss, sh_neighbour_loss
-from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
+from reconstruction.pose_correction import IDENTITY_6D, PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, knn_indices, project_colors, rgb_to_sh_dc
@@ -156,6 +156,7 @@ class TrainResult:
     iterations: dict
     skipped_steps: int
     history: dict = field(default_factory=dict)
+    stage2_start: dict = field(default_factory=dict)  # which state Stage II started from, and why
 
 
 def _set_trainable(model: SplatModel, stage: str) -> None:
@@ -189,6 +190,43 @@ def _recolor(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init:
     rgb = project_colors(means, splats.normals, views.images, views.masks, viewmats, views.Ks)
     seen = ~np.all(rgb == 0.5, axis=1)
     model.sh0[torch.from_numpy(seen), 0] = torch.tensor(rgb_to_sh_dc(rgb[seen]), dtype=torch.float32)
+
+
+@torch.no_grad()
+def _stage2_objective(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data, preset: Preset) -> float:
+    """Stage II's loss over all training views (grey background, no dropout) right after recolouring."""
+    _recolor(model, splats, views, c2w_init)
+    imgs, cov, ks, w, h = data
+    idx = torch.arange(len(views.images))
+    bg = torch.full((len(idx), 3), 0.5)
+    rgb, alpha, _ = rasterize(model.means(), model.quats, torch.exp(model.log_scales), torch.sigmoid(model.opacity_logits),
+                              model.sh(), model.viewmats(c2w_init, idx), ks, w, h, sh_degree=model.sh_degree, backgrounds=bg)
+    return float(photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim) + preset.lambda_mask * mask_l1(alpha, cov))
+
+
+def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data,
+                         preset: Preset) -> dict:
+    """Stage II starts from the Stage-I pose and field, or from the registration (identity correction and
+    field) when that explains the training photographs better: silhouettes of a CAD model that is not
+    the photographed object can pull the pose off the texture (banana: started at the true pose, the
+    mask loss moved it 0.26 -> 0.88 deg). Returns both objective values and the choice."""
+    trained = _stage2_objective(model, splats, views, c2w_init, data, preset)
+    kept = {k: v.clone() for k, v in model.state_dict().items()}
+    with torch.no_grad():
+        model.pose.r6.copy_(torch.tensor(IDENTITY_6D, dtype=torch.float64).expand_as(model.pose.r6))
+        model.pose.t.zero_()
+        model.pose.log_scale.zero_()
+        model.field.mlp.head.weight.zero_()
+        model.field.mlp.head.bias.zero_()
+    registered = _stage2_objective(model, splats, views, c2w_init, data, preset)
+    if registered < trained:
+        for p in list(model.pose.parameters()) + list(model.field.parameters()):
+            opt.state.pop(p, None)
+        start = "registration"
+    else:
+        model.load_state_dict(kept)
+        start = "stage1"
+    return {"start": start, "objective_stage1": trained, "objective_registration": registered}
 
 
 def train(
@@ -254,7 +292,7 @@ def train(
         t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
         imgs, cov, ks, w, h = mask_data if stage != "photo" else photo_data
         if stage == "photo" and state["it"] == 0:
-            _recolor(model, splats, views, c2w_init)
+            state["stage2_start"] = _choose_stage2_start(model, opt, splats, views, c2w_init, photo_data, preset)
         last: dict = {}
         it = state["it"]
         while it < cap:
@@ -315,4 +353,5 @@ def train(
         save()
         if on_stage_end is not None:
             on_stage_end(stage, model)
-    return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"])
+    return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"],
+                       state.get("stage2_start", {}))
