@@ -250,7 +250,8 @@ def rasterize(
     alpha = 1 - T. See `project_gaussians` for projection and culling.
 
     Args:
-        means: [N, 3]; quats: [N, 4] wxyz (normalised here); scales: [N, 3] linear; opacities: [N].
+        means: [N, 3]; quats: [N, 4] wxyz (normalised here); scales: [N, 3] linear; opacities: [N] in
+            [0, 1] (post-sigmoid, as gsplat expects).
         colors: [N, D] or [C, N, D] values, or with `sh_degree` SH coefficients [N, K, 3] or
             [C, N, K, 3]; the colour is then max(SH(dir) + 0.5, 0) with dir from camera centre to mean.
         viewmats: [C, 4, 4] world-to-camera (OpenCV axes); Ks: [C, 3, 3] intrinsics.
