@@ -16,7 +16,6 @@ The new sample is assembled beside the old one and swapped in only when complete
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile

@@ -36,13 +36,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import trimesh  # noqa: E402
 
 from calibration.capture import read_capture  # noqa: E402
-from calibration.sim3 import Sim3  # noqa: E402
-from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg  # noqa: E402
+from calibration.so3 import geodesic_angle_deg  # noqa: E402
 from reconstruction.library import build_library  # noqa: E402
 from reconstruction.pose_metrics import registration_errors  # noqa: E402
 from reconstruction.registration import hypothesis, independent_poses, observe, register  # noqa: E402
 from reconstruction.silhouette import pack, render_silhouette, unpack  # noqa: E402
-from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, fibonacci_directions, popcount_rows, read_shard, render_model_views, write_shard  # noqa: E402
+from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, popcount_rows, read_shard, render_model_views, write_shard  # noqa: E402
 
 SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 YCB = SHARED / "objects" / "ycb"

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
-from calibration.fileio import _json_default, atomic_write_bytes, fsync_dir
+from calibration.fileio import atomic_create_bytes, atomic_write_bytes, json_default
 from calibration.multiview import RigCalibration
 
 FORMAT = "cadsplat.calibration/1"
@@ -141,24 +140,15 @@ def read_calibration(path: str | os.PathLike) -> CalibrationDoc:
 
 
 def _encode(doc: CalibrationDoc) -> bytes:
-    return (json.dumps(to_document(doc), indent=2, default=_json_default, allow_nan=False) + "\n").encode()
+    return (json.dumps(to_document(doc), indent=2, default=json_default, allow_nan=False) + "\n").encode()
 
 
 def _write_new(path: Path, data: bytes) -> None:
-    """Write `data` to `path` atomically, failing if `path` exists (link(2) never replaces)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """Write a version file once: versions are never overwritten."""
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise CalibrationFileError(f"{path}: version already exists; versions are never overwritten") from None
-    finally:
-        os.unlink(tmp)
-    fsync_dir(path.parent)
+        atomic_create_bytes(path, data)
+    except FileExistsError:
+        raise CalibrationFileError(f"{path}: version already exists; versions are never overwritten") from None
 
 
 class CalibrationStore:

@@ -36,25 +36,46 @@ def fsync_dir(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
-    """Write `data` to `path` atomically; returns its sha256. The parent directory must exist."""
-    path = Path(path)
+def _durable_temp(path: Path, data: bytes) -> str:
+    """`data` in a fsynced temporary file beside `path`; returns the temporary file's name."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return tmp
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> str:
+    """Write `data` to `path` atomically (replacing it); returns its sha256. The parent directory must exist."""
+    path = Path(path)
+    tmp = _durable_temp(path, data)
+    try:
         os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        os.unlink(tmp)
         raise
     fsync_dir(path.parent)
     return sha256_bytes(data)
 
 
-def _json_default(o):
+def atomic_create_bytes(path: str | os.PathLike, data: bytes) -> str:
+    """Write `data` to a new file `path` atomically; FileExistsError if it exists (link(2) never replaces)."""
+    path = Path(path)
+    tmp = _durable_temp(path, data)
+    try:
+        os.link(tmp, path)
+    finally:
+        os.unlink(tmp)
+    fsync_dir(path.parent)
+    return sha256_bytes(data)
+
+
+def json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer, np.bool_)):
@@ -66,7 +87,7 @@ def _json_default(o):
 
 def atomic_write_json(path: str | os.PathLike, obj) -> str:
     """Write `obj` as indented JSON atomically; returns its sha256."""
-    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=False)
+    text = json.dumps(obj, indent=2, default=json_default, allow_nan=False)
     return atomic_write_bytes(path, (text + "\n").encode())
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import cv2
-import numpy as np
 import pytest
 
 from calibration.board import BoardSpecError, board_image_at_dpi, detect_board, parse_board

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from calibration.camera import Camera
 from calibration.capture import FrameData, write_capture

@@ -1,4 +1,3 @@
-import json
 import os
 import signal
 import subprocess
@@ -8,7 +7,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from calibration.camera import Camera
 from calibration.capture import FrameData, write_capture
