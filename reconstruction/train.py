@@ -238,7 +238,7 @@ def train(
     seed: int = 0,
     progress: ProgressFn | None = None,
     checkpoint: str | os.PathLike | None = None,
-    on_stage_end: Callable[[str, "SplatModel"], None] | None = None,
+    on_stage_end: Callable[[str, SplatModel], None] | None = None,
 ) -> TrainResult:
     """Run Stage I (pose, then pose + deformation) and Stage II (photometric) on `views`.
 
