@@ -36,22 +36,38 @@ def orbit_cameras(twin, n: int):
 @click.argument("twin_dir", type=click.Path(path_type=Path))
 @click.option("--views", "views_dir", default=None, type=click.Path(path_type=Path), help="Capture whose cameras (rig frame) to render from.")
 @click.option("--orbit", default=None, type=click.IntRange(1, 3600), help="Render a turntable of N views instead.")
-@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Directory for the PNGs.")
+@click.option("--out", "out_dir", default=None, type=click.Path(path_type=Path), help="Directory for the PNGs.")
+@click.option("--explode", default=0.0, show_default=True, type=float, help="Move parts away from the assembly centre by this fraction (an exploded view).")
+@click.option("--hide-part", "hidden", multiple=True, help="Leave this part (name or index) out; repeatable.")
+@click.option("--list-parts", is_flag=True, help="List the twin's parts and their splat counts, render nothing.")
 @click.option("--refine-steps", default=0, show_default=True, type=click.IntRange(0, 10000),
               help="Test-time pose refinement steps per view against the capture's own images (the twin stays frozen).")
-def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: Path, refine_steps: int) -> None:
+def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: Path | None, explode: float, hidden: tuple[str, ...],
+           list_parts: bool, refine_steps: int) -> None:
     from rich.progress import track
 
     from calibration.capture import read_capture
     from calibration.fileio import atomic_write_png
-    from reconstruction.pipeline import twin_rgba
+    from reconstruction.pipeline import render_rgba
     from reconstruction.twin import load_twin
+    from simulation.parts import exploded_splats
+    from simulation.parts import list_parts as twin_parts
 
+    if list_parts:
+        for index, name, count in twin_parts(load_twin(twin_dir)):
+            click.echo(f"{index:>3}  {name:<32} {count:>8} splats")
+        return
+    if out_dir is None:
+        raise click.ClickException("--out DIR is required to render")
     if (views_dir is None) == (orbit is None):
         raise click.ClickException("give exactly one of --views CAPTURE or --orbit N")
     if orbit is not None and refine_steps:
         raise click.ClickException("--refine-steps needs --views: an orbit has no photographs to refine against")
     twin = load_twin(twin_dir)
+    if explode or hidden:
+        splats = exploded_splats(twin, explode, hidden)
+    else:
+        splats = {k: getattr(twin, k) for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "sh_degree")}
     if views_dir is not None:
         capture = read_capture(views_dir)
         jobs = [(Path(f.file_path).name, capture.camera(i).with_c2w(twin.sim3_rig_to_object.apply_to_c2w(f.camera.c2w)), i)
@@ -70,5 +86,6 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
                 mask = capture_masks(capture)[0][i]
             ref = refine_camera_pose(FrozenGaussians.from_twin(twin), cam, capture.image(i), mask, steps=refine_steps)
             cam = cam.with_c2w(ref.c2w)
-        atomic_write_png(out_dir / f"{Path(name).stem}.png", twin_rgba(twin, cam))
+        rgba = render_rgba(splats["means"], splats["quats"], splats["log_scales"], splats["opacity_logits"], splats["sh"], splats["sh_degree"], cam)
+        atomic_write_png(out_dir / f"{Path(name).stem}.png", rgba)
     click.echo(f"{len(jobs)} RGBA images written to {out_dir}")
