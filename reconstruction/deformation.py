@@ -29,6 +29,9 @@ class FieldConfig:
     bands: int = 10
     num_anchors: int | None = None  # None: evaluate at every splat (the paper)
     anchor_k: int = 4
+    # Remove the field's best-fit similarity (translation, infinitesimal rotation, uniform scale) at
+    # its evaluation points, so the field cannot mimic the global Sim(3) the pose correction owns.
+    project_similarity: bool = False
 
 
 def positional_encoding(x: torch.Tensor, bands: int) -> torch.Tensor:
@@ -64,6 +67,22 @@ class DeformationMLP(nn.Module):
                 h = torch.cat([h, enc], 1)
             h = torch.relu(layer(h))
         return self.head(h)
+
+
+def similarity_basis(points: torch.Tensor) -> torch.Tensor:
+    """Offsets [P * 3, 7] of points [P, 3] (about their centre, in about [-1, 1]) under the 7 infinitesimal
+    similarities: 3 translations, 3 rotations (ω × x), 1 uniform scaling (x)."""
+    p = len(points)
+    eye = torch.eye(3, dtype=points.dtype).expand(p, 3, 3)  # [P, 3 (dim), 3 (generator)]
+    rot = torch.cross(torch.eye(3, dtype=points.dtype)[None].expand(p, 3, 3), points[:, None, :].expand(p, 3, 3), dim=-1)
+    cols = torch.cat([eye, rot.transpose(1, 2), points[:, :, None]], 2)  # [P, 3, 7]
+    return cols.reshape(p * 3, 7)
+
+
+def remove_similarity(offsets: torch.Tensor, basis: torch.Tensor, pinv: torch.Tensor) -> torch.Tensor:
+    """offsets [P, 3] minus their least-squares fit by `basis` [P * 3, 7] (pinv = its pseudo-inverse [7, P * 3])."""
+    flat = offsets.reshape(-1)
+    return (flat - basis @ (pinv @ flat)).reshape(offsets.shape)
 
 
 def farthest_point_indices(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
@@ -119,6 +138,17 @@ class DeformationField(nn.Module):
         else:
             self.register_buffer("anchors", None)
             self.register_buffer("points", torch.tensor(pts, dtype=torch.float32))
+        self._set_projection()
+
+    def _set_projection(self) -> None:
+        """Similarity basis and pseudo-inverse at the evaluation points (anchors or splats), or none."""
+        if not self.config.project_similarity:
+            self.sim_basis, self.sim_pinv = None, None
+            return
+        at = self.anchors if self.anchors is not None else self.points
+        x = (at.double() - self.center.double()) / self.radius.double()
+        basis = similarity_basis(x)
+        self.sim_basis, self.sim_pinv = basis.float(), torch.linalg.pinv(basis).float()
 
     @property
     def num_evaluations(self) -> int:
@@ -132,19 +162,26 @@ class DeformationField(nn.Module):
     def forward(self) -> torch.Tensor:
         """Δμ [N, 3] at the canonical means."""
         if self.anchors is None:
-            return self._mlp_at(self.points)
-        d = self._mlp_at(self.anchors)
+            return self._project(self._mlp_at(self.points))
+        d = self._project(self._mlp_at(self.anchors))
         return torch.einsum("nk,nkd->nd", self.anchor_w, d[self.anchor_idx])
+
+    def _project(self, d: torch.Tensor) -> torch.Tensor:
+        return d if self.sim_basis is None else remove_similarity(d, self.sim_basis, self.sim_pinv)
 
     @torch.no_grad()
     def offsets_at(self, points: np.ndarray) -> np.ndarray:
         """Δ [P, 3] at arbitrary canonical points (e.g. CAD vertices), the same field the splats see."""
         pts = np.asarray(points, np.float64)
         if self.anchors is None:
-            return self._mlp_at(torch.tensor(pts, dtype=torch.float32)).numpy().astype(np.float64)
-        anchors = self.anchors.numpy()
+            # Without anchors the field lives at the splats: other points take an IDW blend of the
+            # splats' (projected) offsets, so the mesh moves exactly as the splats around it do.
+            if self.sim_basis is None:
+                return self._mlp_at(torch.tensor(pts, dtype=torch.float32)).numpy().astype(np.float64)
+            anchors, d = self.points.numpy(), self.forward().numpy()
+        else:
+            anchors, d = self.anchors.numpy(), self._project(self._mlp_at(self.anchors)).numpy()
         idx, w = idw_weights(pts, anchors, self.config.anchor_k)
-        d = self._mlp_at(self.anchors).numpy()
         return np.einsum("nk,nkd->nd", w, d[idx]).astype(np.float64)
 
     def export_state(self) -> dict:
@@ -174,4 +211,5 @@ def field_from_state(state: dict, means_canonical: np.ndarray) -> DeformationFie
         field.anchor_idx = torch.from_numpy(idx)
         field.anchor_w = torch.from_numpy(w)
         field.points = torch.zeros(0, 3)
+    field._set_projection()
     return field

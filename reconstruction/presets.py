@@ -40,6 +40,7 @@ class Preset:
     lambda_dssim: float = 0.2
     lambda_mask: float = 1.0
     lambda_sh: float = 1.0
+    lambda_fill: float = 0.0  # Stage II: weight of `losses.fill_loss` (alpha saturation inside the mask); 0 is the paper
     lr: dict = field(default_factory=lambda: dict(PAPER_LR))
     refine_steps: int = 400
     image_scale: float = 1.0  # Stage-II training resolution relative to the capture

@@ -32,7 +32,7 @@ from torch import nn
 
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField
-from reconstruction.losses import composite, dropout_active, dropout_fraction, mask_l1, photometric_loss, sh_neighbour_loss
+from reconstruction.losses import composite, dropout_active, dropout_fraction, fill_loss, mask_l1, photometric_loss, sh_neighbour_loss
 from reconstruction.pose_correction import IDENTITY_6D, PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.render import rasterize
@@ -322,6 +322,10 @@ def train(
                 l_sh = sh_neighbour_loss(model.sh(), neighbours)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
+                if preset.lambda_fill:
+                    l_fill = fill_loss(alpha, cov[idx])
+                    loss = loss + preset.lambda_fill * l_fill
+                    last["fill"] = l_fill
             opt.zero_grad(set_to_none=True)
             value = float(loss.detach())
             if math.isfinite(value):

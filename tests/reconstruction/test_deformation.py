@@ -102,3 +102,31 @@ def test_state_round_trip_millimetres():
     g = field_from_state(f.export_state(), pts)
     np.testing.assert_allclose(g().detach().numpy(), f().detach().numpy(), rtol=1e-6)
     assert g.num_evaluations == 64
+
+
+@pytest.mark.parametrize("anchors", [None, 128])
+def test_projected_field_has_no_similarity_component(anchors):
+    """With project_similarity, a global translation, rotation or scaling is invisible to the field (the
+    pose correction owns those), while a non-rigid warp passes through."""
+    from reconstruction.deformation import similarity_basis
+
+    pts = sphere_points(600, r=0.1)
+    f = DeformationField(pts, FieldConfig(depth=2, width=16, bands=3, num_anchors=anchors, project_similarity=True))
+    with torch.no_grad():
+        f.mlp.head.bias[:] = torch.tensor([0.1, 0.2, 0.3])  # a pure translation of the whole field
+    assert float(f().detach().abs().max()) < 1e-6
+    # Random head weights: the evaluated offsets keep no least-squares similarity component.
+    torch.manual_seed(0)
+    with torch.no_grad():
+        f.mlp.head.weight.normal_(0, 0.1)
+    at = f.anchors if anchors else f.points
+    d = f._mlp_at(at)
+    dp = f._project(d)
+    basis = similarity_basis(((at - f.center) / f.radius).double())
+    coef = torch.linalg.lstsq(basis, dp.double().reshape(-1, 1)).solution
+    assert float(coef.abs().max()) < 1e-6 * float(d.abs().max() / f.radius)
+    assert float(dp.norm()) > 0.1 * float(d.norm())  # the non-rigid part remains
+    # A restored field projects the same way, and the mesh (offsets_at) moves with the splats.
+    g = field_from_state(f.export_state(), pts)
+    np.testing.assert_allclose(g().detach().numpy(), f().detach().numpy(), atol=1e-7)
+    np.testing.assert_allclose(f.offsets_at(pts), f().detach().numpy(), atol=1e-6)

@@ -11,6 +11,7 @@ from reconstruction.losses import (
     composite,
     dropout_active,
     dropout_fraction,
+    fill_loss,
     mask_l1,
     photometric_loss,
     sh_neighbour_loss,
@@ -59,6 +60,20 @@ def test_mask_l1_and_composite():
     out = composite(img, mask, bg)
     torch.testing.assert_close(out[0, :2], img[0, :2])
     torch.testing.assert_close(out[0, 2:], bg.expand(2, 4, 3))
+
+
+def test_fill_loss_is_mean_under_coverage_inside_the_mask():
+    mask = torch.zeros(2, 4, 4)
+    mask[:, 1:3, 1:3] = 1.0  # 8 object pixels over both views
+    alpha = torch.full((2, 4, 4), 0.25)
+    # Alpha outside the object costs nothing; inside, 1 - A averaged over the object's pixels.
+    assert math.isclose(float(fill_loss(alpha, mask)), 0.75, rel_tol=1e-6)
+    alpha[:, 1:3, 1:3] = 1.0
+    assert float(fill_loss(alpha, mask)) == 0.0
+    # Fractional (area-downsampled) coverage weights the rim pixels by how much of them is object.
+    mask[0, 0, 0], alpha[0, 0, 0] = 0.5, 0.0
+    assert math.isclose(float(fill_loss(alpha, mask)), 0.5 / 8.5, rel_tol=1e-6)
+    assert float(fill_loss(alpha, torch.zeros(1, 4, 4))) == 0.0
 
 
 def test_ssim_identity_and_photometric():
