@@ -159,11 +159,13 @@ class TrainResult:
     stage2_start: dict = field(default_factory=dict)  # which state Stage II started from, and why
 
 
-def _set_trainable(model: SplatModel, stage: str) -> None:
+def _set_trainable(model: SplatModel, stage: str, pose_scale: bool = True) -> None:
     on = TRAINABLE[stage]
     for group in model.param_groups({k: 0.0 for k in ("pose", "deformation", "scales", "opacities", "sh0", "shN")}):
         for p in group["params"]:
             p.requires_grad_(group["name"] in on)
+    # Only the global Sim(3) has a scale; per-camera SE(3) deltas never learn one.
+    model.pose.log_scale.requires_grad_("pose" in on and pose_scale and model.pose.mode == "global")
 
 
 def _grads_finite(params) -> bool:
@@ -281,7 +283,7 @@ def train(
     trainable = [p for g in opt.param_groups for p in g["params"]]
     for si in range(state["stage"], len(STAGES)):
         stage = STAGES[si]
-        _set_trainable(model, stage)
+        _set_trainable(model, stage, preset.pose_scale)
         pose_group = next(g for g in opt.param_groups if g["name"] == "pose")
         pose_lr = preset.lr.get(f"pose_{stage}", preset.lr["pose"])
         cap = caps[stage]
