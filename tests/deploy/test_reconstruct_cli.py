@@ -125,9 +125,6 @@ def test_twin_silhouettes_beat_initial_state_on_heldout_views(before_after):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="open defect: on the sample (preview) held-out IoU rises 0.877 -> 0.962 but fgPSNR "
-                   "falls 26.3 -> 23.1 dB; Stage II alone (no deformation) still takes it 25.0 -> 23.5 dB while IoU rises "
-                   "0.894 -> 0.937 (suspect: new boundary pixels at alpha 0.5-0.9 over white); see the issue-5 report")
 def test_twin_colours_beat_initial_state_on_heldout_views(before_after):
     before, after = before_after
     assert after["fgpsnr"] > before["fgpsnr"] + 0.5, (before["fgpsnr"], after["fgpsnr"])
