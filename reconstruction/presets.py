@@ -173,10 +173,13 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     # Rim pixels: L_mask weighs them by their share of the whole image and leaves them at alpha 0.5-0.9,
     # which the protocol composites on white (sample, preview: held-out fgPSNR over the 2-px rim 20.8 -> 15.3 dB
     # while the interior rose 29.6 -> 31.1; lambda_fill 0 / 1 / 2: fgPSNR 23.0 / 27.1 / 27.6 dB, IoU 0.964 / 0.939 / 0.913).
-    # Preview's short Stage II needs the stronger push (sample, preview, 80 Stage-II iterations: lambda_fill
-    # 1 / 1.5: fgPSNR 27.1 / 27.6 dB, IoU 0.954 / 0.947).
-    lambda_fill = 1.5 if preview else 1.0
-    choices["lambda_fill"] = _choice(lambda_fill, "alpha pushed to saturate inside the mask so the object's rim renders opaque")
+    # Preview's short Stage II needs the push (sample, preview, 80 Stage-II iterations: lambda_fill 1 / 1.5:
+    # fgPSNR 27.1 / 27.6 dB, IoU 0.954 / 0.947). The cpu preset's 200 iterations at full size fit the rim
+    # without it, and on the banana it spills: lambda_fill 0 / 0.3 / 1: IoU 0.898 / 0.834 / 0.814, fgPSNR
+    # 23.40 / 23.31 / 23.04 dB (sample at 1: fgPSNR 29.75 dB, IoU 0.963).
+    lambda_fill = 1.5 if preview else 0.0
+    choices["lambda_fill"] = _choice(lambda_fill, "alpha pushed to saturate inside the mask so the object's rim renders opaque"
+                                     if lambda_fill else "off: full-size Stage II fits the rim; the fill term spilled past it (banana)")
     preset = Preset(
         name=name, num_splats=n, sh_degree=degree, field=fc, iters_pose=iters[0], iters_deform=iters[1],
         iters_photo=iters[2], plateau=not preview, dropout_p0=0.0, dropout_anneal=anneal, lr=lr, lambda_sh=lambda_sh,
