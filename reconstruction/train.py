@@ -354,7 +354,8 @@ def train(
         state["timings"][stage] = time.perf_counter() - t0
         state["iterations"][stage] = it
         state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
-        state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else float("nan")
+        # A stage that ran no iteration (an ablation) has no loss to report: null, not NaN (twin.json is strict JSON).
+        state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else None
         state["stage"], state["it"], state["plateau"] = si + 1, 0, []
         save()
         if on_stage_end is not None:

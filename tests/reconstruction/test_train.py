@@ -152,3 +152,15 @@ def test_one_random_view_per_iteration_as_the_paper():
     splats = init_splats(parts.vertices, parts.faces, 1000, sh_degree=0, seed=0)
     res = train(views, splats, replace(tiny_preset(pose=6, deform=4, photo=6), views_per_iter=1))
     assert res.iterations == {"pose": 6, "deform": 4, "photo": 6} and finite_model(res.model)
+
+
+def test_stage_without_iterations_reports_null_loss_not_nan():
+    """An ablation that skips a stage (no mask warm-up) still yields strict-JSON losses."""
+    import json
+
+    views, parts, _ = sample_scene(n_views=2)
+    splats = init_splats(parts.vertices, parts.faces, 1000, sh_degree=0, seed=0)
+    res = train(views, splats, tiny_preset(pose=0, deform=0, photo=4))
+    assert res.losses["pose"]["total_last_window"] is None and res.losses["deform"]["total_last_window"] is None
+    json.dumps(res.losses, allow_nan=False)
+    assert finite_model(res.model)
