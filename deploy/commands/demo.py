@@ -1,4 +1,5 @@
-"""`cadsplat demo`: the bundled sample, end to end. Today: load it, validate it, print what it holds."""
+"""`cadsplat demo`: the bundled sample, end to end: validate it, build its CAD library, register,
+reconstruct, render the held-out views and score them against the sample's ground truth."""
 
 from __future__ import annotations
 
