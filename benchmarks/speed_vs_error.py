@@ -10,20 +10,23 @@ over camera centres (first view drawn from the seed), as the paper's sparsity st
 
 Methods (one point per method x preset):
 - full: the engine with presets `preview`, `cpu`, and `paper` (600k splats; iterations / 30 on a
-  CPU, the full schedule where CUDA is present);
-- no-mask-warmup: the `cpu` preset with Stage I cut to one iteration per sub-stage (the rest moved
-  to Stage II), the paper's strongest ablation;
-- sphere-init: the `cpu` preset on `baselines.sphere_mesh_for_views` instead of the CAD model;
+  CPU and only on the first two scenes, the full schedule where CUDA is present);
+- ablations (`presets.ABLATIONS`, `cpu` preset): no-mask-warmup (the paper's strongest) on every
+  scene; no-deformation, no-pose and no-sh-smoothness on the first three (no-dropout is not run:
+  the `cpu` preset has dropout off already);
+- sphere-init: the `cpu` preset on the paper's sphere instead of the CAD model;
 - vanilla-3dgs: `baselines.train_vanilla_3dgs`, the original recipe, schedule scaled to its iterations.
+
+Runs go breadth-first (every scene at all views first, then 3, 5 and 8 views, then the extra
+ablations), so an interrupted sweep has reported the rows that matter most.
 
 Every run's twin is scored by `reconstruction.evaluation` (the paper's protocol) on evenly spread
 held-out views. Each run's metrics are cached as JSON under the work directory, so an interrupted
 sweep resumes where it stopped. Writes benchmarks/results/speed_vs_error.md and
 speed_vs_error_time.png / speed_vs_error_views.png.
 
-The engine (reconstruction/pipeline.py) takes no preset overrides or initial mesh yet, so the
-ablation and the sphere init reach it by substituting `pipeline.resolve_preset` and
-`registration.register` for the duration of one run (see `engine_overrides`).
+Ablations and the sphere init are the engine's own switches (`reconstruct(init=..., ablations=...)`,
+`cadsplat reconstruct --init sphere --ablate NAME`).
 """
 
 from __future__ import annotations
@@ -33,10 +36,8 @@ import json
 import os
 import sys
 import time
-from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -50,14 +51,14 @@ OBJECTS = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_
            "077_rubiks_cube", "061_foam_brick")
 VIEW_COUNTS = ("all", 8, 5, 3)
 # Methods whose twin lives in the CAD model's frame, so that gt.json's object-frame poses apply.
-CAD_FRAME_METHODS = ("full", "no-mask-warmup")
+CAD_FRAME_METHODS = ("full", "no-mask-warmup", "no-deformation", "no-pose", "no-sh-smoothness")
 SUMMARY = ("psnr", "ssim", "lpips", "mpsnr", "mlpips", "fgpsnr", "iou")
 
 
 @dataclass(frozen=True)
 class Run:
     scene: str
-    method: str  # full | no-mask-warmup | sphere-init | vanilla-3dgs
+    method: str  # full | an ablation (presets.ABLATIONS) | sphere-init | vanilla-3dgs
     preset: str  # engine preset, or "i<iterations>" for vanilla 3DGS
     views: str  # "all" or a count
 
@@ -101,65 +102,25 @@ def fps_views(centres: np.ndarray, k: int, seed: int) -> list[int]:
     return sorted(chosen)
 
 
-# ------------------------------------------------------------------------------------ engine hooks
+# ------------------------------------------------------------------------------------ engine switches
 
 
-@dataclass
-class _SphereRegistration:
-    """What `pipeline.reconstruct` reads from a registration, for the sphere: identity, nothing retrieved."""
+def engine_kwargs(method: str, preset: str, cuda: bool) -> dict:
+    """`pipeline.reconstruct` keyword arguments for a method: ablations and the sphere init are engine
+    switches; the `paper` preset runs its iterations / 30 on a CPU."""
+    from reconstruction.presets import ABLATIONS, PAPER
 
-    model_id: str
-    sim3_rig_to_object: object
-    score: float = 0.0
-
-    def to_dict(self) -> dict:
-        return {"model_id": self.model_id, "sim3_rig_to_object": self.sim3_rig_to_object.to_dict(),
-                "why": "sphere initialisation (paper 4.4.2): no retrieval, the sphere lives in the rig frame"}
-
-
-@contextmanager
-def engine_overrides(method: str, preset: str, cuda: bool):
-    """Substitutes the engine's preset resolution (ablations, reduced `paper`) and registration
-    (sphere init) for one run; restores them afterwards."""
-    import reconstruction.library as library_module
-    import reconstruction.pipeline as pipeline
-    import reconstruction.registration as registration
-    from calibration.sim3 import Sim3
-    from reconstruction.baselines import sphere_mesh_for_views
-    from reconstruction.twin import MeshParts
-
-    orig_resolve, orig_register, orig_parts = pipeline.resolve_preset, registration.register, pipeline.model_parts
-    orig_load = library_module.load_library
-    sphere: dict = {}
-
-    def resolve(name, stats):
-        p, choices = orig_resolve(name, stats)
-        if name == "paper" and not cuda:
-            p = replace(p, iters_pose=p.iters_pose // 30, iters_deform=p.iters_deform // 30, iters_photo=p.iters_photo // 30,
-                        dropout_anneal=p.dropout_anneal // 30)
-            choices["benchmark"] = {"value": "iterations / 30", "why": "paper preset on a CPU (speed_vs_error.py)"}
-        if method == "no-mask-warmup":
-            # One iteration per Stage-I sub-stage, not zero: train.py records a stage that never ran
-            # as a NaN loss, which twin.json (strict JSON) refuses. One silhouette step is no warm-up.
-            p = replace(p, iters_photo=p.iters_photo + p.iters_pose + p.iters_deform - 2, iters_pose=1, iters_deform=1)
-            choices["ablation"] = {"value": "no mask warm-up", "why": "Stage I cut to 1+1 iterations, the rest moved to Stage II"}
-        return p, choices
-
-    def register(masks, cams, library, **_kw):
-        mesh = sphere_mesh_for_views(cams, masks)
-        sphere["parts"] = MeshParts(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.zeros(len(mesh.faces), np.int64), ["sphere"])
-        return _SphereRegistration("sphere", Sim3.identity())
-
-    pipeline.resolve_preset = resolve
+    kw: dict = {}
     if method == "sphere-init":
-        registration.register = register
-        pipeline.model_parts = lambda library, model_id: sphere["parts"]
-        library_module.load_library = lambda path: SimpleNamespace(models=[])  # no CAD library is consulted
-    try:
-        yield
-    finally:
-        pipeline.resolve_preset, registration.register, pipeline.model_parts = orig_resolve, orig_register, orig_parts
-        library_module.load_library = orig_load
+        kw["init"] = "sphere"
+    elif method in ABLATIONS:
+        kw["ablations"] = [method]
+    elif method != "full":
+        raise ValueError(f"unknown method {method!r}")
+    if preset == "paper" and not cuda:
+        kw["overrides"] = {"iters_pose": PAPER.iters_pose // 30, "iters_deform": PAPER.iters_deform // 30,
+                           "iters_photo": PAPER.iters_photo // 30, "dropout_anneal": PAPER.dropout_anneal // 30}
+    return kw
 
 
 # ------------------------------------------------------------------------------------ one run
@@ -194,9 +155,8 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
         else:
             from reconstruction.pipeline import reconstruct
 
-            with engine_overrides(run.method, run.preset, torch.cuda.is_available()):
-                reconstruct(scene_dir / "train", scene_dir / "lib", twin_dir, preset=run.preset, views=idx, seed=args.seed,
-                            overwrite=True)
+            reconstruct(scene_dir / "train", scene_dir / "lib", twin_dir, preset=run.preset, views=idx, seed=args.seed,
+                        overwrite=True, **engine_kwargs(run.method, run.preset, torch.cuda.is_available()))
     train_wall = time.perf_counter() - t0
     twin = load_twin(twin_dir)
     held = read_capture(scene_dir / "heldout")
@@ -247,7 +207,7 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         "| method | preset | views | scenes | train s | splats | PSNR | SSIM | LPIPS | mPSNR | mLPIPS | fgPSNR | IoU | rot deg | ctr % |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    order = {"full": 0, "sphere-init": 1, "no-mask-warmup": 2, "vanilla-3dgs": 3}
+    order = {"full": 0, "no-mask-warmup": 1, "no-deformation": 2, "no-pose": 3, "no-sh-smoothness": 4, "sphere-init": 5, "vanilla-3dgs": 6}
     vorder = {v: i for i, v in enumerate(map(str, VIEW_COUNTS))}
     for (method, preset, views), ds in sorted(groups.items(), key=lambda kv: (vorder.get(kv[0][2], 9), order.get(kv[0][0], 9), kv[0][1])):
         reg = [d["registration"] for d in ds if d.get("registration") and method in CAD_FRAME_METHODS]
@@ -310,35 +270,40 @@ def main() -> None:
 
     cuda = torch.cuda.is_available()
     if args.quick:
-        n_scenes, view_counts, args.heldout_views = args.scenes or 2, ("all", 3), 4
+        n_scenes, args.heldout_views = args.scenes or 2, 4
         args.refine_steps = 20 if args.refine_steps is None else args.refine_steps
-        methods = [("full", "preview"), ("no-mask-warmup", "preview"), ("sphere-init", "preview"), ("vanilla-3dgs", "i300")]
         args.vanilla_init_points = 3000
+        per_view = [("full", "preview"), ("vanilla-3dgs", "i300")]
+        plan = [(v, m, p, n_scenes) for v in ("all", 3) for m, p in per_view]
+        plan += [("all", m, "preview", n_scenes) for m in ("no-mask-warmup", "sphere-init")]
     else:
-        n_scenes, view_counts, args.heldout_views = args.scenes or 6, VIEW_COUNTS, 8
+        n_scenes, args.heldout_views = args.scenes or 6, 6
         args.refine_steps = 50 if args.refine_steps is None else args.refine_steps
-        methods = [("full", "preview"), ("full", "cpu"), ("full", "paper"), ("no-mask-warmup", "cpu"), ("sphere-init", "cpu"),
-                   ("vanilla-3dgs", "i3000")]
         args.vanilla_init_points = 10_000 if not cuda else 100_000
+        vanilla = "i3000" if cuda else "i1000"
+        plan = [("all", m, p, n_scenes) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla), ("no-mask-warmup", "cpu"),
+                                                     ("full", "preview"), ("sphere-init", "cpu"))]
+        plan += [(v, m, p, n_scenes) for v in (3, 5, 8) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla))]
+        plan += [("all", m, "cpu", min(3, n_scenes)) for m in ("no-deformation", "no-pose", "no-sh-smoothness")]
+        plan += [("all", "full", "paper", n_scenes if cuda else min(2, n_scenes))]
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    scenes = [make_scene(args.work, i, obj) for i, obj in enumerate(OBJECTS[:n_scenes])]
     docs = []
-    for i, obj in enumerate(OBJECTS[:n_scenes]):
-        scene = make_scene(args.work, i, obj)
-        for views in view_counts:
-            for method, preset in methods:
-                run = Run(scene.name, method, preset, str(views))
-                t = time.perf_counter()
-                try:
-                    doc = run_one(run, scene, args.work, args)
-                except Exception as e:  # one failed configuration is reported, the sweep goes on
-                    print(f"{run.key}: FAILED ({e.__class__.__name__}: {e})", flush=True)
-                    continue
-                docs.append(doc)
-                m = doc["mean_refined"] or doc["mean"]
-                print(f"{run.key}: train {doc['train_wall_s']:.0f} s, fgPSNR {m['fgpsnr']}, IoU {m['iou']:.3f} "
-                      f"({time.perf_counter() - t:.0f} s)", flush=True)
-                write_report(docs, args, time.perf_counter() - t0)
+    for views, method, preset, upto in plan:
+        for scene in scenes[:upto]:
+            run = Run(scene.name, method, preset, str(views))
+            t = time.perf_counter()
+            try:
+                doc = run_one(run, scene, args.work, args)
+            except Exception as e:  # one failed configuration is reported, the sweep goes on
+                print(f"{run.key}: FAILED ({e.__class__.__name__}: {e})", flush=True)
+                continue
+            docs.append(doc)
+            m = doc["mean_refined"] or doc["mean"]
+            print(f"{run.key}: train {doc['train_wall_s']:.0f} s, fgPSNR {m['fgpsnr']}, IoU {m['iou']:.3f} "
+                  f"({time.perf_counter() - t:.0f} s)", flush=True)
+            write_report(docs, args, time.perf_counter() - t0)
     print(write_report(docs, args, time.perf_counter() - t0))
 
 

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,8 @@ from calibration.camera import Camera
 from calibration.capture import Capture, load_views, read_capture
 from calibration.sim3 import Sim3
 from reconstruction.pose_correction import choose_pose_mode
-from reconstruction.presets import resolve_preset, scene_stats
+from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
+from reconstruction.registration import RegistrationResult
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
@@ -76,6 +78,22 @@ def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -
     return all_masks[list(indices)], source
 
 
+def sphere_registration(masks: np.ndarray, cams: Sequence[Camera]) -> tuple[RegistrationResult, MeshParts]:
+    """The sphere initialisation as a registration: the sphere lives in the rig frame (identity Sim(3)),
+    scored by its silhouette IoU in every view like a retrieved model."""
+    from reconstruction.baselines import sphere_mesh_for_views
+    from reconstruction.registration import REFINE_PX, Scorer
+
+    t = time.perf_counter()
+    mesh = sphere_mesh_for_views(cams, masks)
+    parts = MeshParts(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.zeros(len(mesh.faces), np.int64), ["sphere"])
+    ious = Scorer(masks, list(cams), REFINE_PX)(parts.vertices, parts.faces, Sim3.identity())
+    reg = RegistrationResult(model_id="sphere", sim3_rig_to_object=Sim3.identity(), per_view_iou=ious, score=float(ious.mean()),
+                             alternatives=[], ambiguity=None, timings_s={"total": time.perf_counter() - t}, truncated_views=[],
+                             scale_observable=True)
+    return reg, parts
+
+
 def reconstruct(
     capture_path: str | os.PathLike,
     library_path: str | os.PathLike,
@@ -89,12 +107,20 @@ def reconstruct(
     progress: ProgressFn | None = None,
     log: Log | None = None,
     overwrite: bool = False,
+    init: str = "cad",
+    ablations: Sequence[str] = (),
+    overrides: Mapping[str, Any] | None = None,
 ) -> Reconstruction:
     """Reconstruct the twin of a capture; writes `out_dir` (atomically) and returns the twin.
 
     An interrupted run leaves `.<out_dir name>.checkpoint.pt` beside `out_dir`; running the same
     command again resumes from it. `views` picks training views by index; `model_id` skips retrieval
     and registers that library model only; `pose_mode` overrides the automatic choice.
+
+    Evaluation switches: `init="sphere"` replaces retrieval and registration by the paper's generic
+    sphere (section 4.4.2; `library_path` is then not read); `ablations` names entries of
+    `presets.ABLATIONS`; `overrides` sets `Preset` fields after the preset is resolved. All three are
+    recorded in twin.json `choices`.
     """
     from reconstruction.library import load_library
     from reconstruction.registration import register
@@ -112,21 +138,37 @@ def reconstruct(
     idx = list(range(len(capture))) if views is None else list(views)
     images, cap_masks, cams = load_views(capture, idx)
     masks, mask_source = _masks(capture, idx, cap_masks)
-    library = load_library(library_path)
+    if init not in ("cad", "sphere"):
+        raise ValueError(f"unknown init {init!r}; choose cad or sphere")
+    library = load_library(library_path) if init == "cad" else None
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    say(f"registering {len(idx)} views against {len(library.models)} library models")
-    reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed)
+    if library is not None:
+        say(f"registering {len(idx)} views against {len(library.models)} library models")
+        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed, images=images)
+        parts = model_parts(library, reg.model_id)
+    else:
+        reg, parts = sphere_registration(masks, cams)
     timings["registration"] = time.perf_counter() - t
     say(f"registered {reg.model_id} (mean silhouette IoU {reg.score:.3f})")
 
     t = time.perf_counter()
-    parts = model_parts(library, reg.model_id)
     c2w_init = reg.sim3_rig_to_object.apply_to_c2w(np.stack([c.c2w for c in cams]))
     centre = 0.5 * (parts.vertices.min(0) + parts.vertices.max(0))
     stats = scene_stats(masks, c2w_init, centre)
     cfg, choices = resolve_preset(preset, stats)
+    if ablations:
+        cfg, choices["ablations"] = apply_ablations(cfg, list(ablations))
+    if overrides:
+        unknown = sorted(set(overrides) - set(cfg.to_dict()))
+        if unknown:
+            raise ValueError(f"unknown preset field {unknown[0]!r} in overrides")
+        cfg = replace(cfg, **overrides)
+        choices["overrides"] = {"value": dict(overrides), "why": "set by the caller after the preset was resolved"}
+    if init == "sphere":
+        choices["init"] = {"value": "sphere", "why": "paper 4.4.2: no CAD; an icosphere at the optical axes' meeting point, "
+                           "sized so its projections match the masks' areas"}
     mode, why = choose_pose_mode(capture.meta, pose_mode)
     choices["pose_mode"] = {"value": mode, "why": why}
     choices["masks"] = {"value": mask_source, "why": "capture masks when present, else background subtraction"}

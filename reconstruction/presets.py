@@ -8,7 +8,7 @@ with the reason, and the pipeline writes them to twin.json `choices`.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -195,3 +195,39 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
                                  "views each step it changed held-out fgPSNR by < 0.1 dB and doubled Stage II's renders")
     return preset, choices
 
+
+
+def _no_mask_warmup(p: Preset) -> Preset:
+    # Stage I's iterations move to Stage II so the ablated run trains as long as the full one.
+    return replace(p, iters_photo=p.iters_photo + p.iters_pose + p.iters_deform, iters_pose=0, iters_deform=0)
+
+
+def _frozen(p: Preset, *keys: str) -> Preset:
+    lr = dict(p.lr)
+    for k in keys:
+        lr[k] = 0.0
+    return replace(p, lr=lr)
+
+
+# The paper's ablations (section 4.4.3): each switches one ingredient off and keeps the rest.
+ABLATIONS = {
+    "no-deformation": (lambda p: replace(_frozen(p, "deformation"), iters_deform=0), "the deformation field stays at identity"),
+    "no-pose": (lambda p: replace(_frozen(p, "pose", "pose_deform", "pose_photo"), iters_pose=0), "the registration's pose is never corrected"),
+    "no-mask-warmup": (_no_mask_warmup, "no Stage I: Stage II starts from the registration and gets Stage I's iterations"),
+    "no-sh-smoothness": (lambda p: replace(p, lambda_sh=0.0), "lambda_SH = 0"),
+    "no-dropout": (lambda p: replace(p, dropout_p0=0.0), "splat dropout off"),
+}
+
+
+def apply_ablations(preset: Preset, names) -> tuple[Preset, dict]:
+    """`preset` with the named `ABLATIONS` switched off, and the choice to record (value + why)."""
+    unknown = [n for n in names if n not in ABLATIONS]
+    if unknown:
+        raise ValueError(f"unknown ablation {unknown[0]!r}; choose from {', '.join(ABLATIONS)}")
+    whys = []
+    for n in names:
+        fn, why = ABLATIONS[n]
+        before = preset
+        preset = fn(preset)
+        whys.append(f"{n}: {why}" + (" (already off in this preset)" if preset == before else ""))
+    return preset, _choice(list(names), "; ".join(whys))

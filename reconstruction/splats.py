@@ -126,27 +126,25 @@ def knn_indices(points: np.ndarray, k: int) -> np.ndarray:
     return np.asarray(idx[:, 1:], np.int64)
 
 
-def project_colors(
+def observed_colors(
     means: np.ndarray,
     normals: np.ndarray,
     images: np.ndarray,
     masks: np.ndarray | None,
     viewmats: np.ndarray,
     Ks: np.ndarray,
-    *,
-    default: float = 0.5,
 ) -> np.ndarray:
-    """Mean colour [N, 3] of each point over the views that see it; `default` grey where none does.
+    """Colour of each point in each view that sees it: [V, N, 3], NaN where the view does not.
 
     images [V, H, W, 3], masks [V, H, W] bool, viewmats [V, 4, 4], Ks [V, 3, 3]. A view sees a point
     when the point faces it, projects inside its mask and is not behind a nearer point (a z-buffer
     of the points themselves, one pixel each, with a depth tolerance of 1% of the object's extent).
+    Non-finite pixels count as unseen, so a corrupt pixel cannot poison a colour.
     """
     pts = np.asarray(means, np.float64)
     nrm = np.asarray(normals, np.float64)
     v, h, w = images.shape[:3]
-    acc = np.zeros((len(pts), 3))
-    cnt = np.zeros(len(pts))
+    out = np.full((v, len(pts), 3), np.nan)
     tol = 0.01 * float(np.ptp(pts, axis=0).max() if len(pts) else 1.0)
     for i in range(v):
         cam = pts @ viewmats[i, :3, :3].T + viewmats[i, :3, 3]
@@ -167,15 +165,48 @@ def project_colors(
         vis = z[idx] <= zbuf[flat] + tol
         if masks is not None:
             vis &= masks[i].reshape(-1)[flat]
-        idx, flat = idx[vis], flat[vis]
-        vals = images[i].reshape(-1, 3)[flat]
-        good = np.all(np.isfinite(vals), 1)  # a corrupt pixel must not poison a splat's colour
-        acc[idx[good]] += vals[good]
-        cnt[idx[good]] += 1
-    out = np.full((len(pts), 3), default)
-    seen = cnt > 0
-    out[seen] = acc[seen] / cnt[seen, None]
+        vals = images[i].reshape(-1, 3)[flat[vis]].astype(np.float64)
+        vals[~np.all(np.isfinite(vals), 1)] = np.nan
+        out[i, idx[vis]] = vals
     return out
+
+
+def project_colors(
+    means: np.ndarray,
+    normals: np.ndarray,
+    images: np.ndarray,
+    masks: np.ndarray | None,
+    viewmats: np.ndarray,
+    Ks: np.ndarray,
+    *,
+    default: float = 0.5,
+) -> np.ndarray:
+    """Mean colour [N, 3] of each point over the views that see it (`observed_colors`); `default` grey where none does."""
+    obs = observed_colors(means, normals, images, masks, viewmats, Ks)
+    seen = np.isfinite(obs[..., 0])
+    cnt = seen.sum(0)
+    acc = np.where(seen[..., None], obs, 0.0).sum(0)
+    out = np.full((obs.shape[1], 3), default)
+    out[cnt > 0] = acc[cnt > 0] / cnt[cnt > 0, None]
+    return out
+
+
+def photo_consistency(colors: np.ndarray, min_views: int = 3) -> float:
+    """Mean over points seen by >= `min_views` views of the colour spread across those views
+    (per-channel standard deviation, summed): low when the points sit where the images agree.
+
+    colors [V, N, 3] from `observed_colors`. NaN when no point is seen often enough.
+    """
+    seen = np.isfinite(colors[..., 0])
+    keep = seen.sum(0) >= min_views
+    if not keep.any():
+        return float("nan")
+    c = colors[:, keep]
+    s = np.isfinite(c[..., 0])
+    n = s.sum(0)[:, None]
+    mean = np.where(s[..., None], c, 0.0).sum(0) / n
+    var = np.where(s[..., None], (c - mean) ** 2, 0.0).sum(0) / n
+    return float(np.sqrt(var).sum(-1).mean())
 
 
 def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:

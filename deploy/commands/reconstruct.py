@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+# Kept here so `--help` does not import torch; tests/deploy checks it against presets.ABLATIONS.
+ABLATION_NAMES = ("no-deformation", "no-pose", "no-mask-warmup", "no-sh-smoothness", "no-dropout")
 STAGE_TITLES = {"pose": "Stage I: pose", "deform": "Stage I: pose + deformation", "photo": "Stage II: photometric"}
 
 
@@ -40,21 +42,27 @@ def verdict(twin, registration) -> str:
 
 @click.command(help="Reconstruct a CAD-registered Gaussian-splat twin from CAPTURE; writes the twin directory OUT.")
 @click.argument("capture_dir", type=click.Path(path_type=Path))
-@click.option("--library", "lib_dir", required=True, type=click.Path(path_type=Path), help="CAD library (cadsplat library build).")
+@click.option("--library", "lib_dir", default=None, type=click.Path(path_type=Path), help="CAD library (cadsplat library build); not read with --init sphere.")
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Twin directory to write.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "preview", "paper"]), help="Model size and schedule.")
 @click.option("--model", "model_id", default=None, help="Use this library model instead of retrieving one.")
 @click.option("--views", "views_text", default=None, help="Training views by index, e.g. 0,3,7 (default: all).")
 @click.option("--pose-mode", default=None, type=click.Choice(["global", "per_camera"]), help="Override the pose-correction mode chosen from the capture's provenance.")
 @click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--init", "init", default="cad", show_default=True, type=click.Choice(["cad", "sphere"]),
+              help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).")
+@click.option("--ablate", "ablations", multiple=True, type=click.Choice(list(ABLATION_NAMES)),
+              help="Switch one ingredient off (repeatable), as the paper's ablations.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing twin at OUT.")
-def reconstruct(capture_dir: Path, lib_dir: Path, out_dir: Path, preset: str, model_id: str | None, views_text: str | None,
-                pose_mode: str | None, seed: int, overwrite: bool) -> None:
+def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, views_text: str | None,
+                pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], overwrite: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from reconstruction.pipeline import reconstruct as run
 
     views = parse_views(views_text)
+    if init == "cad" and lib_dir is None:
+        raise click.UsageError("--library is required (or --init sphere to reconstruct without a CAD model)")
     if out_dir.exists() and not overwrite:
         raise click.ClickException(f"{out_dir} already exists; choose another --out or pass --overwrite")
     tasks: dict[str, int] = {}
@@ -69,7 +77,8 @@ def reconstruct(capture_dir: Path, lib_dir: Path, out_dir: Path, preset: str, mo
             bar.update(tasks[stage], completed=it, loss=loss)
 
         result = run(capture_dir, lib_dir, out_dir, preset=preset, model_id=model_id, views=views, pose_mode=pose_mode,
-                     seed=seed, progress=progress, log=lambda m: bar.console.print(m), overwrite=overwrite)
+                     seed=seed, progress=progress, log=lambda m: bar.console.print(m), overwrite=overwrite, init=init,
+                     ablations=ablations)
         for t in tasks.values():
             bar.update(t, total=bar.tasks[t].completed)
     click.echo(verdict(result.twin, result.registration))

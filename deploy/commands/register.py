@@ -18,7 +18,7 @@ import click
 def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_threshold: float, model_ids: tuple[str, ...], seed: int) -> None:
     import time
 
-    from calibration.capture import read_capture
+    from calibration.capture import load_views, read_capture
     from calibration.fileio import atomic_write_json
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
@@ -29,8 +29,8 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_t
     lib = load_library(lib_dir)
     masks, source = capture_masks(capture)
     t_masks = time.perf_counter() - t0
-    cameras = [capture.camera(i) for i in range(len(capture))]
-    res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None)
+    images, _, cameras = load_views(capture)
+    res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None, images=images)
     doc = res.to_dict()
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source

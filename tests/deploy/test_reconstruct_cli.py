@@ -87,6 +87,21 @@ def test_reconstruct_render_export(tmp_path, library, short_preview, capsys):
     assert (tmp_path / "m.glb").stat().st_size > 1000
 
 
+def test_sphere_init_and_ablation_switches(tmp_path, short_preview, capsys):
+    """The paper's baselines run through the engine itself: no library is read for the sphere, and the
+    ablation leaves the registration's pose untouched."""
+    twin_dir = tmp_path / "sphere"
+    rc = main(["reconstruct", str(SAMPLE / "train"), "--init", "sphere", "--ablate", "no-pose", "--out", str(twin_dir),
+               "--preset", "preview", "--views", "0,2,4,6,8"])
+    assert rc == 0, capsys.readouterr()
+    twin = load_twin(twin_dir)
+    assert twin.model_id == "sphere" and twin.choices["init"]["value"] == "sphere"
+    assert twin.choices["ablations"]["value"] == ["no-pose"]
+    assert twin.sim3_rig_to_object.rotation_deg_to(twin.sim3_rig_to_object_init) == 0.0
+    assert 0.2 < twin.choices["registration"]["value"]["score"] < 1.0  # area-matched, so it overlaps the clamp, but is no clamp
+    assert main(["reconstruct", str(SAMPLE / "train"), "--out", str(tmp_path / "t")]) != 0
+    assert "--library is required" in capsys.readouterr().err
+
 def test_bad_input_is_one_sentence(tmp_path, library, capsys):
     assert main(["reconstruct", str(tmp_path / "nope"), "--library", str(library), "--out", str(tmp_path / "t")]) != 0
     assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(tmp_path / "t"), "--views", "a,b"]) != 0

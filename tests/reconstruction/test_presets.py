@@ -1,0 +1,40 @@
+"""The paper's ablation switches on a resolved preset."""
+
+from __future__ import annotations
+
+import pytest
+
+from reconstruction.presets import ABLATIONS, PAPER, SceneStats, apply_ablations, resolve_preset
+
+STATS = SceneStats(num_views=9, width=320, height=240, foreground_px=(6000,) * 9, coverage_deg=150.0)
+
+
+def test_each_ablation_switches_off_only_its_ingredient():
+    cpu, _ = resolve_preset("cpu", STATS)
+    total = cpu.iters_pose + cpu.iters_deform + cpu.iters_photo
+    p, choice = apply_ablations(cpu, ["no-mask-warmup"])
+    assert (p.iters_pose, p.iters_deform, p.iters_photo) == (0, 0, total) and choice["value"] == ["no-mask-warmup"]
+    p, _ = apply_ablations(cpu, ["no-deformation"])
+    assert p.lr["deformation"] == 0.0 and p.iters_deform == 0 and p.lr["pose"] == cpu.lr["pose"]
+    p, _ = apply_ablations(cpu, ["no-pose"])
+    assert all(p.lr[k] == 0.0 for k in ("pose", "pose_deform", "pose_photo")) and p.iters_pose == 0
+    assert p.lr["deformation"] == cpu.lr["deformation"]
+    p, _ = apply_ablations(PAPER, ["no-sh-smoothness", "no-dropout"])
+    assert p.lambda_sh == 0.0 and p.dropout_p0 == 0.0 and p.num_splats == PAPER.num_splats
+
+
+def test_an_ablation_that_changes_nothing_says_so():
+    cpu, _ = resolve_preset("cpu", STATS)  # the cpu preset already trains without dropout
+    p, choice = apply_ablations(cpu, ["no-dropout"])
+    assert p == cpu and "already off" in choice["why"]
+
+
+def test_unknown_ablation_is_one_sentence():
+    with pytest.raises(ValueError, match="unknown ablation 'no-colour'; choose from"):
+        apply_ablations(PAPER, ["no-colour"])
+
+
+def test_the_cli_lists_every_ablation():
+    from deploy.commands.reconstruct import ABLATION_NAMES
+
+    assert set(ABLATION_NAMES) == set(ABLATIONS)
