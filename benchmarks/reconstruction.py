@@ -104,13 +104,14 @@ def batching_sweep(n_splats: int, reps: int) -> list[dict]:
     return rows
 
 
-def object_runs(n: int, work: Path) -> list[dict]:
+def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100) -> list[dict]:
     from calibration.capture import load_views, read_capture
     import os
 
     from reconstruction.evaluation import evaluate_twin, half_turn, registration_report, select_views
     from reconstruction.library import build_library
     from reconstruction.pipeline import reconstruct
+    from reconstruction.twin import load_twin
     from rig.synthetic import synth_dataset
 
     shared = REPO.parent / "shared" / "data" / "objects" / "ycb"
@@ -138,24 +139,29 @@ def object_runs(n: int, work: Path) -> list[dict]:
         if not lib.exists():
             build_library(lib_meshes, lib, progress=False, log=lambda _m: None)
         gt = json.loads((scene / "gt.json").read_text())
-        t0 = time.perf_counter()
-        rec = reconstruct(scene / "train", lib, work / f"{obj}_twin", preset="cpu", overwrite=True)
-        wall = time.perf_counter() - t0
+        twin_dir = work / f"{obj}_twin"
+        if not (reuse and (twin_dir / "twin.json").exists()):
+            reconstruct(scene / "train", lib, twin_dir, preset="cpu", overwrite=True)
+        twin = load_twin(twin_dir)
         held = read_capture(scene / "heldout")
         images, masks, cams = load_views(held, select_views(len(held), 12))
         # Errors modulo the objects' near half-turn symmetries (a clamp or a screwdriver flipped end over end).
         sym = [half_turn(a) for a in "xyz"]
-        rep = evaluate_twin(rec.twin, cams, images, masks, refine_steps=0, gt=gt, symmetries=sym)
+        # The paper's protocol: with and without test-time refinement (per-camera pose delta, twin frozen).
+        rep = evaluate_twin(twin, cams, images, masks, refine_steps=refine_steps, gt=gt, symmetries=sym)
         init = registration_report(
-            np.stack([rec.twin.sim3_rig_to_object_init.apply_to_c2w(f.camera.c2w) for f in read_capture(scene / "train").frames]),
+            np.stack([twin.sim3_rig_to_object_init.apply_to_c2w(f.camera.c2w) for f in read_capture(scene / "train").frames]),
             np.array(gt["train_c2w_object"]), sym)
-        t = rec.twin.timings_s
+        t = twin.timings_s
+        iters = twin.choices["iterations"]["value"]
         rows.append({
-            "object": obj, "model": rec.twin.model_id, "splats": rec.twin.num_splats, "wall_s": wall,
+            "object": obj, "model": twin.model_id, "splats": twin.num_splats, "wall_s": t["total"],
             "register_s": t["registration"], "pose_s": t["train_pose"], "deform_s": t["train_deform"], "photo_s": t["train_photo"],
-            "iters": rec.train.iterations, "load": os.getloadavg()[0], "fgpsnr": rep["mean"]["fgpsnr"], "iou": rep["mean"]["iou"],
+            "iters": iters, "load": os.getloadavg()[0], "fgpsnr": rep["mean"]["fgpsnr"], "iou": rep["mean"]["iou"],
+            "fgpsnr_refined": rep["mean_refined"]["fgpsnr"], "iou_refined": rep["mean_refined"]["iou"],
             "rot_init": init["rotation_deg_median"], "ctr_init": init["center_pct_median"],
             "rot": rep["registration"]["rotation_deg_median"], "ctr": rep["registration"]["center_pct_median"],
+            "ambiguity": (twin.choices["registration"]["value"].get("ambiguity") or {}).get("resolved_by", "-"),
         })
         print(rows[-1], flush=True)
     return rows
@@ -182,14 +188,18 @@ def write(fields, batching, objects, threads: int) -> None:
         lines += _sweep_lines(fields, batching)
     if objects:
         lines += ["", "## `cpu` preset on shared objects (9 views, 320x240, 0.3 deg / 2 mm calibration noise)", "",
-                  "Held-out: 12 of 36 orbit views. Registration errors: medians over the 9 train cameras, modulo 180-degree "
-                  "turns about the object axes. Load: 1-minute load average when the run ended (2 cores).", "",
-                  "| object | model | splats | iters pose/deform/photo | total s | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | rot init / refined (deg) | centre init / refined (%) | load |",
-                  "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|---:|"]
+                  "Held-out: 12 of 36 orbit views (exact rig cameras), scored at the twin's poses and after the paper's test-time "
+                  "refinement (100 steps, per-camera pose delta, twin frozen). Registration errors: medians over the 9 train "
+                  "cameras against the true object poses, modulo 180-degree turns about the object axes; with 0.3 deg / 2 mm "
+                  "noise on each camera, a single rig-to-object Sim(3) cannot get below roughly that noise. tie-break: how a "
+                  "silhouette near-tie between two poses was settled. Load: 1-minute load average when the row was written (2 cores).", "",
+                  "| object | model | splats | iters pose/deform/photo | total s | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | refined fgPSNR | refined IoU | rot init / refined (deg) | centre init / refined (%) | tie-break | load |",
+                  "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---:|"]
         lines += [f"| {r['object']} | {r['model']} | {r['splats']} | {r['iters']['pose']}/{r['iters']['deform']}/{r['iters']['photo']} | "
                   f"{r['wall_s']:.0f} | {r['register_s']:.0f} | {r['pose_s']:.0f} | "
-                  f"{r['deform_s']:.0f} | {r['photo_s']:.0f} | {r['fgpsnr']:.2f} | {r['iou']:.3f} | {r['rot_init']:.2f} / {r['rot']:.2f} | "
-                  f"{r['ctr_init']:.2f} / {r['ctr']:.2f} | {r['load']:.1f} |" for r in objects]
+                  f"{r['deform_s']:.0f} | {r['photo_s']:.0f} | {r['fgpsnr']:.2f} | {r['iou']:.3f} | {r['fgpsnr_refined']:.2f} | "
+                  f"{r['iou_refined']:.3f} | {r['rot_init']:.2f} / {r['rot']:.2f} | "
+                  f"{r['ctr_init']:.2f} / {r['ctr']:.2f} | {r['ambiguity']} | {r['load']:.1f} |" for r in objects]
     text = "\n".join(lines) + "\n"
     md.write_text(text)
     print(text)
@@ -219,6 +229,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--objects-only", action="store_true", help="only the per-object runs (keeps the sweep tables on file)")
+    ap.add_argument("--reuse-twins", action="store_true", help="score the twins already in --work instead of training them again")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     fields, batching = ([], []) if args.objects_only else (field_sweep(20_000, 40 if args.quick else 150), batching_sweep(20_000, 3))
@@ -226,7 +237,7 @@ def main() -> None:
     if not args.quick:
         work = args.work or Path(tempfile.mkdtemp(prefix="cadsplat-bench-"))
         work.mkdir(parents=True, exist_ok=True)
-        objects = object_runs(args.objects, work)
+        objects = object_runs(args.objects, work, reuse=args.reuse_twins)
     write(fields, batching, objects, args.threads)
 
 

@@ -85,6 +85,13 @@ class PoseCorrection(nn.Module):
         return out
 
     @torch.no_grad()
+    def reset_(self) -> None:
+        """Back to the identity correction."""
+        self.r6.copy_(torch.tensor(IDENTITY_6D, dtype=torch.float64).expand_as(self.r6))
+        self.t.zero_()
+        self.log_scale.zero_()
+
+    @torch.no_grad()
     def delta_sim3(self) -> Sim3:
         """The global correction as a Sim(3) in the object frame (identity for per-camera mode)."""
         if self.mode != "global":

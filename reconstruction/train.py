@@ -33,7 +33,7 @@ from torch import nn
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField
 from reconstruction.losses import composite, dropout_active, dropout_fraction, fill_loss, mask_l1, photometric_loss, sh_neighbour_loss
-from reconstruction.pose_correction import IDENTITY_6D, PoseCorrection, viewmats_from_c2w
+from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, knn_indices, project_colors, rgb_to_sh_dc
@@ -157,6 +157,7 @@ class TrainResult:
     skipped_steps: int
     history: dict = field(default_factory=dict)
     stage2_start: dict = field(default_factory=dict)  # which state Stage II started from, and why
+    pose_check: dict = field(default_factory=dict)  # the pose-only stage's result against the registration, and the verdict
 
 
 def _set_trainable(model: SplatModel, stage: str, pose_scale: bool = True) -> None:
@@ -214,10 +215,8 @@ def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views:
     mask loss moved it 0.26 -> 0.88 deg). Returns both objective values and the choice."""
     trained = _stage2_objective(model, splats, views, c2w_init, data, preset)
     kept = {k: v.clone() for k, v in model.state_dict().items()}
+    model.pose.reset_()
     with torch.no_grad():
-        model.pose.r6.copy_(torch.tensor(IDENTITY_6D, dtype=torch.float64).expand_as(model.pose.r6))
-        model.pose.t.zero_()
-        model.pose.log_scale.zero_()
         model.field.mlp.head.weight.zero_()
         model.field.mlp.head.bias.zero_()
     registered = _stage2_objective(model, splats, views, c2w_init, data, preset)
@@ -231,6 +230,19 @@ def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views:
     return {"start": start, "objective_stage1": trained, "objective_registration": registered}
 
 
+def _check_pose(model: SplatModel, opt, c2w_init: torch.Tensor, pose_score: Callable[[np.ndarray], float]) -> dict:
+    """Keeps the pose-only stage's correction if `pose_score` prefers it to the initial poses, else resets it."""
+    with torch.no_grad():
+        trained = float(pose_score(model.pose(c2w_init).numpy()))
+    initial = float(pose_score(c2w_init.numpy()))
+    kept = trained > initial
+    if not kept:
+        model.pose.reset_()
+        for p in model.pose.parameters():
+            opt.state.pop(p, None)
+    return {"kept": kept, "score_trained": trained, "score_initial": initial}
+
+
 def train(
     views: Views,
     splats: CanonicalSplats,
@@ -241,12 +253,18 @@ def train(
     progress: ProgressFn | None = None,
     checkpoint: str | os.PathLike | None = None,
     on_stage_end: Callable[[str, SplatModel], None] | None = None,
+    pose_score: Callable[[np.ndarray], float] | None = None,
 ) -> TrainResult:
     """Run Stage I (pose, then pose + deformation) and Stage II (photometric) on `views`.
 
     progress(stage, iteration, cap, loss) is called after every iteration. With `checkpoint`, the
     run resumes from that file when it matches this run (same preset, splats, views), and writes it
     as it goes; the caller deletes it once the twin is saved.
+
+    `pose_score(c2w [V, 4, 4]) -> float` (higher is better), when given, judges the pose-only stage:
+    its correction is kept only if it scores above the initial poses, else the pose goes back to
+    the identity correction (the pipeline scores the CAD mesh's silhouettes at full resolution,
+    which splat disks only approximate).
     """
     v = len(views.images)
     model = SplatModel(splats, preset, v, pose_mode, seed)
@@ -356,9 +374,11 @@ def train(
         state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
         # A stage that ran no iteration (an ablation) has no loss to report: null, not NaN (twin.json is strict JSON).
         state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else None
+        if stage == "pose" and pose_score is not None and "pose_check" not in state:
+            state["pose_check"] = _check_pose(model, opt, c2w_init, pose_score)
         state["stage"], state["it"], state["plateau"] = si + 1, 0, []
         save()
         if on_stage_end is not None:
             on_stage_end(stage, model)
     return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"],
-                       state.get("stage2_start", {}))
+                       state.get("stage2_start", {}), state.get("pose_check", {}))
