@@ -55,7 +55,7 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     from reconstruction.evaluation import evaluate_twin
     from reconstruction.pipeline import reconstruct
     from reconstruction.twin import load_twin
-    from speed_vs_error import engine_overrides
+    from speed_vs_error import engine_kwargs
 
     cache = work / "folds" / capture_dir.name / f"{args.preset}-r{args.refine_steps}-{held:02d}.json"
     if cache.exists():
@@ -69,8 +69,8 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     twin_dir = work / "twins" / capture_dir.name / f"{args.preset}-{held:02d}"
     t0 = time.perf_counter()
     if not (twin_dir / "twin.json").exists():
-        with engine_overrides("sphere-init", args.preset, torch.cuda.is_available()):
-            reconstruct(capture_dir, work / "no-library", twin_dir, preset=args.preset, views=train_idx, overwrite=True)
+        reconstruct(capture_dir, None, twin_dir, preset=args.preset, views=train_idx, overwrite=True,
+                    **engine_kwargs("sphere-init", args.preset, torch.cuda.is_available()))
     train_s = time.perf_counter() - t0
     twin = load_twin(twin_dir)
     images, masks, cams = load_views(capture, [held])
@@ -99,7 +99,6 @@ def main() -> None:
     args.refine_steps = args.refine_steps if args.refine_steps is not None else (50 if args.quick else 400)
     args.folds = args.folds or (3 if args.quick else None)
     args.work.mkdir(parents=True, exist_ok=True)
-    (args.work / "no-library").mkdir(exist_ok=True)  # the sphere init needs no CAD library
     from calibration.capture import read_capture
 
     t0 = time.perf_counter()

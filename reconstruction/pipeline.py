@@ -110,7 +110,7 @@ def silhouette_score(parts: MeshParts, masks: np.ndarray, cams: Sequence[Camera]
 
 def reconstruct(
     capture_path: str | os.PathLike,
-    library_path: str | os.PathLike,
+    library_path: str | os.PathLike | None,
     out_dir: str | os.PathLike,
     *,
     preset: str = "cpu",
