@@ -39,8 +39,16 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_t
         out_path.parent.mkdir(parents=True)
     atomic_write_json(out_path, doc)
     click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(cameras)} views (scale {res.sim3_rig_to_object.scale:.4g}), written to {out_path}")
-    if res.ambiguity and res.ambiguity["ambiguous"]:
-        click.echo(
-            f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {res.ambiguity['score_gap']:.3f}; "
-            "the object looks symmetric from these views", err=True,
-        )
+    amb = res.ambiguity
+    if amb and amb["ambiguous"]:
+        if amb.get("resolved_by") == "photo-consistency":
+            pc = amb["photo_consistency"]
+            click.echo(
+                f"note: a pose {amb['rotation_deg']:.0f} degrees away fits the silhouettes within {amb['score_gap']:.3f}; the images "
+                f"agree better on this one (colour spread {pc['chosen']:.3f} against {pc['alternative']:.3f})", err=True,
+            )
+        else:
+            click.echo(
+                f"warning: a pose {amb['rotation_deg']:.0f} degrees away scores within {amb['score_gap']:.3f}; "
+                "the object looks symmetric from these views", err=True,
+            )
