@@ -365,6 +365,11 @@ def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[
     for i in idx:
         if not 0 <= i < len(capture):
             raise CaptureError(f"{capture.root}: view {i} does not exist (capture has {len(capture)} views)")
+    sizes = sorted({(capture.frames[i].camera.width, capture.frames[i].camera.height) for i in idx})
+    if len(sizes) > 1:
+        # Batched training and scoring need one image size; the caller picks views of one size.
+        listed = ", ".join(f"{w}x{h}" for w, h in sizes)
+        raise CaptureError(f"{capture.root}: the chosen views have different image sizes ({listed}); choose views of one size")
     images = np.stack([capture.image(i) for i in idx])
     masks = [capture.mask(i) for i in idx]
     mask_arr = None if any(m is None for m in masks) else np.stack(masks)

@@ -156,3 +156,13 @@ def test_real_instant_ngp_fox_capture(tmp_path):
     np.testing.assert_allclose(uv[0], [doc["fl_x"] * xd + doc["cx"], doc["fl_y"] * yd + doc["cy"]], atol=1e-6)
     img = cap.image(0, undistort=False)
     assert img.shape == (1920, 1080, 3)
+
+
+def test_views_of_different_sizes_are_refused_in_one_sentence(tmp_path):
+    """A portrait photo among landscape ones: the engine batches views of one size, so it says so."""
+    frames = small_frames(2) + small_frames(1, w=30, h=40)
+    frames[2] = FrameData("cam09", frames[2].image, frames[2].camera, "cam09", 2000, frames[2].mask)
+    cap = write_capture(tmp_path / "cap", frames)
+    assert load_views(cap, [0, 1])[0].shape == (2, 30, 40, 3)
+    with pytest.raises(CaptureError, match=r"different image sizes \(30x40, 40x30\); choose views of one size"):
+        load_views(cap)
