@@ -165,10 +165,9 @@ def run_scenes(scenes: list[Path], lib, derived: dict) -> list[dict]:
         capture = read_capture(d / "train")
         masks = np.stack([capture.mask(i) for i in range(len(capture))])
         cams = [capture.camera(i) for i in range(len(capture))]
-        images = np.stack([capture.image(i) for i in range(len(capture))])
         candidates = [derived[obj][0]] + [m for o, ids in derived.items() if o != obj for m in ids]
         t = time.perf_counter()
-        res = register(masks, cams, lib, model_ids=candidates, images=images)
+        res = register(masks, cams, lib, model_ids=candidates)
         elapsed = time.perf_counter() - t
         c2w_est = np.stack([res.sim3_rig_to_object.apply_to_c2w(c.c2w) for c in cams])
         raw, sym = scene_errors(c2w_est, gt, obj)

@@ -39,10 +39,10 @@ def register_step(capture_path: Path, work: Path, cfg: PipelineConfig) -> dict:
     from reconstruction.registration import register
 
     capture = read_capture(capture_path)
-    images, masks, cams = load_views(capture)
+    _, masks, cams = load_views(capture)
     if masks is None:
         masks, _ = capture_masks(capture)
-    reg = register(masks, cams, load_library(cfg.library), seed=cfg.seed, images=images)
+    reg = register(masks, cams, load_library(cfg.library), seed=cfg.seed)
     summary = {"model_id": reg.model_id, "score": float(reg.score), "path": str(out)}
     atomic_write_json(out, {"summary": summary, "registration": reg.to_dict()})
     return summary

@@ -160,7 +160,7 @@ def reconstruct(
     t = time.perf_counter()
     if library is not None:
         say(f"registering {len(idx)} views against {len(library.models)} library models")
-        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed, images=images)
+        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed)
         parts = model_parts(library, reg.model_id)
     else:
         reg, parts = sphere_registration(masks, cams)

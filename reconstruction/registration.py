@@ -15,10 +15,8 @@ Hard cases: one view or coincident camera centres (the rig-to-object scale is un
 images: it is set to 1, i.e. a metric rig and a metric library, and the distance to the object
 comes from the mask size against the model size); masks touching the image border (their bbox is
 truncated, so they generate no hypotheses while any untruncated view exists, but they are still
-scored); near-symmetric objects (the best distinct pose and the score gap are reported; when the gap is
-within silhouette noise and the images are given, the pose whose surface points the images agree
-on, `splats.photo_consistency`, wins); nothing above threshold (RegistrationError naming the best
-IoU found).
+scored); near-symmetric objects (the best distinct pose and the score gap are reported); nothing
+above threshold (RegistrationError naming the best IoU found).
 """
 
 from __future__ import annotations
@@ -36,7 +34,6 @@ from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
 from reconstruction.silhouette import fill_triangles, normalize_silhouette, pack
-from reconstruction.splats import face_areas_normals, observed_colors, photo_consistency, sample_surface
 from reconstruction.silhouette_index import ANGLE, BX, BY, EXTENT, SilhouetteIndex
 
 # Below this anisotropy the principal axis of a mask is unreliable; such masks are tried at many rolls.
@@ -50,8 +47,6 @@ DISTINCT_DEG = 20.0
 AMBIGUOUS_GAP = 0.03
 # Distinct (model, pose) candidates refined briefly before the winner is chosen.
 CANDIDATES = 8
-# Surface points per pose for the photo-consistency tie-break.
-PHOTO_POINTS = 4000
 
 
 class RegistrationError(ValueError):
@@ -310,17 +305,6 @@ def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, cen
     return best, -float(res.fun)
 
 
-def pose_photo_consistency(verts: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, cameras: list[Camera], images: np.ndarray, masks: np.ndarray, *, seed: int = 0) -> float:
-    """`splats.photo_consistency` of surface samples of the mesh (object frame) seen by the rig cameras
-    under the Sim(3): the mean colour spread of a point across the views that see it (lower: the
-    images agree on what the surface looks like there)."""
-    points, face_index, _ = sample_surface(verts, faces, PHOTO_POINTS, np.random.default_rng(seed))
-    _, face_normals = face_areas_normals(verts, faces)
-    c2w = sim3_rig_to_object.apply_to_c2w(np.stack([c.c2w for c in cameras]))
-    colors = observed_colors(points, face_normals[face_index], images, masks, np.linalg.inv(c2w), np.stack([c.K for c in cameras]))
-    return photo_consistency(colors)
-
-
 # --- the registration ------------------------------------------------------------------------
 
 
@@ -367,13 +351,8 @@ def register(
     model_ids: list[str] | None = None,
     iterations: int = 300,
     refine_evals: int = 200,
-    images: np.ndarray | None = None,
 ) -> RegistrationResult:
-    """Best library model and rig-to-object Sim(3) for bool masks [V, H, W] from pinhole rig cameras.
-
-    `images` [V, H, W, 3] (float, 0-1), when given, break a near-tie between two distinct poses of
-    the chosen model by photo-consistency.
-    """
+    """Best library model and rig-to-object Sim(3) for bool masks [V, H, W] from pinhole rig cameras."""
     t0 = time.perf_counter()
     masks = np.asarray(masks, dtype=bool)
     if masks.ndim != 3 or len(masks) != len(cameras_rig) or len(masks) == 0:
@@ -488,19 +467,8 @@ def register(
             "score_gap": float(gap),
             "alternative_score": float(alt_score),
             "rotation_deg": float(geodesic_angle_deg(alt_sim.rotation, refined.rotation)),
+            "alternative_sim3_rig_to_object": alt_sim.to_dict(),
         }
-        if gap < AMBIGUOUS_GAP and images is not None:
-            # Silhouettes cannot tell these poses apart (a near-symmetric shape); the images can when
-            # the surface is textured: paint each pose's surface from every view and keep the one the
-            # views agree on.
-            photo = [pose_photo_consistency(verts, faces, sim, cameras_rig, images, masks, seed=seed) for sim in (refined, alt_sim)]
-            ambiguity["photo_consistency"] = {"chosen": photo[0], "alternative": photo[1]}
-            if photo[1] < photo[0]:
-                refined, score, alt_sim, alt_score = alt_sim, alt_score, refined, score
-                ambiguity["photo_consistency"] = {"chosen": photo[1], "alternative": photo[0]}
-                ambiguity["alternative_score"] = float(alt_score)
-            ambiguity["resolved_by"] = "photo-consistency"
-        ambiguity["alternative_sim3_rig_to_object"] = alt_sim.to_dict()
     timings["refine"] = time.perf_counter() - t
 
     per_model: dict[int, float] = {}

@@ -191,24 +191,6 @@ def project_colors(
     return out
 
 
-def photo_consistency(colors: np.ndarray, min_views: int = 3) -> float:
-    """Mean over points seen by >= `min_views` views of the colour spread across those views
-    (per-channel standard deviation, summed): low when the points sit where the images agree.
-
-    colors [V, N, 3] from `observed_colors`. NaN when no point is seen often enough.
-    """
-    seen = np.isfinite(colors[..., 0])
-    keep = seen.sum(0) >= min_views
-    if not keep.any():
-        return float("nan")
-    c = colors[:, keep]
-    s = np.isfinite(c[..., 0])
-    n = s.sum(0)[:, None]
-    mean = np.where(s[..., None], c, 0.0).sum(0) / n
-    var = np.where(s[..., None], (c - mean) ** 2, 0.0).sum(0) / n
-    return float(np.sqrt(var).sum(-1).mean())
-
-
 def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
     """Colour in [0, 1] -> degree-0 SH coefficient (3DGS convention)."""
     return (np.asarray(rgb) - 0.5) / SH_C0

@@ -18,7 +18,7 @@ import click
 def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_threshold: float, model_ids: tuple[str, ...], seed: int) -> None:
     import time
 
-    from calibration.capture import load_views, read_capture
+    from calibration.capture import read_capture
     from calibration.fileio import atomic_write_json
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
@@ -29,8 +29,8 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_t
     lib = load_library(lib_dir)
     masks, source = capture_masks(capture)
     t_masks = time.perf_counter() - t0
-    images, _, cameras = load_views(capture)
-    res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None, images=images)
+    cameras = [capture.camera(i) for i in range(len(capture))]
+    res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None)
     doc = res.to_dict()
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source
@@ -39,16 +39,8 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_t
         out_path.parent.mkdir(parents=True)
     atomic_write_json(out_path, doc)
     click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(cameras)} views (scale {res.sim3_rig_to_object.scale:.4g}), written to {out_path}")
-    amb = res.ambiguity
-    if amb and amb["ambiguous"]:
-        if amb.get("resolved_by") == "photo-consistency":
-            pc = amb["photo_consistency"]
-            click.echo(
-                f"note: a pose {amb['rotation_deg']:.0f} degrees away fits the silhouettes within {amb['score_gap']:.3f}; the images "
-                f"agree better on this one (colour spread {pc['chosen']:.3f} against {pc['alternative']:.3f})", err=True,
-            )
-        else:
-            click.echo(
-                f"warning: a pose {amb['rotation_deg']:.0f} degrees away scores within {amb['score_gap']:.3f}; "
-                "the object looks symmetric from these views", err=True,
-            )
+    if res.ambiguity and res.ambiguity["ambiguous"]:
+        click.echo(
+            f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {res.ambiguity['score_gap']:.3f}; "
+            "the object looks symmetric from these views", err=True,
+        )
