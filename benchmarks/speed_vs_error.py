@@ -203,7 +203,8 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         f"{'--quick: ' if args.quick else ''}{len({d['run']['scene'] for d in docs})} synthetic rig scenes (YCB meshes, 320x240, "
         f"0.3 deg / 2 mm calibration noise, deformed+decimated CAD), {args.heldout_views} held-out views each, metrics "
         f"{'after ' + str(args.refine_steps) + ' test-time refinement steps' if refined else 'at the nominal poses (no refinement)'}; "
-        f"train wall time on this machine's 2 shared CPU cores (load from other jobs inflates it). Sweep wall time {wall / 60:.1f} min.",
+        f"train wall time on this machine's 2 shared CPU cores (load from other jobs inflates it). "
+        + (f"Sweep wall time {wall / 60:.1f} min." if wall else "Rewritten from the cached runs (--report-only).") + " Rows appear as their runs finish: a row with fewer scenes is a sweep that was stopped.",
         "",
         "Means over the scenes each row ran on. Δ columns: the row minus `full`/`cpu` at the same views, paired over the "
         "scenes both ran on (the fair comparison when a row covers fewer scenes). 'no ref.': at the twin's poses, before "
