@@ -94,20 +94,6 @@ def sphere_registration(masks: np.ndarray, cams: Sequence[Camera]) -> tuple[Regi
     return reg, parts
 
 
-def silhouette_score(parts: MeshParts, masks: np.ndarray, cams: Sequence[Camera]) -> Callable[[np.ndarray], float]:
-    """Mean silhouette IoU [0, 1] of the CAD mesh over the views, as a function of camera-to-object c2w [V, 4, 4],
-    at the capture's resolution."""
-    from reconstruction.registration import Scorer
-
-    max_px = max(max(c.width, c.height) for c in cams)
-
-    def score(c2w: np.ndarray) -> float:
-        posed = [c.with_c2w(np.asarray(m, np.float64)) for c, m in zip(cams, c2w)]
-        return float(Scorer(masks, posed, max_px)(parts.vertices, parts.faces, Sim3.identity()).mean())
-
-    return score
-
-
 def reconstruct(
     capture_path: str | os.PathLike,
     library_path: str | os.PathLike | None,
@@ -198,15 +184,11 @@ def reconstruct(
 
     ckpt = out.parent / f".{out.name}.checkpoint.pt"
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = train(Views(images, masks, Ks, c2w_init), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt,
-                   pose_score=silhouette_score(parts, masks, cams))
+    result = train(Views(images, masks, Ks, c2w_init), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
     for stage, secs in result.timings_s.items():
         timings[f"train_{stage}"] = secs
     choices["stage2_start"] = {"value": result.stage2_start.get("start"), "why": "Stage II starts from whichever of the Stage-I "
                                "pose+field and the registration gives the lower Stage-II loss on the training views", **result.stage2_start}
-    choices["pose_check"] = {"value": result.pose_check.get("kept"), "why": "the pose-only stage's correction is kept only when "
-                             "the CAD mesh's silhouettes at capture resolution fit the masks better with it (mean IoU) than at the "
-                             "registration: splat disks fatten silhouettes, and with noisy calibration their optimum drifts", **result.pose_check}
     choices["iterations"] = {"value": result.iterations, "why": "stages stop at their cap or when the loss plateaus" if cfg.plateau else "fixed schedule"}
 
     t = time.perf_counter()

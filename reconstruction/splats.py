@@ -126,25 +126,27 @@ def knn_indices(points: np.ndarray, k: int) -> np.ndarray:
     return np.asarray(idx[:, 1:], np.int64)
 
 
-def observed_colors(
+def project_colors(
     means: np.ndarray,
     normals: np.ndarray,
     images: np.ndarray,
     masks: np.ndarray | None,
     viewmats: np.ndarray,
     Ks: np.ndarray,
+    *,
+    default: float = 0.5,
 ) -> np.ndarray:
-    """Colour of each point in each view that sees it: [V, N, 3], NaN where the view does not.
+    """Mean colour [N, 3] of each point over the views that see it; `default` grey where none does.
 
     images [V, H, W, 3], masks [V, H, W] bool, viewmats [V, 4, 4], Ks [V, 3, 3]. A view sees a point
     when the point faces it, projects inside its mask and is not behind a nearer point (a z-buffer
     of the points themselves, one pixel each, with a depth tolerance of 1% of the object's extent).
-    Non-finite pixels count as unseen, so a corrupt pixel cannot poison a colour.
     """
     pts = np.asarray(means, np.float64)
     nrm = np.asarray(normals, np.float64)
     v, h, w = images.shape[:3]
-    out = np.full((v, len(pts), 3), np.nan)
+    acc = np.zeros((len(pts), 3))
+    cnt = np.zeros(len(pts))
     tol = 0.01 * float(np.ptp(pts, axis=0).max() if len(pts) else 1.0)
     for i in range(v):
         cam = pts @ viewmats[i, :3, :3].T + viewmats[i, :3, 3]
@@ -165,29 +167,14 @@ def observed_colors(
         vis = z[idx] <= zbuf[flat] + tol
         if masks is not None:
             vis &= masks[i].reshape(-1)[flat]
-        vals = images[i].reshape(-1, 3)[flat[vis]].astype(np.float64)
-        vals[~np.all(np.isfinite(vals), 1)] = np.nan
-        out[i, idx[vis]] = vals
-    return out
-
-
-def project_colors(
-    means: np.ndarray,
-    normals: np.ndarray,
-    images: np.ndarray,
-    masks: np.ndarray | None,
-    viewmats: np.ndarray,
-    Ks: np.ndarray,
-    *,
-    default: float = 0.5,
-) -> np.ndarray:
-    """Mean colour [N, 3] of each point over the views that see it (`observed_colors`); `default` grey where none does."""
-    obs = observed_colors(means, normals, images, masks, viewmats, Ks)
-    seen = np.isfinite(obs[..., 0])
-    cnt = seen.sum(0)
-    acc = np.where(seen[..., None], obs, 0.0).sum(0)
-    out = np.full((obs.shape[1], 3), default)
-    out[cnt > 0] = acc[cnt > 0] / cnt[cnt > 0, None]
+        idx, flat = idx[vis], flat[vis]
+        vals = images[i].reshape(-1, 3)[flat]
+        good = np.all(np.isfinite(vals), 1)  # a corrupt pixel must not poison a splat's colour
+        acc[idx[good]] += vals[good]
+        cnt[idx[good]] += 1
+    out = np.full((len(pts), 3), default)
+    seen = cnt > 0
+    out[seen] = acc[seen] / cnt[seen, None]
     return out
 
 

@@ -157,7 +157,6 @@ class TrainResult:
     skipped_steps: int
     history: dict = field(default_factory=dict)
     stage2_start: dict = field(default_factory=dict)  # which state Stage II started from, and why
-    pose_check: dict = field(default_factory=dict)  # the pose-only stage's result against the registration, and the verdict
 
 
 def _set_trainable(model: SplatModel, stage: str, pose_scale: bool = True) -> None:
@@ -230,19 +229,6 @@ def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views:
     return {"start": start, "objective_stage1": trained, "objective_registration": registered}
 
 
-def _check_pose(model: SplatModel, opt, c2w_init: torch.Tensor, pose_score: Callable[[np.ndarray], float]) -> dict:
-    """Keeps the pose-only stage's correction if `pose_score` prefers it to the initial poses, else resets it."""
-    with torch.no_grad():
-        trained = float(pose_score(model.pose(c2w_init).numpy()))
-    initial = float(pose_score(c2w_init.numpy()))
-    kept = trained > initial
-    if not kept:
-        model.pose.reset_()
-        for p in model.pose.parameters():
-            opt.state.pop(p, None)
-    return {"kept": kept, "score_trained": trained, "score_initial": initial}
-
-
 def train(
     views: Views,
     splats: CanonicalSplats,
@@ -253,18 +239,12 @@ def train(
     progress: ProgressFn | None = None,
     checkpoint: str | os.PathLike | None = None,
     on_stage_end: Callable[[str, SplatModel], None] | None = None,
-    pose_score: Callable[[np.ndarray], float] | None = None,
 ) -> TrainResult:
     """Run Stage I (pose, then pose + deformation) and Stage II (photometric) on `views`.
 
     progress(stage, iteration, cap, loss) is called after every iteration. With `checkpoint`, the
     run resumes from that file when it matches this run (same preset, splats, views), and writes it
     as it goes; the caller deletes it once the twin is saved.
-
-    `pose_score(c2w [V, 4, 4]) -> float` (higher is better), when given, judges the pose-only stage:
-    its correction is kept only if it scores above the initial poses, else the pose goes back to
-    the identity correction (the pipeline scores the CAD mesh's silhouettes at full resolution,
-    which splat disks only approximate).
     """
     v = len(views.images)
     model = SplatModel(splats, preset, v, pose_mode, seed)
@@ -374,11 +354,9 @@ def train(
         state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
         # A stage that ran no iteration (an ablation) has no loss to report: null, not NaN (twin.json is strict JSON).
         state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else None
-        if stage == "pose" and pose_score is not None and "pose_check" not in state:
-            state["pose_check"] = _check_pose(model, opt, c2w_init, pose_score)
         state["stage"], state["it"], state["plateau"] = si + 1, 0, []
         save()
         if on_stage_end is not None:
             on_stage_end(stage, model)
     return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"],
-                       state.get("stage2_start", {}), state.get("pose_check", {}))
+                       state.get("stage2_start", {}))

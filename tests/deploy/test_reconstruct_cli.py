@@ -142,6 +142,4 @@ def test_twin_silhouettes_beat_initial_state_on_heldout_views(before_after):
 @pytest.mark.slow
 def test_twin_colours_beat_initial_state_on_heldout_views(before_after):
     before, after = before_after
-    # 26.28 -> 26.76 dB with the pose check, which keeps the registration's pose on this sample; the margin was 0.5 dB
-    # when Stage I's pose correction was always kept (26.28 -> 27.30 dB; see benchmarks/results/reconstruction.md).
-    assert after["fgpsnr"] > before["fgpsnr"] + 0.3, (before["fgpsnr"], after["fgpsnr"])
+    assert after["fgpsnr"] > before["fgpsnr"] + 0.5, (before["fgpsnr"], after["fgpsnr"])
