@@ -26,6 +26,7 @@ from reconstruction.metrics import image_metrics
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.pose_metrics import registration_errors, rotation_error_deg
 from reconstruction.render import rasterize
+from reconstruction.symmetry import NearSymmetry, near_symmetries
 
 PAPER_REFINE_STEPS = 400
 REFINE_LR = 5e-4  # the paper's pose-correction learning rate (Table "Hyperparameters")
@@ -276,6 +277,13 @@ def half_turn(axis: str) -> np.ndarray:
     if axis not in ("x", "y", "z"):
         raise ValueError(f"symmetry axis must be x, y or z, got {axis!r}")
     return np.diag([1.0 if a == axis else -1.0 for a in "xyz"])
+
+
+def twin_near_symmetries(twin, tolerance_m: float) -> list[NearSymmetry]:
+    """Near-symmetries of a twin's CAD mesh (object frame, metres) within `tolerance_m`: the poses the
+    twin's model cannot tell apart. Raises TwinError (a ValueError) when the twin has no CAD mesh."""
+    mesh = twin.load_mesh_cad()
+    return near_symmetries(mesh.vertices, mesh.faces, tolerance_m)
 
 
 def select_views(n: int, max_views: int | None) -> list[int]:

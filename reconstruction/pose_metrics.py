@@ -58,6 +58,18 @@ def center_error_pct(c_est: Array, c_gt: Array, object_center: Array | None = No
     return 100.0 * np.linalg.norm(c_est - c_gt, axis=-1) / np.linalg.norm(c_gt - o, axis=-1)
 
 
+def _rigid(S: Array) -> np.ndarray:
+    """A symmetry as a [4, 4] transform; a [3, 3] rotation is taken about the origin."""
+    S = _numpy(S)
+    if S.shape == (4, 4):
+        return S
+    if S.shape != (3, 3):
+        raise ValueError(f"a symmetry must be a [3, 3] rotation or a [4, 4] transform, got shape {S.shape}")
+    T = np.eye(4)
+    T[:3, :3] = S
+    return T
+
+
 def registration_errors(
     viewmats_est: Array,
     viewmats_gt: Array,
@@ -69,8 +81,9 @@ def registration_errors(
     Args:
         viewmats_est: [N, 4, 4] estimated world(object)-to-camera matrices.
         viewmats_gt: [N, 4, 4] ground-truth ones, same cameras in the same order.
-        symmetries: optional rotations S [3, 3] that map the object onto itself (x -> S x in the
-            object frame). An estimate R is then as right as R S, whose camera centre is S^T c.
+        symmetries: optional transforms S that map the object onto itself (x -> S x in the object
+            frame): rotations about the origin [3, 3] or rigid transforms [4, 4] (e.g. a turn about
+            the object's centroid). An estimate V is then as right as V S, whose centre is S^-1 c.
             The identity is always included. One S is chosen for the whole capture, the one with
             the lowest median rotation error: a registration places the object once for all
             cameras, so letting each camera pick its own S would hide a wrong registration.
@@ -82,11 +95,12 @@ def registration_errors(
     est, gt = _numpy(viewmats_est), _numpy(viewmats_gt)
     if est.shape != gt.shape or est.shape[-2:] != (4, 4) or est.ndim != 3:
         raise ValueError(f"expected two [N, 4, 4] viewmat stacks, got {est.shape} and {gt.shape}")
-    c_est, c_gt = camera_centers(est), camera_centers(gt)
+    c_gt = camera_centers(gt)
     results: list[RegistrationErrors] = []
-    for index, S in enumerate([np.eye(3), *(_numpy(S) for S in symmetries or ())]):
-        rot = rotation_error_deg(gt[:, :3, :3], est[:, :3, :3] @ S)
-        ctr = center_error_pct(c_est @ S, c_gt, object_center)  # rows are S^T c
+    for index, S in enumerate([np.eye(4), *(_rigid(S) for S in symmetries or ())]):
+        moved = est @ S
+        rot = rotation_error_deg(gt[:, :3, :3], moved[:, :3, :3])
+        ctr = center_error_pct(camera_centers(moved), c_gt, object_center)
         results.append(
             RegistrationErrors(
                 rotation_deg=rot,

@@ -28,16 +28,30 @@ def _fmt(x: float | None) -> str:
 @click.option("--symmetry", "symmetry_axes", multiple=True, type=click.Choice(["x", "y", "z"]),
               help="With --gt: the object looks the same turned 180 deg about this object axis; registration errors "
                    "are taken against the closer pose (repeatable).")
+@click.option("--near-symmetries", "symmetry_mm", default=None, type=click.FloatRange(min=0.0, min_open=True),
+              help="With --gt: find the turns that move the twin's mesh by less than MM (mean surface distance, e.g. the "
+                   "rig's calibration noise) and take registration errors against the closest of them.")
 @click.option("--max-views", default=None, type=click.IntRange(1, 100_000),
               help="Score at most N held-out views, evenly spread over the capture (default: all).")
 def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int, gt_path: Path | None,
-             symmetry_axes: tuple[str, ...], max_views: int | None) -> None:
+             symmetry_axes: tuple[str, ...], symmetry_mm: float | None, max_views: int | None) -> None:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
 
     from calibration.capture import load_views, read_capture
     from calibration.fileio import atomic_write_json
-    from reconstruction.evaluation import evaluate_twin, half_turn, select_views
+    from reconstruction.evaluation import (
+        evaluate_twin,
+        half_turn,
+        select_views,
+        twin_near_symmetries,
+    )
     from reconstruction.twin import load_twin
 
     if out_path.exists() and out_path.is_dir():
@@ -55,8 +69,17 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
             raise click.ClickException(f"cannot read --gt {gt_path} ({e.__class__.__name__})") from None
         if "train_c2w_object" not in gt:
             raise click.ClickException(f"--gt {gt_path} has no train_c2w_object; is it a synthetic rig's gt.json?")
-    if symmetry_axes and gt is None:
-        raise click.ClickException("--symmetry needs --gt: symmetries only change how registration errors are measured")
+    if (symmetry_axes or symmetry_mm) and gt is None:
+        raise click.ClickException("--symmetry and --near-symmetries need --gt: symmetries only change how registration errors are measured")
+    symmetries = [half_turn(a) for a in symmetry_axes]
+    labels = [f"the pose turned 180 deg about {a}" for a in symmetry_axes]
+    if symmetry_mm:
+        try:
+            found = twin_near_symmetries(twin, symmetry_mm * 1e-3)
+        except ValueError as e:
+            raise click.ClickException(str(e)) from None
+        symmetries += [s.transform for s in found]
+        labels += [f"the pose turned {s.angle_deg:.1f} deg, a near-symmetry moving the mesh {1e3 * s.deviation:.2f} mm" for s in found]
     idx = select_views(len(capture), max_views)
     images, masks, cams = load_views(capture, idx)
     names = [Path(capture.frames[i].file_path).stem for i in idx]
@@ -67,7 +90,7 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
                   console=console, transient=True) as bar:
         task = bar.add_task(f"evaluating ({refine_steps} refinement steps per view)", total=len(idx))
         report = evaluate_twin(twin, cams, images, masks, names=names, refine_steps=refine_steps, gt=gt,
-                               symmetries=[half_turn(a) for a in symmetry_axes] or None,
+                               symmetries=symmetries or None,
                                progress=lambda done, _total: bar.update(task, completed=done))
     report["timings_s"]["load"] = t_load
     doc = {
@@ -92,7 +115,7 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
         click.echo("  refined     " + " ".join(_fmt(report["mean_refined"][k]) for k in SUMMARY))
     if "registration" in report:
         r = report["registration"]
-        sym = "" if r["symmetry"] is None else f" (against the pose turned 180 deg about {symmetry_axes[r['symmetry']]})"
+        sym = "" if r["symmetry"] is None else f" (against {labels[r['symmetry']]})"
         click.echo(f"  registration of {len(r['cameras'])} training cameras: median {r['rotation_deg_median']:.2f} deg, "
                    f"{r['center_pct_median']:.2f} % of distance{sym}")
     click.echo(f"  metrics per view and averaged: {out_path}")

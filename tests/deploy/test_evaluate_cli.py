@@ -7,13 +7,15 @@ import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from calibration.capture import FrameData, write_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from deploy.cli import main
 from reconstruction.evaluation import METRIC_KEYS, FrozenGaussians
-from reconstruction.twin import save_twin
+from reconstruction.symmetry import rotation_about
+from reconstruction.twin import MeshParts, save_twin
 from tests.reconstruction.test_evaluation import make_twin, orbit_camera, photograph, shifted
 
 RIG_TO_OBJECT = Sim3(2.0, axis_angle_to_matrix(np.array([0.0, 0.0, 0.7])), np.array([0.01, -0.02, 0.0]))
@@ -83,7 +85,8 @@ def test_evaluate_max_views_without_refinement(scene, tmp_path):
     ("no_views", "transforms.json"),
     ("bad_gt", "--gt"),
     ("out_is_dir", "is a directory"),
-    ("symmetry_without_gt", "--symmetry needs --gt"),
+    ("symmetry_without_gt", "need --gt"),
+    ("near_symmetries_without_cad", "mesh_cad.glb"),
 ])
 def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragment):
     twin, views, out = scene / "twin", scene / "heldout", tmp_path / "m.json"
@@ -97,6 +100,8 @@ def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragm
         extra = ["--gt", str(tmp_path / "gt.json")]
     elif case == "symmetry_without_gt":
         extra = ["--symmetry", "z"]
+    elif case == "near_symmetries_without_cad":
+        extra = ["--gt", str(scene / "gt.json"), "--near-symmetries", "2"]
     else:
         out = tmp_path
     rc = main(["evaluate", str(twin), "--views", str(views), "--out", str(out), "--refine-steps", "0", *extra])
@@ -104,3 +109,24 @@ def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragm
     assert rc != 0
     assert fragment in err and len(err.splitlines()) == 1
     assert not (tmp_path / "m.json").exists()
+
+
+def test_evaluate_forgives_a_turn_the_cad_model_cannot_show(scene, tmp_path, capsys):
+    """A twin of a box registered turned 180 deg about the box's own centre: the training camera is
+    180 deg off, and 0 deg off modulo the near-symmetries found on the twin's CAD mesh."""
+    box = trimesh.creation.box(extents=[0.04, 0.08, 0.12])
+    box.apply_translation([0.02, 0.0, 0.0])
+    cad = MeshParts(np.asarray(box.vertices), np.asarray(box.faces), np.zeros(len(box.faces), np.int64), ["box"])
+    twin = make_twin(n=1200)
+    save_twin(twin, tmp_path / "twin", mesh_cad=cad)
+    turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi, np.array([0.02, 0.0, 0.0]))
+    truth = turn @ twin.cameras[0].c2w_object_opencv  # the camera sees the object turned by `turn`
+    (tmp_path / "gt.json").write_text(json.dumps({"train_c2w_object": [truth.tolist()]}))
+    args = ["evaluate", str(tmp_path / "twin"), "--views", str(scene / "heldout"), "--refine-steps", "0", "--max-views", "1",
+            "--gt", str(tmp_path / "gt.json")]
+    assert main([*args, "--out", str(tmp_path / "raw.json")]) == 0
+    assert json.loads((tmp_path / "raw.json").read_text())["registration"]["rotation_deg_median"] == pytest.approx(180.0)
+    assert main([*args, "--out", str(tmp_path / "sym.json"), "--near-symmetries", "3"]) == 0
+    reg = json.loads((tmp_path / "sym.json").read_text())["registration"]
+    assert reg["rotation_deg_median"] < 0.5 and reg["symmetry"] is not None
+    assert "near-symmetry moving the mesh" in capsys.readouterr().out
