@@ -55,6 +55,21 @@ class CalibrationDoc:
         return replace(self, cameras={**self.cameras, **cameras}, source=source, parent=self.version, version=None, created="", notes=notes or {})
 
 
+def extrinsics_uncertainty(doc: CalibrationDoc) -> dict | None:
+    """The worst camera's stated extrinsic uncertainty, {"rotation_deg", "translation_mm"}; None when no
+    camera states one (a calibration made without the two-halves cross-check, or a hand-made file)."""
+    rot, mm = [], []
+    for fig in doc.figures.values():
+        u = fig.get("uncertainty") or {}
+        if u.get("extrinsics_cv_rotation_deg") is not None:
+            rot.append(float(u["extrinsics_cv_rotation_deg"]))
+        if u.get("extrinsics_cv_translation_mm") is not None:
+            mm.append(float(u["extrinsics_cv_translation_mm"]))
+    if not rot and not mm:
+        return None
+    return {"rotation_deg": max(rot, default=0.0), "translation_mm": max(mm, default=0.0)}
+
+
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 

@@ -74,7 +74,8 @@ class Appliance:
         self._closers = list(closers)
         first = self.drivers[0].camera
         settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
-        self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(), settings=settings,
+        self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(),
+                                       calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
                                        backgrounds=dict(backgrounds or {}))
         cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"))
         self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
@@ -102,7 +103,7 @@ class Appliance:
         cfg = load_config(config_path)
         if cfg.calibration is None:
             raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
-        _, calibration = load_rig_calibration(cfg.calibration)
+        calibration = load_rig_calibration(cfg.calibration).cameras
         drivers = build_cameras(cfg, calibration)
         trigger = build_trigger(cfg.trigger).start()
         store = build_store(cfg)
@@ -151,6 +152,11 @@ class Appliance:
     def _calibration_id(self) -> str:
         return f"calibration-v{self.keeper.store.load().version:04d}"
 
+    def _calibration_uncertainty(self) -> dict | None:
+        from calibration.calibfile import extrinsics_uncertainty
+
+        return extrinsics_uncertainty(self.keeper.store.load())
+
     def knock(self, camera: str, degrees: float, axis=(0.3, 1.0, 0.2)) -> None:
         """Turn a simulated camera physically (a bump during maintenance); its calibration stays."""
         from calibration.so3 import axis_angle_to_matrix
@@ -175,6 +181,7 @@ class Appliance:
                 for i, d in enumerate(self.drivers):
                     self.rig.set_calibration(i, calib.cameras[d.camera_id].c2w)
             self.acquisition.calibration_id = self._calibration_id()
+            self.acquisition.calibration_uncertainty = self._calibration_uncertainty()
 
     def _acquire(self) -> None:
         def outcome(out) -> None:

@@ -111,6 +111,8 @@ class Acquisition:
     store: CaptureStore
     rig_id: str = "rig"
     calibration_id: str = "uncalibrated"
+    # The calibration's stated extrinsic uncertainty; the engine picks per-camera pose correction when it is large.
+    calibration_uncertainty: dict | None = None
     thresholds: Thresholds = field(default_factory=Thresholds)
     trigger_filter: TriggerFilter = field(default_factory=TriggerFilter)
     settings: CameraSettings | None = None
@@ -155,6 +157,8 @@ class Acquisition:
             "sync_spread_ns": spread,
             "camera_settings": {cid: f.settings for cid, f in sorted(frames.items())},
         }
+        if self.calibration_uncertainty is not None:
+            meta["calibration_uncertainty"] = dict(self.calibration_uncertainty)
         sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
         problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
         problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)

@@ -12,6 +12,7 @@ import json
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import serial
 
@@ -24,18 +25,21 @@ from rig.triggers import CanTrigger, SerialTrigger, SoftwareTrigger, TriggerSour
 REPO = Path(__file__).resolve().parents[1]
 
 
-def load_rig_calibration(path: Path | None) -> tuple[str, dict[str, Camera]]:
-    """(calibration_id, {camera_id: Camera}) from the keeper's `calibration.json`; ("uncalibrated", {}) without one.
+class RigCalibrationRef(NamedTuple):
+    calibration_id: str  # names the version ("calibration-v0003") so every capture records which it was taken under
+    cameras: dict[str, Camera]
+    uncertainty: dict | None  # the worst camera's stated extrinsic uncertainty (calibfile.extrinsics_uncertainty)
 
-    The id names the version ("calibration-v0003") so every capture records which calibration it was taken under.
-    """
+
+def load_rig_calibration(path: Path | None) -> RigCalibrationRef:
+    """The keeper's `calibration.json` for the rig; ("uncalibrated", {}, None) without one."""
     if path is None:
-        return "uncalibrated", {}
-    from calibration.calibfile import read_calibration
+        return RigCalibrationRef("uncalibrated", {}, None)
+    from calibration.calibfile import extrinsics_uncertainty, read_calibration
 
     doc = read_calibration(path)
     version = f"v{doc.version:04d}" if doc.version is not None else "unversioned"
-    return f"{Path(path).stem}-{version}", dict(doc.cameras)
+    return RigCalibrationRef(f"{Path(path).stem}-{version}", dict(doc.cameras), extrinsics_uncertainty(doc))
 
 
 def build_camera(cfg: CameraConfig, calibrated: Camera | None, index: int, n: int) -> CameraDriver:

@@ -230,10 +230,14 @@ def synth_dataset(
         "trigger": "software",
         "synthetic": {"mesh": mesh_path.name, "seed": seed},
     }
+    if calib_noise_deg or calib_noise_mm:
+        # The recorded extrinsics are off by this much per axis, as a keeper's calibration states its own uncertainty.
+        meta["calibration_uncertainty"] = {"rotation_deg": float(calib_noise_deg), "translation_mm": float(calib_noise_mm)}
     recorded_cams = [c.with_c2w(m) for c, m in zip(train_rig, recorded)]
     _write(out_dir / "train", "cam", recorded_cams, train, meta)
     if held:
-        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**meta, "calibration_id": f"synthetic-seed{seed}"})
+        exact = {k: v for k, v in meta.items() if k != "calibration_uncertainty"}
+        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**exact, "calibration_id": f"synthetic-seed{seed}"})
 
     gt = {
         "mesh": _mesh_reference(mesh_path, out_dir),

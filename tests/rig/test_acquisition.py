@@ -229,3 +229,13 @@ def test_enospc_mid_capture_is_quarantined_and_the_next_capture_commits(store_ro
     assert sorted(p.name for p in (q / "images").iterdir()) == ["cam0.png", "cam1.png", "cam2.png"]  # the frames were kept
     committed = [outs[0].capture_id, outs[2].capture_id]
     assert assert_store_sound(store_root, committed) == committed
+
+
+def test_captures_record_the_calibration_they_were_taken_under(store_root):
+    acq = make_acquisition(store_root, calibration_id="calibration-v0003",
+                           calibration_uncertainty={"rotation_deg": 0.04, "translation_mm": 0.4})
+    out = acq.handle(SoftwareTrigger().fire())
+    acq.close()
+    meta = acq.store.read(out.capture_id).meta
+    assert meta["calibration_id"] == "calibration-v0003"
+    assert meta["calibration_uncertainty"] == {"rotation_deg": 0.04, "translation_mm": 0.4}

@@ -196,6 +196,9 @@ def test_dataset_files_and_ground_truth(small_dataset):
     np.testing.assert_allclose(rec[:, :3, 3] - true_rig[:, :3, 3], gt["calib_noise"]["centre_shift_rig"], atol=1e-9)
     assert 0.05 < ang.mean() < 2.0
     np.testing.assert_allclose(sim3.apply_to_c2w(true_rig), gt["train_c2w_object"], atol=1e-9)
+    # The train capture states that uncertainty, as a keeper's calibration would; the exact held-out one does not.
+    assert train.meta["calibration_uncertainty"] == {"rotation_deg": 0.5, "translation_mm": 2.0}
+    assert "calibration_uncertainty" not in held.meta
 
 
 def test_true_poses_project_the_mesh_into_the_masks(small_dataset):
