@@ -20,7 +20,8 @@ import torch
 from calibration.camera import Camera
 from calibration.capture import Capture, load_views, read_capture
 from calibration.sim3 import Sim3
-from reconstruction.pose_correction import choose_pose_mode
+from reconstruction.library import UNIT_TO_M
+from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.registration import RegistrationResult
 from reconstruction.render import rasterize
@@ -76,6 +77,16 @@ def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -
 
     all_masks, source = capture_masks(capture)
     return all_masks[list(indices)], source
+
+
+def calibration_error_px(meta: dict, cams: Sequence[Camera], centre_rig: np.ndarray) -> float | None:
+    """The capture's stated calibration uncertainty in pixels at the object (rig-frame centre [3]); None if unstated."""
+    uncertainty = meta.get("calibration_uncertainty")
+    if not isinstance(uncertainty, dict):
+        return None
+    metres_per_unit = UNIT_TO_M.get(str(meta.get("units", "m")), 1.0)
+    distance_m = metres_per_unit * np.linalg.norm(np.stack([c.c2w[:3, 3] for c in cams]) - centre_rig, axis=1)
+    return extrinsics_error_px(uncertainty, np.array([c.K[0, 0] for c in cams]), distance_m)
 
 
 def sphere_registration(masks: np.ndarray, cams: Sequence[Camera]) -> tuple[RegistrationResult, MeshParts]:
@@ -169,7 +180,8 @@ def reconstruct(
     if init == "sphere":
         choices["init"] = {"value": "sphere", "why": "paper 4.4.2: no CAD; an icosphere at the optical axes' meeting point, "
                            "sized so its projections match the masks' areas"}
-    mode, why = choose_pose_mode(capture.meta, pose_mode)
+    error_px = calibration_error_px(capture.meta, cams, reg.sim3_rig_to_object.inverse().apply(centre[None])[0])
+    mode, why = choose_pose_mode(capture.meta, pose_mode, calibration_error_px=error_px)
     choices["pose_mode"] = {"value": mode, "why": why}
     choices["masks"] = {"value": mask_source, "why": "capture masks when present, else background subtraction"}
     Ks = np.stack([c.K for c in cams])

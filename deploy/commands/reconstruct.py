@@ -6,8 +6,9 @@ from pathlib import Path
 
 import click
 
-# Kept here so `--help` does not import torch; tests/deploy checks it against presets.ABLATIONS.
+# Kept here so `--help` does not import torch; tests check them against presets.ABLATIONS and pose_correction.POSE_MODES.
 ABLATION_NAMES = ("no-deformation", "no-pose", "no-mask-warmup", "no-sh-smoothness", "no-dropout")
+POSE_MODE_NAMES = ("global", "per_camera")
 STAGE_TITLES = {"pose": "Stage I: pose", "deform": "Stage I: pose + deformation", "photo": "Stage II: photometric"}
 
 
@@ -47,7 +48,7 @@ def verdict(twin, registration) -> str:
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "preview", "paper"]), help="Model size and schedule.")
 @click.option("--model", "model_id", default=None, help="Use this library model instead of retrieving one.")
 @click.option("--views", "views_text", default=None, help="Training views by index, e.g. 0,3,7 (default: all).")
-@click.option("--pose-mode", default=None, type=click.Choice(["global", "per_camera"]), help="Override the pose-correction mode chosen from the capture's provenance.")
+@click.option("--pose-mode", default=None, type=click.Choice(list(POSE_MODE_NAMES)), help="Override the pose-correction mode chosen from the capture's provenance.")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--init", "init", default="cad", show_default=True, type=click.Choice(["cad", "sphere"]),
               help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).")

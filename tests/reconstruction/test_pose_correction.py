@@ -11,7 +11,9 @@ from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, is_rotation
 from reconstruction.pose_correction import (
     PoseCorrection,
+    POSE_MODES,
     choose_pose_mode,
+    extrinsics_error_px,
     corrected_c2w_numpy,
     rotation_6d_to_matrix,
     viewmats_from_c2w,
@@ -84,6 +86,18 @@ def test_mode_from_provenance():
         choose_pose_mode({}, "bogus")
 
 
+def test_calibration_uncertainty_in_pixels_decides_the_mode():
+    # 0.3 deg and 2 mm at 0.41 m with f = 386 px: about 2.0 + 2.0 px, above the 1 px a global correction tolerates.
+    px = extrinsics_error_px({"rotation_deg": 0.3, "translation_mm": 2.0}, np.array([386.0, 386.0]), np.array([0.41, 0.40]))
+    assert px == pytest.approx(386.0 * (np.radians(0.3) + 0.002 / 0.40))
+    mode, why = choose_pose_mode({"calibration_id": "cal-7"}, calibration_error_px=px)
+    assert mode == "per_camera" and f"{px:.1f} px" in why
+    # A board calibration's cross-check (0.04 deg, 0.4 mm) is a fraction of a pixel: the paper's global Sim(3).
+    good = extrinsics_error_px({"rotation_deg": 0.04, "translation_mm": 0.4}, np.array([386.0]), np.array([0.41]))
+    assert good < 1.0 and choose_pose_mode({"calibration_id": "cal-7"}, calibration_error_px=good)[0] == "global"
+    assert choose_pose_mode({"calibration_id": "cal-7"}, "global", calibration_error_px=px)[0] == "global"
+
+
 def test_pivot_and_unit_keep_the_correction_a_sim3():
     # Rotating and scaling about the object's centre, translating in object radii: still one Sim(3)
     # that maps the cameras, and the refined registration composes exactly as without a pivot.
@@ -103,3 +117,22 @@ def test_pivot_and_unit_keep_the_correction_a_sim3():
     np.testing.assert_allclose(delta.apply(pivot[None])[0], pivot + unit * np.array([0.5, 0.2, -0.1]), atol=1e-12)
     with pytest.raises(ValueError, match="unit"):
         PoseCorrection(2, "global", unit=0.0)
+
+
+def test_cli_offers_every_pose_mode():
+    from deploy.commands.reconstruct import POSE_MODE_NAMES
+
+    assert POSE_MODE_NAMES == POSE_MODES
+
+
+
+def test_capture_states_its_calibration_uncertainty_in_its_own_units():
+    from calibration.camera import Camera
+    from reconstruction.pipeline import calibration_error_px
+
+    # A rig in millimetres: cameras 400 mm from the object, f = 400 px.
+    cams = [Camera.from_fov(2 * np.arctan(320 / 400), 640, 480, look_at_c2w(400.0 * np.array([np.cos(a), np.sin(a), 0.0]), np.zeros(3)))
+            for a in (0.0, 2.0)]
+    meta = {"units": "mm", "calibration_uncertainty": {"rotation_deg": 0.0, "translation_mm": 2.0}}
+    assert calibration_error_px(meta, cams, np.zeros(3)) == pytest.approx(400.0 * 2.0 / 400.0)
+    assert calibration_error_px({"units": "mm"}, cams, np.zeros(3)) is None
