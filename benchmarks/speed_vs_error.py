@@ -300,6 +300,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--report-only", action="store_true", help="rewrite the table and plots from the runs cached in --work")
     ap.add_argument("--few", type=int, default=None, help="scenes for the sphere and extra-ablation rows (default: 2 on a CPU, all on CUDA)")
+    ap.add_argument("--only", action="append", default=None, metavar="METHOD/PRESET/VIEWS",
+                    help="run only these rows of the plan, e.g. full/cpu/all (repeatable)")
     args = ap.parse_args()
     if not YCB.exists():
         sys.exit(f"needs the shared data folder ({YCB} is absent)")
@@ -326,6 +328,10 @@ def main() -> None:
         plan += [(v, m, p, n_scenes) for v in (3, 5, 8) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla))]
         plan += [("all", m, "cpu", few) for m in ("sphere-init", "no-deformation", "no-pose", "no-sh-smoothness")]
         plan += [("all", "full", "paper", n_scenes if cuda else 1)]
+    if args.only:
+        plan = [row for row in plan if f"{row[1]}/{row[2]}/{row[0]}" in args.only]
+        if not plan:
+            sys.exit(f"--only {', '.join(args.only)} matches no row of the plan")
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if args.report_only:
