@@ -126,7 +126,7 @@ def near_symmetries(
     surface, _, _ = sample_surface(vertices, faces, samples, rng)
     tree = cKDTree(surface)
     probe = surface[rng.choice(len(surface), size=min(queries, len(surface)), replace=False)]
-    center, second = surface_moments(vertices, faces)
+    center, moment = surface_moments(vertices, faces)
 
     def fit(T: np.ndarray, refine: bool) -> tuple[np.ndarray, float]:
         dev = surface_deviation(probe, T, tree)
@@ -142,7 +142,7 @@ def near_symmetries(
 
     per_axis: list[list[NearSymmetry]] = []
     have_continuous = False
-    for axis in candidate_axes(second):
+    for axis in candidate_axes(moment):
         coarse = [fit(rotation_about(axis, np.radians(d), center), False)[1] for d in range(10, 360, 10)]
         found: list[NearSymmetry] = []
         if max(coarse) < tolerance:
