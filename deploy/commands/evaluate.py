@@ -36,22 +36,11 @@ def _fmt(x: float | None) -> str:
 def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int, gt_path: Path | None,
              symmetry_axes: tuple[str, ...], symmetry_mm: float | None, max_views: int | None) -> None:
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-    )
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from calibration.capture import load_views, read_capture
     from calibration.fileio import atomic_write_json
-    from reconstruction.evaluation import (
-        evaluate_twin,
-        half_turn,
-        select_views,
-        twin_near_symmetries,
-    )
+    from reconstruction.evaluation import evaluate_twin, half_turn, select_views, twin_near_symmetries
     from reconstruction.twin import load_twin
 
     if out_path.exists() and out_path.is_dir():
