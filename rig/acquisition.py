@@ -1,8 +1,8 @@
 """Synchronized acquisition: trigger -> a frame from every camera -> validated -> committed or quarantined.
 
 Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
-capture in the store), `quarantined` (kept with its reason), `refused` (disk below its threshold:
-no capture is taken), `late` (the trigger waited longer than the part stays in view), `dropped`
+capture in the store), `quarantined` (kept with its reason), `refused` (disk below its threshold, or
+a camera down and reconnecting by itself: no capture is taken, nothing is stored), `late` (the trigger waited longer than the part stays in view), `dropped`
 (a duplicate or too-soon trigger) or `failed` (not even a quarantine entry could be written).
 """
 
@@ -12,7 +12,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -35,6 +35,14 @@ class Thresholds:
     saturated_fraction: float = 0.5
     grab_timeout_s: float = 2.0
     max_trigger_age_ns: int = 2_000_000_000
+
+
+@runtime_checkable
+class SelfRecovering(Protocol):
+    """A driver that re-opens a lost device in the background (OAK); the rig waits for it instead of reopening it inline."""
+
+    @property
+    def reconnecting(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -145,7 +153,12 @@ class Acquisition:
     def capture(self, event: TriggerEvent) -> Outcome:
         seq = event.seq if event.seq is not None else self._next_seq
         self._next_seq = seq + 1
+        if self.camera_alarm:
+            return Outcome("refused", event, reason=f"{self.camera_alarm}; no capture taken")
         frames, errors = self._grab_all(seq)
+        if self.camera_alarm:
+            # A camera dropped while this capture was in flight: refused whole, none of its frames stored.
+            return Outcome("refused", event, reason=f"{self.camera_alarm}; the capture in flight was refused whole")
         capture_id = self.store.reserve_id()
         cams = {c.camera_id: c for c in self.cameras}
         data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
@@ -155,6 +168,7 @@ class Acquisition:
             "calibration_id": self.calibration_id,
             "trigger": event.to_dict(),
             "sync_spread_ns": spread,
+            "trigger_to_exposure_ns": {cid: f.timestamp_ns - event.timestamp_ns for cid, f in sorted(frames.items())},
             "camera_settings": {cid: f.settings for cid, f in sorted(frames.items())},
         }
         if self.calibration_uncertainty is not None:
@@ -183,7 +197,7 @@ class Acquisition:
         errors: dict[str, str] = {}
         for cam in self.cameras:
             try:
-                if not cam.health().ok:
+                if not cam.health().ok and not (isinstance(cam, SelfRecovering) and cam.reconnecting):
                     self._reopen(cam)
                 cam.arm(seq)
             except CameraError as e:
@@ -207,6 +221,15 @@ class Acquisition:
             pass
         cam.open()
         cam.configure(self.settings or CameraSettings(cam.camera.width, cam.camera.height))
+
+    @property
+    def camera_alarm(self) -> str:
+        """'' while every camera is up; else which cameras are down and reconnecting, by name."""
+        why: dict[str, list[str]] = {}
+        for c in self.cameras:
+            if isinstance(c, SelfRecovering) and c.reconnecting:
+                why.setdefault(c.health().detail, []).append(c.camera_id)
+        return "; ".join(f"camera{'s' if len(ids) > 1 else ''} {', '.join(ids)} {'are' if len(ids) > 1 else 'is'} down: {detail}" for detail, ids in why.items())
 
     def _count(self, out: Outcome) -> Outcome:
         self.counts[out.status] += 1

@@ -210,7 +210,12 @@ class OakCamera:
         if settings.sync == "fsin" and not settings.locked:
             raise CameraError(f"{self.camera_id}: sync 'fsin' needs fixed exposure_us, iso and white_balance_k (the sensor only exposes on trigger edges, so auto exposure cannot converge)")
         spec = SocketSpec(settings.width, settings.height, settings.sync, self.fsin_discard if settings.sync == "fsin" else 0)
-        self._device.configure(self.socket, spec, Control(settings.exposure_us, settings.iso, settings.white_balance_k, settings.focus))
+        try:
+            self._device.configure(self.socket, spec, Control(settings.exposure_us, settings.iso, settings.white_balance_k, settings.focus))
+        except CameraError:
+            if self._device.reconnecting and settings.locked:
+                self._settings = settings  # kept by the device for its rebuild: in force once it is back
+            raise
         self._settings = settings
         if self._calibrated is not None:
             self._camera = self._calibrated.scaled(settings.width, settings.height)

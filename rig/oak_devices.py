@@ -202,7 +202,8 @@ class OakDevice:
 
     def down_sentence(self, camera_id: str) -> str:
         if self.reconnecting:
-            return f"{camera_id}: OAK {self.device_id} is disconnected ({self.lost_reason}); reconnecting in the background, attempt {self.attempts}"
+            tried = f", {self.attempts} attempts so far" if self.attempts else ""
+            return f"{camera_id}: OAK {self.device_id} is disconnected ({self.lost_reason}); reconnecting in the background{tried}"
         return f"{camera_id}: OAK {self.device_id} is not running (configure the camera first)"
 
     def calibration(self):
