@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from deploy.kiosk_state import CameraStatus, drift_alarm
 from rig.camera import CameraError, CameraSettings
 from rig.oak import OakCamera, describe_oak_device, factory_camera, list_oak_devices, opencv_distortion
 from tests.rig.fake_depthai import CalibrationHandler, FakeDai, Hardware, Sensor
@@ -235,7 +236,12 @@ def test_disconnect_then_background_reconnect_with_the_same_settings():
             c.arm(seq)
             c.grab(1.0)
     assert str(e.value).startswith("cam0: OAK 18443010D1C2A41200 is disconnected (X_LINK_ERROR); reconnecting in the background")
-    assert c.reconnecting and not c.health().ok and "reconnecting" in c.health().detail
+    h = c.health()
+    assert c.reconnecting and not h.ok and "reconnecting" in h.detail
+    # what the kiosk shows for it
+    text = drift_alarm(CameraStatus("cam0", h.ok, detail=h.detail)).text
+    assert text.startswith("Camera cam0 is not answering (OAK 18443010D1C2A41200 is disconnected (X_LINK_ERROR); reconnecting in the background")
+    assert text.endswith(") — captures are refused until it is back; check its cable and power.")
     with pytest.raises(CameraError, match="is disconnected"):
         c.arm(21)
     time.sleep(0.3)
