@@ -217,10 +217,15 @@ class OakDevice:
                 raise CameraError(f"OAK {self.device_id} did not give its calibration ({_short(e)})") from None
 
     def chip_temperature(self) -> float:
+        """The chip's temperature; also how an idle device's lost link is noticed (health checks poll it)."""
         with self._lock:
             if self._link is None:
                 raise CameraError(f"OAK {self.device_id} is not running")
-            return float(self._link.device.getChipTemperature().average)
+            try:
+                return float(self._link.device.getChipTemperature().average)
+            except RuntimeError as e:
+                self.lost(e)
+                raise CameraError(f"OAK {self.device_id} is disconnected ({self.lost_reason}); reconnecting in the background") from None
 
     def lost(self, error: Exception | str) -> None:
         """The link dropped: drop the dead objects and re-open in the background with back-off."""

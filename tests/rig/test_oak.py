@@ -253,3 +253,16 @@ def test_disconnect_then_background_reconnect_with_the_same_settings():
     assert (f.settings["exposure_us"], f.settings["iso"], f.settings["white_balance_k"]) == (6000, 300, 5000)
     assert c._device.reconnects == 1 and dai.opened[-1].isClosed() is False
     c.close()
+
+
+def test_an_idle_device_that_drops_is_noticed_by_its_health_check():
+    hw = ffc_4p()
+    dai = FakeDai(hw)
+    c = cam(dai)
+    c.open()
+    c.configure(CameraSettings(64, 40, **LOCKED))
+    hw.unplug()
+    assert not c.health().ok and c.reconnecting
+    hw.replug()
+    assert wait(lambda: c.health().ok)
+    c.close()
