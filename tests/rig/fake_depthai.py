@@ -15,7 +15,8 @@ depthai-core's source (not from the driver), so the driver's tests meet depthai'
 - Snapshot mode (`CameraControl.setExternalTrigger`) works on RVC2 with the sensors the frame-sync
   docs list (OV9282, OV9782, AR0234): one burst per FSIN edge, the first `numFramesDiscard`
   dropped. Other sensors ignore it and free-run (the IMX296 report, depthai-core #895).
-- RVC4 devices take `Device.setExternalFrameSyncRole`; on RVC2 it is refused.
+- RVC4 devices take `Device.setExternalFrameSyncRole` (SLAVE: "must lock onto an external frame sync
+  signal"); on RVC2 it is refused (an assumption: depthai documents the role for RVC4 devices only).
 - `Hardware.fail_after` frames: the link drops with X_LINK_ERROR, the device is gone until `replug()`.
 
 `FakeDai(hardware...)` is used in place of the `depthai` module.

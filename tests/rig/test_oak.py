@@ -11,6 +11,7 @@ import pytest
 from deploy.kiosk_state import CameraStatus, drift_alarm
 from rig.camera import CameraError, CameraSettings
 from rig.oak import OakCamera, describe_oak_device, factory_camera, list_oak_devices, opencv_distortion
+from rig.oak_devices import refuse_sync
 from tests.rig.fake_depthai import CalibrationHandler, FakeDai, Hardware, Sensor
 
 LOCKED = dict(exposure_us=5000, iso=200, white_balance_k=5600)
@@ -266,3 +267,11 @@ def test_an_idle_device_that_drops_is_noticed_by_its_health_check():
     hw.replug()
     assert wait(lambda: c.health().ok)
     c.close()
+
+
+def test_sync_refusals_per_platform_and_sensor():
+    assert refuse_sync("RVC2", "CAM_A", "OV9282") == "" and refuse_sync("RVC4", "CAM_A", "IMX586") == ""
+    assert refuse_sync("RVC2", "CAM_C", "IMX296") == (
+        "CAM_C is a global-shutter IMX296: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'")
+    assert refuse_sync("RVC2", "CAM_D", "S5K33D") == "CAM_D is a S5K33D: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
+    assert refuse_sync("RVC3", "CAM_A", "OV9282") == "CAM_A: hardware frame sync is not supported on RVC3 devices, use sync = 'software'"
