@@ -170,13 +170,23 @@ class OakDevice:
             if self.reconnecting:
                 self.specs[socket] = spec
                 raise CameraError(self.down_sentence(camera_id))
-            wanted = {s: self.specs.get(s, spec) for s in self.users}
+            wanted = {s: self.specs.get(s) or self._like(s, spec) for s in self.users}
             wanted[socket] = spec
             if self._link is not None and wanted == self.specs:
                 self._send(socket, control)
                 return
-            self.specs = wanted
-            self._rebuild(camera_id)
+            previous, self.specs = self.specs, wanted
+            try:
+                self._rebuild(camera_id)
+            except CameraError:
+                self.specs = previous  # the refused spec is not kept for the next rebuild
+                raise
+
+    def _like(self, socket: str, spec: SocketSpec) -> SocketSpec:
+        """`spec` for a socket not configured yet (software sync where its sensor cannot take fsin)."""
+        if spec.sync == "fsin" and refuse_sync(self.platform, socket, self.sensors.get(socket, "?")):
+            return SocketSpec(spec.width, spec.height)
+        return spec
 
     def queue(self, socket: str):
         """The socket's output queue; CameraError while the device is down."""

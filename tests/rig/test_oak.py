@@ -275,3 +275,19 @@ def test_sync_refusals_per_platform_and_sensor():
         "CAM_C is a global-shutter IMX296: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'")
     assert refuse_sync("RVC2", "CAM_D", "S5K33D") == "CAM_D is a S5K33D: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
     assert refuse_sync("RVC3", "CAM_A", "OV9282") == "CAM_A: hardware frame sync is not supported on RVC3 devices, use sync = 'software'"
+
+
+def test_mixed_sync_on_one_device_builds_once():
+    """OAK-D: the mono pair in snapshot sync, the rolling-shutter RGB streaming (software), one pipeline."""
+    dai = FakeDai(oak_d())
+    rgb, left, right = (cam(dai, n, device_id="19443010D1C2A41200", socket=s) for n, s in (("rgb", "CAM_A"), ("left", "CAM_B"), ("right", "CAM_C")))
+    for c in (rgb, left, right):
+        c.open()
+    for c in (left, right):
+        c.configure(CameraSettings(64, 40, sync="fsin", **LOCKED))
+    rgb.configure(CameraSettings(64, 40, **LOCKED))
+    assert len(dai.pipelines) == 1
+    nodes = {n.socket.name: n.initialControl.values for n in dai.pipelines[-1].nodes}
+    assert "setExternalTrigger" in nodes["CAM_B"] and "setExternalTrigger" in nodes["CAM_C"] and "setExternalTrigger" not in nodes["CAM_A"]
+    for c in (rgb, left, right):
+        c.close()
