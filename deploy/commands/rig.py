@@ -141,15 +141,24 @@ def list_cmd(config: str | None) -> None:
         click.echo("OAK devices: none found (depthai sees no OAK on USB or the network).")
     elif devices:
         click.echo(f"OAK devices: {len(devices)} found")
+    sockets: dict[str, set[str] | None] = {}
     for d in devices:
         try:
             info = describe_oak_device(d["device_id"], dai)
         except CameraError as e:
+            sockets[d["device_id"]] = None
             click.echo(f"  {d['device_id']}  {d['platform']}  {d['state']}: {e}")
             continue
+        sockets[d["device_id"]] = {sk["socket"] for sk in info["sockets"]}
         click.echo(f"  {d['device_id']}  {info['product']}  {info['platform']}  {len(info['sockets'])} sockets")
         for sk in info["sockets"]:
             click.echo(f"    {sk['socket']}  {sk['sensor']:<8} {sk['width']}x{sk['height']}  sync: {', '.join(sk['sync'])}")
+    if config and dai is not None:
+        for c in (c for c in cfg.cameras if c.driver == "oak"):
+            if c.device not in sockets:
+                click.echo(f"camera {c.id}: OAK {c.device} is not connected.")
+            elif sockets[c.device] is not None and c.socket not in sockets[c.device]:
+                click.echo(f"camera {c.id}: OAK {c.device} has no camera on {c.socket}.")
     click.echo(f"drivers: {', '.join(driver_names())} (synthetic: `--simulate`)")
 
 

@@ -30,3 +30,14 @@ def test_rig_list_without_any_device_says_so(monkeypatch, capsys):
     assert main(["rig", "list"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[1] == "OAK devices: none found (depthai sees no OAK on USB or the network)."
+
+
+def test_rig_list_checks_the_configured_oak_cameras(monkeypatch, capsys, tmp_path):
+    dai = FakeDai(Hardware("18443010D1C2A41200", "RVC2", [Sensor("CAM_A", "OV9282", 1280, 800)]))
+    monkeypatch.setattr(rig.oak, "import_depthai", lambda: dai)
+    toml = tmp_path / "rig.toml"
+    toml.write_text("\n".join(f'[[cameras]]\nid = "{i}"\ndevice = "{d}"\nsocket = "{s}"' for i, d, s in
+                              [("cam0", "18443010D1C2A41200", "CAM_A"), ("cam1", "18443010D1C2A41200", "CAM_B"), ("cam2", "NOPE", "CAM_A")]))
+    assert main(["rig", "list", "--config", str(toml)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-3:-1] == ["camera cam1: OAK 18443010D1C2A41200 has no camera on CAM_B.", "camera cam2: OAK NOPE is not connected."]
