@@ -47,11 +47,15 @@ def _name(enum_value) -> str:
     return getattr(enum_value, "name", str(enum_value).rsplit(".", 1)[-1])
 
 
+# DeviceInfo.platform is an XLinkPlatform; Device.getPlatform() a Platform. Say both the same way.
+_XLINK_PLATFORMS = {"X_LINK_MYRIAD_X": "RVC2", "X_LINK_RVC3": "RVC3", "X_LINK_RVC4": "RVC4", "X_LINK_MYRIAD_2": "RVC1"}
+
+
 def list_oak_devices(dai=None) -> list[dict]:
     """Devices depthai can see: [{"device_id", "name", "state", "platform"}] (empty without any)."""
     dai = dai or import_depthai()
     return [
-        {"device_id": info.getDeviceId(), "name": info.name, "state": _name(info.state), "platform": _name(getattr(info, "platform", ""))}
+        {"device_id": info.getDeviceId(), "name": info.name, "state": _name(info.state), "platform": _XLINK_PLATFORMS.get(_name(info.platform), _name(info.platform))}
         for info in dai.Device.getAllConnectedDevices()
     ]
 

@@ -50,6 +50,8 @@ ExternalFrameSyncRole = enum.Enum("ExternalFrameSyncRole", "AUTO_DETECT MASTER S
 CameraExposureOffset = enum.Enum("CameraExposureOffset", "START MIDDLE END")
 ImgResizeMode = enum.Enum("ImgResizeMode", "CROP STRETCH LETTERBOX")
 XLinkDeviceState = enum.Enum("XLinkDeviceState", "X_LINK_UNBOOTED X_LINK_BOOTED X_LINK_BOOTLOADER")
+XLinkPlatform = enum.Enum("XLinkPlatform", "X_LINK_ANY_PLATFORM X_LINK_MYRIAD_2 X_LINK_MYRIAD_X X_LINK_RVC3 X_LINK_RVC4")
+_XLINK = {"RVC2": XLinkPlatform.X_LINK_MYRIAD_X, "RVC3": XLinkPlatform.X_LINK_RVC3, "RVC4": XLinkPlatform.X_LINK_RVC4}
 
 
 @dataclass
@@ -451,11 +453,11 @@ class Device:
 
     @classmethod
     def getAllAvailableDevices(cls):
-        return [DeviceInfo(h.device_id, getattr(Platform, h.platform)) for h in cls._fake.hardware.values() if h.plugged and (h.holder is None or h.holder.isClosed())]
+        return [DeviceInfo(h.device_id, _XLINK[h.platform]) for h in cls._fake.hardware.values() if h.plugged and (h.holder is None or h.holder.isClosed())]
 
     @classmethod
     def getAllConnectedDevices(cls):
-        return [DeviceInfo(h.device_id, getattr(Platform, h.platform), XLinkDeviceState.X_LINK_UNBOOTED if h.holder is None or h.holder.isClosed() else XLinkDeviceState.X_LINK_BOOTED)
+        return [DeviceInfo(h.device_id, _XLINK[h.platform], XLinkDeviceState.X_LINK_UNBOOTED if h.holder is None or h.holder.isClosed() else XLinkDeviceState.X_LINK_BOOTED)
                 for h in cls._fake.hardware.values() if h.plugged]
 
     def _alive(self):
