@@ -17,30 +17,35 @@ FORMATS: dict[str, tuple[str, str]] = {
 }
 
 
-def _copy_atomic(src: Path, out: Path) -> Path:
+def _write_atomic(data: bytes, out: Path, name: str) -> Path:
     from calibration.fileio import atomic_write_bytes
 
     if out.is_dir():
-        out = out / src.name
+        out = out / name
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out, src.read_bytes())
+    atomic_write_bytes(out, data)
     return out
 
 
 def export_ply(twin_dir: Path, out: Path) -> Path:
-    from reconstruction.twin import SPLATS_PLY, load_twin
+    """The splats re-encoded as the current PLY layout (SH padded to degree 3, so Inria's loader
+    reads it without --sh_degree), also for twins saved before the padding."""
+    from reconstruction.twin import SPLATS_PLY, load_twin, splat_normals, splats_to_ply_bytes
 
     twin = load_twin(twin_dir)  # validates the twin before anything is written
-    return _copy_atomic(twin.root / SPLATS_PLY, out)
+    data = splats_to_ply_bytes(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, splat_normals(twin.quats))
+    return _write_atomic(data, out, SPLATS_PLY)
 
 
 def export_glb(twin_dir: Path, out: Path) -> Path:
-    from reconstruction.twin import TwinError, load_twin
+    """The deformed mesh re-encoded +Y up (parts under the object-frame root node), also for twins
+    whose GLB was saved z up."""
+    from reconstruction.twin import TwinError, load_twin, parts_glb_bytes
 
     twin = load_twin(twin_dir)
     if not twin.mesh_deformed_path.exists():
         raise TwinError(f"{twin.mesh_deformed_path}: the twin has no deformed mesh to export")
-    return _copy_atomic(twin.mesh_deformed_path, out)
+    return _write_atomic(parts_glb_bytes(twin.load_mesh_deformed()), out, twin.mesh_deformed_path.name)
 
 
 # Formats that carry a rigid body take the physics options; the others ignore them.

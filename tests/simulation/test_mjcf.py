@@ -61,7 +61,7 @@ def torus_asset():
 
 def test_scene_package_with_decomposition_primitive_and_fixture(tmp_path):
     torus = torus_asset()
-    col = collision_geometry(torus.vertices, torus.faces, torus.mass.volume, decomposition=DecompositionOptions(max_convex_hull=6, mcts_iterations=20, resolution=500, timeout_s=600))
+    col = collision_geometry(torus.vertices, torus.faces, torus.mass.volume, decomposition=DecompositionOptions(max_convex_hull=6, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600))
     box_mesh = trimesh.creation.box(extents=[0.3, 0.3, 0.02])
     box = build_asset("plate", MeshParts(box_mesh.vertices, box_mesh.faces, np.zeros(12, int), ["plate"]), density=choose_density(material="wood"))
     box_col = collision_geometry(box.vertices, box.faces, box.mass.volume)
