@@ -1,7 +1,7 @@
 """The paper's physics demo, measured: the screwdriver twin dropped onto the clamp twin (MuJoCo, the
 twins' repaired meshes for mass, CoACD pieces chosen by volume error for contact, the Gaussians
 following the bodies), and the same drop with the true meshes (rig_scenes gt_mesh.ply, same object
-frames, same density, same initial poses, collision at a tighter 3 % tolerance) as the reference.
+frames, same density, same initial poses, collision at a tighter 5 % tolerance) as the reference.
 
 Reported: collision geometry of each body, the rest pose of each body (position and rotation
 differences twin vs true), the contact points at rest (count, per body pair, and the distance from
@@ -98,7 +98,7 @@ def drop_demo(twins: Path, duration: float, fps: float) -> str:
     true_v = {n: load_mesh_asset(p, "m").vertices for n, p in gt.items()}
     runs = {
         "twin": placements(twins / CLAMP, twins / SCREWDRIVER, 0.10, true_v[CLAMP], true_v[SCREWDRIVER]),
-        "true": placements(gt[CLAMP], gt[SCREWDRIVER], 0.03, true_v[CLAMP], true_v[SCREWDRIVER]),
+        "true": placements(gt[CLAMP], gt[SCREWDRIVER], 0.05, true_v[CLAMP], true_v[SCREWDRIVER]),
     }
     with tempfile.TemporaryDirectory() as tmp:
         res = {k: run(v, Path(tmp) / k, duration, fps) for k, v in runs.items()}

@@ -140,6 +140,13 @@ def _edge_stats(faces: np.ndarray) -> tuple[int, int, int]:
     return int((counts == 1).sum()), int((counts > 2).sum()), int(((counts == 2) & (forward != 1)).sum())
 
 
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by faces [F, 3] (divergence theorem; negative when wound inwards, meaningless
+    when open)."""
+    t = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+
+
 def manifold_pieces(faces: np.ndarray) -> np.ndarray:
     """Piece label [F] of each face: faces connected through edges shared by exactly two faces.
     A non-manifold edge (a fin, two solids touching along an edge) separates pieces."""
@@ -187,7 +194,7 @@ def _close_piece(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     elif misoriented:
         trimesh.repair.fix_winding(mesh)
         tools.add("trimesh")
-    if mesh.volume < 0:
+    if signed_volume(mesh.vertices, mesh.faces) < 0:
         mesh.invert()
         tools.add("trimesh")
     return np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64), tools
@@ -230,7 +237,7 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
         raise RepairError("the mesh has no faces with area, so it encloses no volume")
     v0, f0 = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
     boundary, nonmanifold, misoriented = _edge_stats(f0)
-    volume_before = float(mesh.volume)
+    volume_before = signed_volume(v0, f0)
     labels = manifold_pieces(f0)
     areas = mesh.area_faces
     total_area = float(areas.sum())
@@ -240,7 +247,7 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
         sel = labels == label
         v, f, used = _close_piece(v0, f0[sel])
         tools |= used
-        if len(f) and _edge_stats(f) == (0, 0, 0) and trimesh.Trimesh(v, f, process=False).volume > min_volume:
+        if len(f) and _edge_stats(f) == (0, 0, 0) and signed_volume(v, f) > min_volume:
             solids.append((v, f))
             continue
         share = float(areas[sel].sum()) / total_area
@@ -268,7 +275,7 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
     v_out = np.concatenate([v for v, _ in solids])
     f_out = np.concatenate([f + o for (_, f), o in zip(solids, offsets)])
     result = trimesh.Trimesh(v_out, f_out, process=False)
-    if not result.volume > 0:
+    if not signed_volume(v_out, f_out) > 0:
         raise RepairError("the mesh encloses no volume (flat or degenerate), so it has no mass")
 
     # Which faces survived unchanged, which are new; new faces take their nearest original's data.
@@ -295,7 +302,7 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
         pieces_dropped=dropped,
         pieces_merged=bool(merged),
         volume_before=volume_before,
-        volume_after=float(result.volume),
+        volume_after=signed_volume(v_out, f_out),
         tools=tuple(sorted(tools)),
     )
     return v_out, f_out, face_data, report
