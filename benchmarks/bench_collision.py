@@ -68,7 +68,7 @@ def drop(asset, col: CollisionGeometry, workdir: Path):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--timeout", type=float, default=120.0, help="CoACD seconds per mesh (all runs)")
+    ap.add_argument("--timeout", type=float, default=300.0, help="CoACD seconds per mesh (all runs)")
     ap.add_argument("--threshold", type=float, default=0.05, help="CoACD's first concavity threshold")
     ap.add_argument("--only", nargs="*", default=[])
     args = ap.parse_args()

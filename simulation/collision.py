@@ -74,7 +74,7 @@ class DecompositionOptions:
     min_threshold: float = 0.01
     rounds: int = 4
     max_convex_hull: int = -1
-    timeout_s: float = 120.0
+    timeout_s: float = 300.0
     resolution: int = 1000
     mcts_iterations: int = 30
     mcts_nodes: int = 10
