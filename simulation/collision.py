@@ -211,21 +211,6 @@ def primitive_candidates(vertices: np.ndarray, kinds: tuple[str, ...] = PRIMITIV
     return [fit[k](vertices) for k in kinds]
 
 
-def primitive_mesh(p: Primitive, sections: int = 48):
-    """trimesh of a primitive in the object frame (tessellated; `sections` around round shapes)."""
-    import trimesh
-
-    if p.kind == "box":
-        mesh = trimesh.creation.box(extents=2 * np.asarray(p.size))
-    elif p.kind == "sphere":
-        mesh = trimesh.creation.icosphere(subdivisions=4, radius=p.size[0])
-    elif p.kind == "cylinder":
-        mesh = trimesh.creation.cylinder(radius=p.size[0], height=2 * p.size[1], sections=sections)
-    else:
-        mesh = trimesh.creation.capsule(radius=p.size[0], height=2 * p.size[1], count=[sections, sections])
-    return mesh.apply_transform(p.transform)
-
-
 def primitive_solid(p: Primitive, segments: int = 64):
     """manifold3d solid of a primitive in the object frame (round shapes with `segments` sides)."""
     import manifold3d
@@ -412,5 +397,5 @@ def surface_points(geometry: CollisionGeometry, sections: int = 32) -> np.ndarra
     """Points [S, 3] on the collision geometry's surface (object frame): the pieces' vertices and the
     primitives' tessellations; what touches the floor when the body rests."""
     pts = [np.asarray(p) for p in geometry.pieces]
-    pts += [np.asarray(primitive_mesh(p, sections).vertices) for p in geometry.primitives]
+    pts += [np.asarray(primitive_solid(p, sections).to_mesh64().vert_properties)[:, :3] for p in geometry.primitives]
     return np.concatenate(pts)
