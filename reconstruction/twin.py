@@ -222,8 +222,8 @@ def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=No
 def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """An Inria-layout 3DGS PLY -> means, normals, quats, log_scales, opacity_logits, sh [N, K, 3], sh_degree.
 
-    The degree is the file's `sh_degree` comment when it has one (the bands above it are padding),
-    else the one its f_rest columns make.
+    The degree is the file's `sh_degree` comment when it has one and the bands above it are zero
+    (padding), else the one its f_rest columns make.
     """
     from plyfile import PlyData
 
@@ -241,7 +241,7 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     missing = [c for c in ply_columns(degree) if c not in names]
     if missing:
         raise TwinError(f"{path}: missing 3DGS columns {', '.join(missing[:4])}")
-    declared = [c.split()[1] for c in ply.comments if c.startswith(PLY_DEGREE_COMMENT + " ") and c.split()[1:2] and c.split()[1].isdigit()]
+    declared = [int(w[1]) for w in (c.split() for c in ply.comments) if len(w) == 2 and w[0] == PLY_DEGREE_COMMENT and w[1].isdigit()]
 
     def cols(*cs):
         return np.stack([np.asarray(v[c], np.float32) for c in cs], 1)
@@ -251,8 +251,8 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     sh[:, 0] = cols("f_dc_0", "f_dc_1", "f_dc_2")
     if k > 1:
         sh[:, 1:] = cols(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
-    if declared and int(declared[0]) < degree:
-        degree = int(declared[0])
+    if declared and declared[0] < degree and not sh[:, (declared[0] + 1) ** 2 :].any():  # only padding is dropped
+        degree = declared[0]
         sh = np.ascontiguousarray(sh[:, : (degree + 1) ** 2])
     return {
         "means": cols("x", "y", "z"),
