@@ -62,12 +62,12 @@ def placements(clamp_src: Path, screw_src: Path, tolerance: float, clamp_mesh, s
     ]
 
 
-def run(places: list[Placement], out: Path, duration: float, fps: float):
+def run(places: list[Placement], out: Path, duration: float, fps: float, decomposition: DecompositionOptions):
     """(bodies, splats, trajectory, contacts at the end [(body_a, body_b, pos [3])], seconds) of one drop."""
     import mujoco
 
     t0 = time.perf_counter()
-    loaded = [load_body(p, DecompositionOptions()) for p in places]
+    loaded = [load_body(p, decomposition) for p in places]
     bodies, splats = [b for b, _ in loaded], [s for _, s in loaded]
     prep_s = time.perf_counter() - t0
     model = load_model(write_mjcf_package(out, bodies, SimOptions()))
@@ -92,7 +92,7 @@ def contact_summary(contacts: list, pair: tuple[str, str]) -> np.ndarray:
     return np.array([c[2] for c in contacts if (c[0], c[1]) == pair]).reshape(-1, 3)
 
 
-def drop_demo(twins: Path, duration: float, fps: float) -> str:
+def drop_demo(twins: Path, duration: float, fps: float, decomposition: DecompositionOptions) -> str:
     from scipy.spatial import cKDTree
 
     gt = {n: SHARED / "rig_scenes" / "scenes" / n / "gt_mesh.ply" for n in (CLAMP, SCREWDRIVER)}
@@ -102,7 +102,7 @@ def drop_demo(twins: Path, duration: float, fps: float) -> str:
         "true": placements(gt[CLAMP], gt[SCREWDRIVER], 0.05, true_v[CLAMP], true_v[SCREWDRIVER]),
     }
     with tempfile.TemporaryDirectory() as tmp:
-        res = {k: run(v, Path(tmp) / k, duration, fps) for k, v in runs.items()}
+        res = {k: run(v, Path(tmp) / k, duration, fps, decomposition) for k, v in runs.items()}
     bodies_t, splats_t, traj_t, contacts_t, prep_t, sim_t = res["twin"]
     bodies_r, _, traj_r, contacts_r, prep_r, sim_r = res["true"]
 
@@ -189,6 +189,7 @@ def main() -> None:
     ap.add_argument("--twins", type=Path, default=REPO.parent / "twins_base", help="directory of twins named by scene")
     ap.add_argument("--duration", type=float, default=1.5)
     ap.add_argument("--fps", type=float, default=12.0)
+    ap.add_argument("--coacd-timeout", type=float, default=1800.0, help="CoACD wall-clock budget per part (s); the product's is 300")
     args = ap.parse_args()
     if not SHARED.exists():
         raise SystemExit(f"needs the shared data folder {SHARED}")
@@ -196,7 +197,7 @@ def main() -> None:
     if missing:
         raise SystemExit(f"no twin of {', '.join(missing)} in {args.twins}")
     OUT.mkdir(parents=True, exist_ok=True)
-    report = drop_demo(args.twins, args.duration, args.fps)
+    report = drop_demo(args.twins, args.duration, args.fps, DecompositionOptions(timeout_s=args.coacd_timeout))
     (OUT / "drop.md").write_text(report)
     print(report)
     print(f"exploded view of counter: {exploded_counter():.1f} s")

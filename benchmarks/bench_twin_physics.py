@@ -33,6 +33,7 @@ from pxr import Usd, UsdPhysics
 
 from deploy.commands.export import export_glb
 from simulation.asset import repair_mesh
+from simulation.collision import DecompositionOptions
 from simulation.export import twin_body
 from simulation.mjcf import SimOptions, write_mjcf_package
 from simulation.run import SimulationError, load_model
@@ -84,9 +85,9 @@ def gltf_errors(glb: Path) -> str:
     return f"{issues['numErrors']} err / {issues['numWarnings']} warn"
 
 
-def measure(scene: str, twin_dir: Path, work: Path) -> dict:
+def measure(scene: str, twin_dir: Path, work: Path, decomposition: DecompositionOptions) -> dict:
     t0 = time.perf_counter()
-    body = twin_body(twin_dir)
+    body = twin_body(twin_dir, decomposition=decomposition)
     export_s = time.perf_counter() - t0
     a, col = body.asset, body.collision
     rho = a.density.value
@@ -149,6 +150,7 @@ def main() -> None:
     ap.add_argument("--twins", type=Path, default=REPO.parent / "twins_base", help="directory of twins named by scene")
     ap.add_argument("--only", nargs="*", default=[])
     ap.add_argument("--out", type=Path, default=RESULTS / "twin_physics.md")
+    ap.add_argument("--coacd-timeout", type=float, default=1800.0, help="CoACD wall-clock budget per part (s); the product's is 300")
     args = ap.parse_args()
     if not RIG_SCENES.exists():
         raise SystemExit(f"needs the shared data folder {RIG_SCENES}")
@@ -159,7 +161,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in scenes:
-            rows.append(measure(scene, args.twins / scene, Path(tmp) / scene))
+            rows.append(measure(scene, args.twins / scene, Path(tmp) / scene, DecompositionOptions(timeout_s=args.coacd_timeout)))
             r = rows[-1]
             print(f"{scene}: mass {100 * r['mass_vs_true']:+.1f}% vs true ({100 * r['mass_vs_twin']:+.2f}% vs twin), "
                   f"{r['col_kind']} {r['hulls']} hulls {100 * r['col_err']:+.1f}%, {r['col_s']:.0f} s", flush=True)
