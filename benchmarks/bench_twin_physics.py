@@ -165,10 +165,11 @@ def main() -> None:
             r = rows[-1]
             print(f"{scene}: mass {100 * r['mass_vs_true']:+.1f}% vs true ({100 * r['mass_vs_twin']:+.2f}% vs twin), "
                   f"{r['col_kind']} {r['hulls']} hulls {100 * r['col_err']:+.1f}%, {r['col_s']:.0f} s", flush=True)
-    table = render_table(rows, f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end")
+            # The table so far after every twin: a long run cut short still leaves its rows.
+            table = render_table(rows, f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores after the last row")
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(table)
     print(table)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(table)
 
 
 if __name__ == "__main__":
