@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from calibration.camera import Camera, look_at_c2w
 from calibration.fileio import atomic_write_png
@@ -41,16 +40,16 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 OUT = REPO / "benchmarks" / "results" / "simulation_demo"
 CLAMP, SCREWDRIVER = "050_medium_clamp", "043_phillips_screwdriver"
-DROP_HEIGHT = 0.02  # m between the clamp's top and the screwdriver's lowest point
-SCREW_TURN = matrix_to_quat(axis_angle_to_matrix(np.array([0.0, 0.0, np.deg2rad(35.0)])))
+DROP_HEIGHT = 0.06  # m between the clamp's top and the screwdriver's lowest point
+SCREW_TURN = matrix_to_quat(axis_angle_to_matrix(np.array([0.0, 0.0, np.deg2rad(35.0)])) @ axis_angle_to_matrix(np.array([np.deg2rad(8.0), 0.0, 0.0])))
 
 
-def placements(clamp_src: Path, screw_src: Path, tolerance: float, clamp_mesh, screw_mesh) -> list[Placement]:
-    """The clamp resting flat at the origin, the screwdriver turned 35 deg about z, its centre of
-    mass above the clamp's, DROP_HEIGHT above the clamp's top. Poses come from the true meshes
-    (trimesh) so both runs start identically."""
-    clamp_centre, screw_centre = clamp_mesh.center_mass, screw_mesh.center_mass
-    clamp_mesh, screw_mesh = np.asarray(clamp_mesh.vertices), np.asarray(screw_mesh.vertices)
+def placements(clamp_src: Path, screw_src: Path, tolerance: float, clamp_mesh: np.ndarray, screw_mesh: np.ndarray) -> list[Placement]:
+    """The clamp resting flat at the origin, the screwdriver turned 35 deg, tilted 8 deg, its centre
+    above the clamp's centre, DROP_HEIGHT above the clamp's top. Poses come from the true meshes so
+    both runs start identically."""
+    clamp_centre = 0.5 * (clamp_mesh.min(0) + clamp_mesh.max(0))
+    screw_centre = 0.5 * (screw_mesh.min(0) + screw_mesh.max(0))
     clamp_z = -float(clamp_mesh[:, 2].min())
     screw_rot = quat_to_matrix(SCREW_TURN)
     xy = clamp_centre[:2] - (screw_rot @ screw_centre)[:2]
@@ -96,7 +95,7 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
     from scipy.spatial import cKDTree
 
     gt = {n: SHARED / "rig_scenes" / "scenes" / n / "gt_mesh.ply" for n in (CLAMP, SCREWDRIVER)}
-    true_v = {n: trimesh.load(p, process=False) for n, p in gt.items()}
+    true_v = {n: load_mesh_asset(p, "m").vertices for n, p in gt.items()}
     runs = {
         "twin": placements(twins / CLAMP, twins / SCREWDRIVER, 0.10, true_v[CLAMP], true_v[SCREWDRIVER]),
         "true": placements(gt[CLAMP], gt[SCREWDRIVER], 0.05, true_v[CLAMP], true_v[SCREWDRIVER]),
@@ -120,7 +119,7 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
     lines = [
         "# Physics demo: the screwdriver twin dropped onto the clamp twin, against the same drop with the true meshes\n",
         f"Twins from the engine's rig_scenes run; true meshes = rig_scenes gt_mesh.ply (same object frames). ABS density, "
-        f"{DROP_HEIGHT * 100:.0f} cm drop, screwdriver turned 35 deg, its centre of mass over the clamp's, {duration:g} s at 1 ms steps, "
+        f"{DROP_HEIGHT * 100:.0f} cm drop, screwdriver turned 35 deg and tilted 8 deg over the clamp's centre, {duration:g} s at 1 ms steps, "
         f"MuJoCo {__import__('mujoco').__version__}. Load: load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n",
         "| body | run | mass kg | collision | shapes | vol. err | Hausdorff mm | collision s |",
         "|---|---|---:|---|---:|---:|---:|---:|",
