@@ -3,11 +3,14 @@
 ```
 twin.json               model id, Sim(3) init + refined, per-camera camera-to-object poses, preset,
                         choices (what the run chose and why), timings_s, losses, versions
-splats.ply              Inria 3DGS layout, deformed means, object frame (opens in 3DGS viewers)
+splats.ply              Inria 3DGS layout, deformed means, object frame (opens in 3DGS viewers);
+                        SH padded with zeros to degree 3, the degree fitted in a `sh_degree` comment
+
 splats_canonical.npz    canonical means, face index, barycentrics, part label, part names
 deformation.pt          the deformation field's config + weights (torch state dict)
-mesh_cad.glb            the retrieved CAD mesh (object frame, metres), one node per part
-mesh_deformed.glb       the CAD vertices moved by the field, one node per part
+mesh_cad.glb            the retrieved CAD mesh (object frame, metres), one node per part, under a
+                        root node that turns the z-up object frame into glTF's +Y up
+mesh_deformed.glb       the CAD vertices moved by the field, same layout
 renders/*.png           RGBA renders of the training views
 ```
 The whole directory is written beside its destination and renamed into place, so a twin is
@@ -180,8 +183,16 @@ def ply_columns(sh_degree: int) -> list[str]:
     )
 
 
+# Inria's loader (and most viewers built on it) reads exactly 3 * ((D + 1)^2 - 1) f_rest columns for
+# its configured degree D, 3 unless a flag says otherwise, and no header field. So files are written
+# at degree 3 with the missing bands zero, which renders identically; the degree actually fitted is
+# kept in a `sh_degree N` header comment, which `read_splats_ply` uses to drop the padding again.
+PLY_SH_DEGREE = 3
+PLY_DEGREE_COMMENT = "sh_degree"
+
+
 def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=None) -> bytes:
-    """Binary little-endian PLY in the Inria 3DGS layout.
+    """Binary little-endian PLY in the Inria 3DGS layout, SH zero-padded to PLY_SH_DEGREE.
 
     f_rest is channel-major as Inria writes it: all R coefficients of degrees >= 1, then G, then B.
     """
@@ -191,26 +202,34 @@ def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=No
     degree = int(round(np.sqrt(k))) - 1
     if (degree + 1) ** 2 != k:
         raise ValueError(f"SH coefficient count {k} is not a square")
+    written = max(degree, PLY_SH_DEGREE)
+    padded = np.zeros((n, (written + 1) ** 2, 3), np.float32)
+    padded[:, :k] = sh
     normals = np.zeros((n, 3), np.float32) if normals is None else normals
-    rest = np.asarray(sh[:, 1:, :], np.float32).transpose(0, 2, 1).reshape(n, -1)
+    rest = padded[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
     cols = np.concatenate(
-        [means, normals, sh[:, 0, :], rest, np.asarray(opacity_logits).reshape(n, 1), log_scales, quats], 1
+        [means, normals, padded[:, 0, :], rest, np.asarray(opacity_logits).reshape(n, 1), log_scales, quats], 1
     ).astype(np.float32)
-    names = ply_columns(degree)
+    names = ply_columns(written)
     rec = np.empty(n, dtype=[(c, "f4") for c in names])
     for i, c in enumerate(names):
         rec[c] = cols[:, i]
     buf = io.BytesIO()
-    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<").write(buf)
+    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<", comments=[f"{PLY_DEGREE_COMMENT} {degree}"]).write(buf)
     return buf.getvalue()
 
 
 def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """An Inria-layout 3DGS PLY -> means, normals, quats, log_scales, opacity_logits, sh [N, K, 3], sh_degree."""
+    """An Inria-layout 3DGS PLY -> means, normals, quats, log_scales, opacity_logits, sh [N, K, 3], sh_degree.
+
+    The degree is the file's `sh_degree` comment when it has one and the bands above it are zero
+    (padding), else the one its f_rest columns make.
+    """
     from plyfile import PlyData
 
     try:
-        v = PlyData.read(str(path))["vertex"]
+        ply = PlyData.read(str(path))
+        v = ply["vertex"]
     except (OSError, ValueError, KeyError) as e:
         raise TwinError(f"{path}: not a readable 3DGS PLY ({e})") from None
     names = [p.name for p in v.properties]
@@ -222,6 +241,7 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     missing = [c for c in ply_columns(degree) if c not in names]
     if missing:
         raise TwinError(f"{path}: missing 3DGS columns {', '.join(missing[:4])}")
+    declared = [int(w[1]) for w in (c.split() for c in ply.comments) if len(w) == 2 and w[0] == PLY_DEGREE_COMMENT and w[1].isdigit()]
 
     def cols(*cs):
         return np.stack([np.asarray(v[c], np.float32) for c in cs], 1)
@@ -231,6 +251,9 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     sh[:, 0] = cols("f_dc_0", "f_dc_1", "f_dc_2")
     if k > 1:
         sh[:, 1:] = cols(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
+    if declared and declared[0] < degree and not sh[:, (declared[0] + 1) ** 2 :].any():  # only padding is dropped
+        degree = declared[0]
+        sh = np.ascontiguousarray(sh[:, : (degree + 1) ** 2])
     return {
         "means": cols("x", "y", "z"),
         "normals": cols("nx", "ny", "nz"),
@@ -244,19 +267,36 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 # ---------------------------------------------------------------------------------------- GLB
 
+# glTF is +Y up; the object frame is z up (the rig's table). Our GLBs put the parts under this root
+# node, a -90 degree turn about x (+z -> +y), so a glTF viewer shows the part standing as on the rig;
+# readers that know the node (read_mesh_parts) take the parts back in the object frame.
+GLTF_Y_UP_NODE = "cadsplat_object_z_up"
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
 def parts_glb_bytes(parts: MeshParts) -> bytes:
-    """GLB with one node per part, named after the part (empty parts are left out)."""
+    """GLB with one node per part, named after the part (empty parts are left out), under the
+    GLTF_Y_UP_NODE root so the z-up object frame stands upright in +Y-up viewers."""
     import trimesh
 
-    scene = trimesh.Scene()
+    scene = trimesh.Scene(base_frame="world")
+    scene.graph.update(frame_from="world", frame_to=GLTF_Y_UP_NODE, matrix=Z_UP_TO_Y_UP)
     for p, name in enumerate(parts.part_names):
         sel = np.flatnonzero(parts.face_part == p)
         if sel.size == 0:
             continue
         sub = trimesh.Trimesh(parts.vertices, parts.faces[sel], process=False)
         sub.remove_unreferenced_vertices()
-        scene.add_geometry(sub, node_name=name, geom_name=name)
+        scene.add_geometry(sub, node_name=name, geom_name=name, parent_node_name=GLTF_Y_UP_NODE)
     return scene.export(file_type="glb")
+
+
+def object_frame_from_file(scene) -> np.ndarray:
+    """[4, 4] taking a loaded trimesh.Scene's world coordinates to the object frame: the inverse of
+    our Y-up root when the file has it (GLBs written by `parts_glb_bytes`), else identity."""
+    if GLTF_Y_UP_NODE in scene.graph.nodes:
+        return np.linalg.inv(scene.graph.get(GLTF_Y_UP_NODE)[0])
+    return np.eye(4)
 
 
 def read_mesh_parts(path: str | os.PathLike) -> MeshParts:
@@ -270,12 +310,13 @@ def read_mesh_parts(path: str | os.PathLike) -> MeshParts:
         raise TwinError(f"{path}: not a readable mesh ({e})") from None
     verts, faces, labels, names = [], [], [], []
     offset = 0
+    to_object = object_frame_from_file(scene)
     for node in scene.graph.nodes_geometry:
         transform, geom_name = scene.graph[node]
         mesh = scene.geometry[geom_name]
         if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
             continue
-        v = trimesh.transform_points(mesh.vertices, transform)
+        v = trimesh.transform_points(mesh.vertices, to_object @ transform)
         verts.append(v)
         faces.append(np.asarray(mesh.faces) + offset)
         labels.append(np.full(len(mesh.faces), len(names)))

@@ -80,7 +80,8 @@ def load_config(path: str | os.PathLike) -> RigConfig:
 def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -> RigConfig:
     """A validated RigConfig from a parsed TOML document; relative paths are relative to `base`."""
     v = _Validator(name)
-    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds"})
+    # [simulation] (material, density of exported twins) is read and checked by simulation.asset.rig_simulation_table.
+    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation"})
     rig_id = v.string(doc, "rig_id", default="rig")
     calibration = v.string(doc, "calibration", default="")
     cams_doc = doc.get("cameras")

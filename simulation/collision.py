@@ -1,10 +1,13 @@
-"""Collision geometry sized to need: a fitted primitive or one convex hull when either is within
-a volume tolerance of the mesh, else a convex decomposition (CoACD).
+"""Collision geometry sized to need, per CAD part: a fitted primitive or one convex hull when either
+is within a volume tolerance of the part, else a convex decomposition (CoACD) whose number of
+pieces is chosen by that same tolerance.
 
-Primitives (box, cylinder, capsule, sphere) and the hull all enclose the mesh, so their volume
-error (V_geom - V_mesh) / V_mesh equals 1 - IoU with the true solid: a 5 % error is a body that
-rests at most a few per cent of its size away from where the real object would. CoACD pieces
-approximate from both sides; their error is the summed piece volume against the mesh's.
+Volume error is (V_collision - V_mesh) / V_mesh with V_collision the volume of the union of the
+collision shapes (manifold3d booleans, so overlapping pieces are not counted twice). Primitives and
+the hull enclose the mesh, so for them it equals 1 - IoU with the true solid. CoACD pieces
+approximate from both sides and their error shrinks as the concavity threshold does: each run's
+error sets the next threshold until the error is within tolerance. The report also gives the
+Hausdorff distance between the collision set's surface and the mesh's (see `hausdorff`).
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ import numpy as np
 
 # Primitives are cheapest and most stable in contact; the hull next; decomposition last.
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule")
-DECOMPOSE_FACES = 2000  # CoACD's cost grows with the input; its pieces do not need the full mesh
+DECOMPOSE_FACES = 4000  # CoACD's cost grows with the input; its pieces do not need a finer mesh
+DEFAULT_TOLERANCE = 0.10
+HAUSDORFF_SAMPLES = 5000  # per surface: spacing ~ sqrt(area / samples), 1.4 mm on a 0.1 m part
 
 
 @dataclass(frozen=True)
@@ -33,17 +38,24 @@ class Primitive:
 
 @dataclass(frozen=True)
 class CollisionGeometry:
-    """What the simulator collides with. `kind` is a primitive kind, "hull" or "decomposition";
-    `pieces` are convex vertex sets [M_i, 3] (object frame) for mesh kinds; `volume_error` is
-    (V_collision - V_mesh) / V_mesh; `seconds` the time to make it; `notes` why it was chosen."""
+    """What the simulator collides with: `primitives` and convex `pieces` (vertex sets [M_i, 3],
+    object frame). `kind` is a primitive kind or "hull" or "decomposition" for one part, "parts" when
+    each CAD part got its own; `volume` of their union, `volume_error` (V - V_mesh) / V_mesh,
+    `hausdorff` (m) between its surface and the mesh's, `seconds` to make it, `notes` why."""
 
     kind: str
     volume: float
     volume_error: float
     seconds: float
-    primitive: Primitive | None = None
+    primitives: tuple[Primitive, ...] = ()
     pieces: tuple[np.ndarray, ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
+    hausdorff: float = float("nan")
+
+    @property
+    def primitive(self) -> Primitive | None:
+        """The single primitive when the whole body is one."""
+        return self.primitives[0] if len(self.primitives) == 1 and not self.pieces else None
 
     @property
     def hull_count(self) -> int:
@@ -52,14 +64,19 @@ class CollisionGeometry:
 
 @dataclass(frozen=True)
 class DecompositionOptions:
-    """CoACD settings: `threshold` concavity (lower = more, tighter pieces), at most `max_convex_hull`
-    pieces, and `timeout_s` wall-clock cap per mesh (on timeout the convex hull is used and noted)."""
+    """CoACD settings. The first run uses concavity `threshold`; while the volume error exceeds the
+    tolerance the next threshold is scaled by tolerance / error (at most `rounds` runs, not below
+    `min_threshold`), so the piece count follows the error. `max_convex_hull` caps the pieces of a
+    run (-1: no cap); `timeout_s` caps the wall clock of all runs for one part (past it the best so
+    far, or the convex hull, is used and noted)."""
 
-    threshold: float = 0.08
-    max_convex_hull: int = 12
-    timeout_s: float = 60.0
+    threshold: float = 0.05
+    min_threshold: float = 0.01
+    rounds: int = 4
+    max_convex_hull: int = -1
+    timeout_s: float = 300.0
     resolution: int = 1000
-    mcts_iterations: int = 60
+    mcts_iterations: int = 30
     mcts_nodes: int = 10
     mcts_max_depth: int = 2
     seed: int = 0
@@ -145,34 +162,39 @@ def hull_vertices(vertices: np.ndarray) -> np.ndarray:
     return pts[ConvexHull(pts).vertices]
 
 
-def _coacd_worker(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions, queue) -> None:
+def _coacd_worker(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions, threshold: float, queue) -> None:
     import coacd
 
     coacd.set_log_level("error")
     parts = coacd.run_coacd(
-        coacd.Mesh(vertices, faces), threshold=opts.threshold, max_convex_hull=opts.max_convex_hull,
+        coacd.Mesh(vertices, faces), threshold=threshold, max_convex_hull=opts.max_convex_hull,
         preprocess_mode="off", resolution=opts.resolution, mcts_iterations=opts.mcts_iterations,
         mcts_nodes=opts.mcts_nodes, mcts_max_depth=opts.mcts_max_depth, seed=opts.seed,
     )
     queue.put([np.asarray(v, np.float64) for v, _ in parts])
 
 
-def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions = DecompositionOptions()) -> list[np.ndarray] | None:
-    """Convex pieces [M_i, 3] of the mesh by CoACD, run in a child process so `opts.timeout_s` can
-    stop it; None when it ran out of time. The input is decimated to DECOMPOSE_FACES first."""
+def decimated(vertices: np.ndarray, faces: np.ndarray, target: int = DECOMPOSE_FACES) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh decimated to about `target` faces (fast-simplification), unchanged when smaller."""
     import fast_simplification
 
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if len(f) > DECOMPOSE_FACES:
-        v32, f = fast_simplification.simplify(v.astype(np.float32), f, target_reduction=1.0 - DECOMPOSE_FACES / len(f))
-        v, f = v32.astype(np.float64), f.astype(np.int64)
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    if len(f) <= target:
+        return v, f
+    v32, f2 = fast_simplification.simplify(v.astype(np.float32), f, target_reduction=1.0 - target / len(f))
+    return v32.astype(np.float64), f2.astype(np.int64)
+
+
+def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions = DecompositionOptions(), threshold: float | None = None, timeout_s: float | None = None) -> list[np.ndarray] | None:
+    """Convex pieces [M_i, 3] of the mesh by one CoACD run at `threshold` (default opts.threshold),
+    in a child process so the timeout can stop it; None when it ran out of time."""
+    v, f = decimated(vertices, faces)
     ctx = mp.get_context("spawn" if "fork" not in mp.get_all_start_methods() else "fork")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, queue), daemon=True)
+    proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue), daemon=True)
     proc.start()
     try:
-        pieces = queue.get(timeout=opts.timeout_s)
+        pieces = queue.get(timeout=opts.timeout_s if timeout_s is None else timeout_s)
     except Exception:  # queue.Empty on timeout; the child is stopped below either way
         pieces = None
     finally:
@@ -189,70 +211,191 @@ def primitive_candidates(vertices: np.ndarray, kinds: tuple[str, ...] = PRIMITIV
     return [fit[k](vertices) for k in kinds]
 
 
+def primitive_solid(p: Primitive, segments: int = 64):
+    """manifold3d solid of a primitive in the object frame (round shapes with `segments` sides)."""
+    import manifold3d
+
+    M = manifold3d.Manifold
+    if p.kind == "box":
+        solid = M.cube(tuple(2.0 * float(x) for x in p.size), center=True)
+    elif p.kind == "sphere":
+        solid = M.sphere(float(p.size[0]), segments)
+    elif p.kind == "cylinder":
+        solid = M.cylinder(2.0 * float(p.size[1]), float(p.size[0]), circular_segments=segments, center=True)
+    else:
+        r, h = float(p.size[0]), float(p.size[1])
+        solid = M.batch_hull([M.sphere(r, segments).translate((0.0, 0.0, z)) for z in (-h, h)])
+    return solid.transform(np.asarray(p.transform, np.float64)[:3, :4])
+
+
+def union_mesh(primitives: tuple[Primitive, ...], pieces: tuple[np.ndarray, ...]):
+    """The union of the collision shapes as one closed trimesh (manifold3d boolean)."""
+    import manifold3d
+    import trimesh
+
+    solids = [manifold3d.Manifold.hull_points(np.asarray(p, np.float64)) for p in pieces]
+    solids += [primitive_solid(prim) for prim in primitives]
+    out = manifold3d.Manifold.batch_boolean(solids, manifold3d.OpType.Add).to_mesh64()
+    return trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3], np.asarray(out.tri_verts, np.int64), process=False)
+
+
+def union_volume(primitives: tuple[Primitive, ...], pieces: tuple[np.ndarray, ...]) -> float:
+    """Volume (m^3) of the union of the shapes; a lone primitive's exact closed form."""
+    if len(primitives) == 1 and not pieces:
+        return primitives[0].volume
+    if len(pieces) == 1 and not primitives:
+        return convex_volume(pieces[0])
+    return float(union_mesh(primitives, pieces).volume)
+
+
+def shape_meshes(primitives: tuple[Primitive, ...], pieces: tuple[np.ndarray, ...]) -> list:
+    """Each collision shape as a closed convex trimesh (object frame)."""
+    import trimesh
+
+    out = [trimesh.convex.convex_hull(np.asarray(p, np.float64)) for p in pieces]
+    for prim in primitives:
+        m = primitive_solid(prim).to_mesh64()
+        out.append(trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts, np.int64), process=False))
+    return out
+
+
+def boundary_points(shapes: list, samples: int, seed: int = 0) -> np.ndarray:
+    """Points [S, 3] on the boundary of the union of convex `shapes`: area-uniform samples on each
+    shape less those inside or on another shape (where CoACD pieces meet at a cut, their faces are
+    inside the solid, not on its surface)."""
+    import trimesh
+    from scipy.spatial import ConvexHull
+
+    eps = 1e-4 * max(float(np.ptp(np.concatenate([m.vertices for m in shapes]), 0).max()), 1e-12)  # CoACD cuts leave micrometre gaps
+    planes = [ConvexHull(np.asarray(m.vertices)).equations for m in shapes]
+    total = sum(m.area for m in shapes)
+    kept = []
+    for i, m in enumerate(shapes):
+        pts = np.concatenate([trimesh.sample.sample_surface(m, max(int(samples * m.area / total), 1), seed=seed + i)[0], np.asarray(m.vertices)])
+        covered = np.zeros(len(pts), bool)
+        for j, eq in enumerate(planes):
+            if j != i:
+                covered |= (pts @ eq[:, :3].T + eq[:, 3]).max(1) <= eps
+        kept.append(pts[~covered])
+    return np.concatenate(kept)
+
+
+def hausdorff(mesh, shapes: list, samples: int = HAUSDORFF_SAMPLES, seed: int = 0) -> float:
+    """Symmetric Hausdorff distance (m) between a mesh's surface and the surface of the union of
+    convex `shapes`: exact closest-point distances (trimesh.proximity) from `samples` area-uniform
+    points and the vertices of each surface to the other. Sampling can only miss the worst point,
+    so this reads low by at most the sample spacing, sqrt(area / samples)."""
+    import trimesh
+
+    mesh_pts = np.concatenate([trimesh.sample.sample_surface(mesh, samples, seed=seed)[0], np.asarray(mesh.vertices)])
+    to_shapes = float(trimesh.proximity.closest_point(trimesh.util.concatenate(shapes), mesh_pts)[1].max())
+    to_mesh = float(trimesh.proximity.closest_point(mesh, boundary_points(shapes, samples, seed))[1].max())
+    return max(to_shapes, to_mesh)
+
+
+def _adaptive_decomposition(vertices, faces, mesh_volume: float, tolerance: float, opts: DecompositionOptions) -> tuple[tuple[np.ndarray, ...], float, list[str]]:
+    """CoACD pieces chosen by volume error: runs at falling thresholds until the error is within
+    `tolerance`. Returns (pieces, error, notes); no pieces when no run finished in time."""
+    t_end = time.perf_counter() + opts.timeout_s
+    best: tuple[tuple[np.ndarray, ...], float] = ((), np.inf)
+    notes, threshold = [], opts.threshold
+    for _ in range(max(opts.rounds, 1)):
+        left = t_end - time.perf_counter()
+        pieces = decompose(vertices, faces, opts, threshold=threshold, timeout_s=left) if left > 0 else None
+        if not pieces:
+            notes.append(f"CoACD at threshold {threshold:.3g} did not finish within the {opts.timeout_s:.0f} s budget")
+            break
+        err = union_volume((), tuple(pieces)) / mesh_volume - 1
+        notes.append(f"CoACD threshold {threshold:.3g}: {len(pieces)} pieces, {100 * err:+.1f}% volume")
+        if abs(err) < abs(best[1]):
+            best = (tuple(pieces), err)
+        if abs(err) <= tolerance or threshold <= opts.min_threshold:
+            break
+        threshold = max(opts.min_threshold, threshold * float(np.clip(0.8 * tolerance / abs(err), 0.25, 0.8)))
+    return best[0], best[1], notes
+
+
+def _part_geometry(vertices, faces, volume: float, tolerance: float, primitives: tuple[str, ...], decomposition: DecompositionOptions | None):
+    """(primitives, pieces, error, notes) for one closed part."""
+    err = lambda vol: (vol - volume) / volume  # noqa: E731
+    hull = hull_vertices(vertices)
+    hull_err = err(convex_volume(hull))
+    best = min(primitive_candidates(hull, primitives), key=lambda p: p.volume, default=None)
+    if best is not None and err(best.volume) <= tolerance:
+        return (best,), (), err(best.volume), [f"{best.kind} within {100 * err(best.volume):.1f}% of the volume"]
+    if hull_err <= tolerance or decomposition is None:
+        why = "within" if hull_err <= tolerance else "(decomposition disabled)"
+        return (), (hull,), hull_err, [f"convex hull {why} {100 * hull_err:.1f}% of the volume"]
+    pieces, dec_err, notes = _adaptive_decomposition(vertices, faces, volume, tolerance, decomposition)
+    if not pieces or abs(dec_err) >= abs(hull_err):
+        why = "no CoACD run finished" if not pieces else f"CoACD's best ({100 * dec_err:+.1f}%) was no closer"
+        return (), (hull,), hull_err, notes + [f"{why}; convex hull used ({100 * hull_err:.1f}% volume error)"]
+    return (), pieces, dec_err, notes + [f"CoACD: {len(pieces)} convex pieces, {100 * dec_err:+.1f}% volume error (hull {100 * hull_err:+.1f}%)"]
+
+
+def _closed_parts(vertices: np.ndarray, faces: np.ndarray, face_part: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]] | None:
+    """Each part as its own closed mesh (vertices, faces, volume), or None when a part is not
+    closed on its own (parts that share edges are one solid to the simulator)."""
+    import trimesh
+
+    out = []
+    for p in np.unique(face_part):
+        sub = trimesh.Trimesh(vertices, faces[face_part == p], process=False)
+        sub.remove_unreferenced_vertices()
+        if not (sub.is_volume and sub.volume > 0):
+            return None
+        out.append((np.asarray(sub.vertices), np.asarray(sub.faces, np.int64), float(sub.volume)))
+    return out
+
+
 def collision_geometry(
     vertices: np.ndarray,
     faces: np.ndarray,
     mesh_volume: float,
     *,
-    tolerance: float = 0.05,
+    face_part: np.ndarray | None = None,
+    tolerance: float = DEFAULT_TOLERANCE,
     primitives: tuple[str, ...] = PRIMITIVES,
     decomposition: DecompositionOptions | None = DecompositionOptions(),
+    measure_hausdorff: bool = True,
 ) -> CollisionGeometry:
-    """The cheapest geometry within `tolerance` volume error: the best-fitting primitive, else the
-    convex hull, else a CoACD decomposition (`decomposition=None` stops at the hull).
+    """The cheapest geometry within `tolerance` volume error, per CAD part when `face_part` [F]
+    labels parts that are closed solids on their own (else for the whole mesh): the best-fitting
+    primitive, else the convex hull, else a CoACD decomposition (`decomposition=None` stops at the hull).
 
-    vertices [V, 3], faces [F, 3] in metres; mesh_volume the solid's volume (m^3).
+    vertices [V, 3], faces [F, 3] in metres (a closed mesh); mesh_volume the solid's volume (m^3).
     """
+    import trimesh
+
     t0 = time.perf_counter()
     if not mesh_volume > 0:
         raise ValueError("the mesh volume must be positive to size its collision geometry")
-    err = lambda vol: (vol - mesh_volume) / mesh_volume  # noqa: E731
-    hull = hull_vertices(vertices)
-    hull_vol = convex_volume(hull)
-    best = min(primitive_candidates(hull, primitives), key=lambda p: p.volume, default=None)
-    if best is not None and err(best.volume) <= tolerance:
-        return CollisionGeometry(
-            best.kind, best.volume, err(best.volume), time.perf_counter() - t0, primitive=best,
-            notes=(f"{best.kind} within {100 * err(best.volume):.1f}% of the mesh volume",),
-        )
-    if err(hull_vol) <= tolerance or decomposition is None:
-        why = "within" if err(hull_vol) <= tolerance else "decomposition disabled;"
-        return CollisionGeometry(
-            "hull", hull_vol, err(hull_vol), time.perf_counter() - t0, pieces=(hull,),
-            notes=(f"convex hull {why} {100 * err(hull_vol):.1f}% of the mesh volume",),
-        )
-    pieces = decompose(vertices, faces, decomposition)
-    if not pieces:
-        return CollisionGeometry(
-            "hull", hull_vol, err(hull_vol), time.perf_counter() - t0, pieces=(hull,),
-            notes=(f"CoACD gave no pieces within {decomposition.timeout_s:.0f} s; convex hull used ({100 * err(hull_vol):.1f}% volume error)",),
-        )
-    vol = sum(convex_volume(p) for p in pieces)
-    if abs(err(vol)) >= abs(err(hull_vol)):
-        return CollisionGeometry(
-            "hull", hull_vol, err(hull_vol), time.perf_counter() - t0, pieces=(hull,),
-            notes=(f"CoACD's {len(pieces)} pieces ({100 * err(vol):.1f}%) were no closer than the convex hull ({100 * err(hull_vol):.1f}%)",),
-        )
-    return CollisionGeometry(
-        "decomposition", vol, err(vol), time.perf_counter() - t0, pieces=tuple(pieces),
-        notes=(f"CoACD: {len(pieces)} convex pieces, {100 * err(vol):.1f}% volume error (hull {100 * err(hull_vol):.1f}%)",),
-    )
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    parts = _closed_parts(v, f, np.asarray(face_part)) if face_part is not None and len(np.unique(face_part)) > 1 else None
+    if parts is None:
+        parts = [(v, f, float(mesh_volume))]
+    prims, pieces, notes = [], [], []
+    for pv, pf, pvol in parts:
+        pr, pc, _, n = _part_geometry(pv, pf, pvol, tolerance, primitives, decomposition)
+        prims += pr
+        pieces += pc
+        notes += n
+    prims, pieces = tuple(prims), tuple(pieces)
+    volume = union_volume(prims, pieces)
+    if len(parts) > 1:
+        kind = "parts"
+        notes.insert(0, f"{len(parts)} parts, each sized on its own")
+    else:
+        kind = prims[0].kind if prims else ("hull" if len(pieces) == 1 else "decomposition")
+    dist = float("nan")
+    if measure_hausdorff:
+        dist = hausdorff(trimesh.Trimesh(v, f, process=False), shape_meshes(prims, pieces))
+    return CollisionGeometry(kind, volume, volume / mesh_volume - 1, time.perf_counter() - t0, prims, pieces, tuple(notes), dist)
 
 
 def surface_points(geometry: CollisionGeometry, sections: int = 32) -> np.ndarray:
-    """Points [S, 3] on the collision geometry's surface (object frame): the pieces' vertices, or a
-    primitive's tessellation; what touches the floor when the body rests."""
-    import trimesh
-
-    p = geometry.primitive
-    if p is None:
-        return np.concatenate(geometry.pieces)
-    if p.kind == "box":
-        mesh = trimesh.creation.box(extents=2 * np.asarray(p.size))
-    elif p.kind == "sphere":
-        mesh = trimesh.creation.icosphere(subdivisions=3, radius=p.size[0])
-    elif p.kind == "cylinder":
-        mesh = trimesh.creation.cylinder(radius=p.size[0], height=2 * p.size[1], sections=sections)
-    else:
-        mesh = trimesh.creation.capsule(radius=p.size[0], height=2 * p.size[1], count=[sections, sections])
-    return trimesh.transform_points(mesh.vertices, p.transform)
+    """Points [S, 3] on the collision geometry's surface (object frame): the pieces' vertices and the
+    primitives' tessellations; what touches the floor when the body rests."""
+    pts = [np.asarray(p) for p in geometry.pieces]
+    pts += [np.asarray(primitive_solid(p, sections).to_mesh64().vert_properties)[:, :3] for p in geometry.primitives]
+    return np.concatenate(pts)

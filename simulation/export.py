@@ -1,7 +1,9 @@
-"""Twin exports for other tools: an MJCF package (MuJoCo) and a COLMAP text model.
+"""Twin exports for other tools: an MJCF package (MuJoCo), a USD file (Isaac Sim) and a COLMAP text model.
 
-`cadsplat export TWIN --format mjcf|colmap --out DIR` calls `export_mjcf` / `export_colmap`; the
-simulator reads bodies through `load_body`, which takes a twin directory or a bare mesh file.
+`cadsplat export TWIN --format mjcf|usd|colmap --out PATH` calls `export_mjcf` / `export_usd` /
+`export_colmap`; the simulator reads bodies through `load_body`, which takes a twin directory or a
+bare mesh file. MJCF and USD carry the same body: the same repaired mesh, mass properties and
+collision shapes.
 """
 
 from __future__ import annotations
@@ -13,49 +15,85 @@ import numpy as np
 
 from calibration.fileio import atomic_write_bytes, fsync_dir
 from calibration.so3 import matrix_to_quat
-from reconstruction.twin import TWIN_JSON, load_twin
-from simulation.asset import asset_from_twin, load_mesh_asset, sh_dc_rgb
-from simulation.collision import DecompositionOptions, collision_geometry
+from reconstruction.twin import MESH_CAD_GLB, TWIN_JSON, load_twin
+from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
+from simulation.collision import DEFAULT_TOLERANCE, DecompositionOptions, collision_geometry
 from simulation.follow import splats_from_mesh, splats_from_twin
 from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
+from simulation.parts import material_names
 from simulation.scene import Placement, resting_position
 
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
 
 
-def load_body(placement: Placement, decomposition: DecompositionOptions | None = DecompositionOptions()) -> tuple[BodySpec, dict]:
+def body_density(placement: Placement, rig: dict | None = None) -> Density:
+    """The placement's density: its own density/material, else a material the CAD names (the twin's
+    mesh_cad.glb or the mesh file), else rig.toml's [simulation] table `rig`, else the default."""
+    src = placement.source
+    cad = src / MESH_CAD_GLB if src.is_dir() else src
+    names = material_names(cad) if cad.exists() else []
+    return choose_density(placement.density, placement.material, cad_names=names, rig=rig)
+
+
+def load_body(
+    placement: Placement, decomposition: DecompositionOptions | None = DecompositionOptions(), rig: dict | None = None
+) -> tuple[BodySpec, dict]:
     """A scene entry -> (BodySpec placed as the scene says, its splats in the object frame).
 
     A twin directory gives its deformed mesh and its Gaussians; a mesh file gives the mesh and
-    `placement.splats` opaque splats sampled on it.
+    `placement.splats` opaque splats sampled on it. `rig`: rig.toml's [simulation] table.
     """
     src = placement.source
+    density = body_density(placement, rig)
     if src.is_dir():
         if not (src / TWIN_JSON).exists():
             raise ValueError(f"{src}: a directory but not a twin (no {TWIN_JSON})")
         twin = load_twin(src)
-        asset = asset_from_twin(twin, placement.name, density=placement.density, material=placement.material)
+        asset = asset_from_twin(twin, placement.name, density=density)
         splats = splats_from_twin(twin)
     else:
-        asset = load_mesh_asset(src, placement.unit, placement.name, density=placement.density, material=placement.material)
+        asset = load_mesh_asset(src, placement.unit, placement.name, density=density)
         splats = splats_from_mesh(asset.vertices, asset.faces, asset.face_rgb, asset.face_part, placement.splats)
-    col = collision_geometry(asset.vertices, asset.faces, asset.mass.volume, tolerance=placement.collision_tolerance, decomposition=decomposition)
+    col = collision_geometry(
+        asset.vertices, asset.faces, asset.mass.volume, face_part=asset.face_part, tolerance=placement.collision_tolerance, decomposition=decomposition
+    )
     quat = np.asarray(placement.quat, np.float64)
     pos = resting_position(asset.vertices, quat, placement.pos, placement.bottom)
     return BodySpec(asset, col, pos, quat, placement.fixed), splats
 
 
-def export_mjcf(twin_dir: str | os.PathLike, out_dir: str | os.PathLike, *, density: float | None = None, material: str | None = None, tolerance: float = 0.05) -> Path:
+def twin_body(
+    twin_dir: str | os.PathLike, *, density: float | None = None, material: str | None = None, rig_toml: str | os.PathLike | None = None,
+    tolerance: float = DEFAULT_TOLERANCE, decomposition: DecompositionOptions | None = DecompositionOptions(),
+) -> BodySpec:
+    """One twin as a free body resting on z = 0 (object frame = body frame), density by flag, CAD
+    material, rig.toml ([simulation]) or default."""
+    twin_dir = Path(twin_dir)
+    if not twin_dir.is_dir():
+        raise ValueError(f"{twin_dir}: not a twin directory")
+    rig = rig_simulation_table(rig_toml) if rig_toml is not None else None
+    placement = Placement(name=_body_name(twin_dir), source=twin_dir, bottom=0.0, density=density, material=material, collision_tolerance=tolerance)
+    return load_body(placement, decomposition, rig)[0]
+
+
+def export_mjcf(twin_dir: str | os.PathLike, out_dir: str | os.PathLike, **physics) -> Path:
     """MJCF package of one twin resting on a floor (object frame = body frame, lowest point at z = 0).
+    `physics`: density, material, rig_toml, tolerance, decomposition (see `twin_body`).
 
     Returns the path of `model.xml`.
     """
-    twin_dir = Path(twin_dir)
-    placement = Placement(name=_body_name(twin_dir), source=twin_dir, bottom=0.0, density=density, material=material, collision_tolerance=tolerance)
-    if not twin_dir.is_dir():
-        raise ValueError(f"{twin_dir}: not a twin directory")
-    body, _ = load_body(placement)
-    return write_mjcf_package(out_dir, [body], SimOptions())
+    return write_mjcf_package(out_dir, [twin_body(twin_dir, **physics)], SimOptions())
+
+
+def export_usd(twin_dir: str | os.PathLike, out: str | os.PathLike, **physics) -> Path:
+    """USD file (UsdGeom + UsdPhysics, for Isaac Sim) of one twin, read back and checked with pxr.
+    `out` is a .usd/.usda/.usdc file or a directory (then `<twin>.usda` in it). Returns its path."""
+    from simulation.usd import write_usd
+
+    out = Path(out)
+    if out.suffix.lower() not in (".usd", ".usda", ".usdc"):
+        out = out / f"{_body_name(Path(twin_dir))}.usda"
+    return write_usd(out, twin_body(twin_dir, **physics))
 
 
 def _body_name(path: Path) -> str:

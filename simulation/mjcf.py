@@ -1,11 +1,11 @@
 """MJCF package writer: one directory with `model.xml`, mesh files and textures for one twin or a scene.
 
 Each body carries two kinds of geoms:
-- the visual mesh (the repaired, deformed CAD mesh, textured with colours baked from the Gaussians so
-  MuJoCo's own viewer shows the real object). It alone gives the body its mass and inertia, with
-  `inertia="exact"` (MuJoCo's default would use the convex hull's volume) at the asset's density;
-  it does not collide (contype = conaffinity = 0).
-- the collision geometry (`collision.py`): a primitive, the hull or convex pieces, massless.
+- the visual mesh (the repaired, closed and outward-oriented deformed CAD mesh, textured with colours
+  baked from the Gaussians so MuJoCo's own viewer shows the real object). It alone gives the body
+  its mass and inertia, with `inertia="exact"` (MuJoCo's default would use the convex hull's
+  volume) at the asset's density; it does not collide (contype = conaffinity = 0).
+- the collision geometry (`collision.py`): primitives, the hull or convex pieces, massless.
 Body frame = object frame, so a body's simulated pose moves the twin's Gaussians directly.
 """
 
@@ -107,13 +107,11 @@ def hull_obj(points: np.ndarray) -> bytes:
 def _collision_geoms(body: ET.Element, assets: ET.Element, spec: BodySpec, files: dict[str, bytes]) -> None:
     name, col = spec.asset.name, spec.collision
     common = {"group": "3", "mass": "0", "rgba": "0.2 0.6 1 0.3"}
-    if col.primitive is not None:
-        p = col.primitive
+    for i, p in enumerate(col.primitives):
         ET.SubElement(
-            body, "geom", name=f"{name}_collision", type=p.kind, size=_fmt(p.size), pos=_fmt(p.transform[:3, 3]),
+            body, "geom", name=f"{name}_collision_{p.kind}_{i}", type=p.kind, size=_fmt(p.size), pos=_fmt(p.transform[:3, 3]),
             quat=_fmt(matrix_to_quat(p.transform[:3, :3])), **common,
         )
-        return
     for i, piece in enumerate(col.pieces):
         mesh_name = f"{name}_collision_{i}"
         files[f"meshes/{mesh_name}.obj"] = hull_obj(piece)
@@ -154,17 +152,42 @@ def mjcf_document(bodies: list[BodySpec], options: SimOptions = SimOptions(), mo
         files[f"textures/{a.name}.png"] = encode_png(tex)
         ET.SubElement(assets, "texture", name=f"{a.name}_texture", type="2d", file=f"{a.name}.png")
         ET.SubElement(assets, "material", name=f"{a.name}_material", texture=f"{a.name}_texture", specular="0.2")
-        ET.SubElement(assets, "mesh", name=a.name, file=f"{a.name}.obj", inertia="exact" if a.mass.exact else "convex")
+        ET.SubElement(assets, "mesh", name=a.name, file=f"{a.name}.obj", inertia="exact")
         body = ET.SubElement(world, "body", name=a.name, pos=_fmt(spec.pos), quat=_fmt(spec.quat))
         if not spec.fixed:
             ET.SubElement(body, "freejoint", name=f"{a.name}_free")
         ET.SubElement(
             body, "geom", name=f"{a.name}_visual", type="mesh", mesh=a.name, material=f"{a.name}_material",
-            density=_fmt(a.density), contype="0", conaffinity="0", group="1",
+            density=_fmt(a.density.value), contype="0", conaffinity="0", group="1",
         )
         _collision_geoms(body, assets, spec, files)
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n", files
+
+
+def body_manifest(b: BodySpec) -> dict:
+    """A body's physics as the manifest records it: density and where it came from, the volume the
+    mass came from, mass, centre of mass, inertia (full and principal), the repair, the collision."""
+    a, c, m = b.asset, b.collision, b.asset.mass
+    return {
+        "name": a.name,
+        "parts": list(a.part_names),
+        "density": {"kg_m3": a.density.value, "material": a.density.material, "source": a.density.source},
+        "volume_m3": m.volume,
+        "volume_source": "closed repaired mesh (divergence theorem)",
+        "mass_kg": m.mass,
+        "center_of_mass": m.center_of_mass,
+        "inertia_kg_m2": m.inertia,
+        "principal_inertia_kg_m2": m.principal_moments,
+        "principal_axes": m.principal_axes,
+        "repair": {**vars(a.repair), "summary": a.repair.summary()},
+        "collision": {
+            "kind": c.kind, "primitives": [p.kind for p in c.primitives], "hulls": c.hull_count, "volume_m3": c.volume,
+            "volume_error": c.volume_error, "hausdorff_m": c.hausdorff if np.isfinite(c.hausdorff) else None, "seconds": c.seconds,
+            "notes": list(c.notes),
+        },
+        "pose": {"pos": b.pos, "quat_wxyz": b.quat, "fixed": b.fixed},
+    }
 
 
 def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], options: SimOptions = SimOptions()) -> Path:
@@ -184,22 +207,7 @@ def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], optio
         "model": MODEL_XML,
         "options": {"timestep": options.timestep, "gravity": list(options.gravity), "integrator": options.integrator, "cone": options.cone},
         "contact": {k: getattr(options.contact, k) for k in ("friction", "condim", "solref", "solimp", "margin")},
-        "bodies": [
-            {
-                "name": b.asset.name,
-                "material": b.asset.material,
-                "density_kg_m3": b.asset.density,
-                "mass_kg": b.asset.mass.mass,
-                "volume_m3": b.asset.mass.volume,
-                "center_of_mass": b.asset.mass.center_of_mass,
-                "inertia_kg_m2": b.asset.mass.inertia,
-                "inertia_exact": b.asset.mass.exact,
-                "collision": {"kind": b.collision.kind, "pieces": b.collision.hull_count, "volume_error": b.collision.volume_error, "notes": list(b.collision.notes)},
-                "repair": vars(b.asset.repair),
-                "pose": {"pos": b.pos, "quat_wxyz": b.quat, "fixed": b.fixed},
-            }
-            for b in bodies
-        ],
+        "bodies": [body_manifest(b) for b in bodies],
         "sha256": {rel: sha256_file(out / rel) for rel in [MODEL_XML, *files]},
     }
     atomic_write_json(out / MANIFEST_JSON, manifest)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.twin import MeshParts, Twin
+from reconstruction.twin import MeshParts, Twin, object_frame_from_file
 
 SPLAT_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh", "part_label")
 
@@ -62,12 +62,13 @@ def read_mesh_parts(path: str | os.PathLike) -> tuple[MeshParts, np.ndarray | No
         raise ValueError(f"{path}: cannot be read as a mesh ({type(e).__name__}: {e})") from None
     verts, faces, labels, names, colors = [], [], [], [], []
     offset = 0
+    to_object = object_frame_from_file(loaded)  # a twin's own GLB comes back in its object frame
     for node in loaded.graph.nodes_geometry:
         transform, geom_name = loaded.graph[node]
         mesh = loaded.geometry[geom_name]
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
             continue
-        verts.append(trimesh.transform_points(mesh.vertices, transform))
+        verts.append(trimesh.transform_points(mesh.vertices, to_object @ transform))
         faces.append(np.asarray(mesh.faces, np.int64) + offset)
         labels.append(np.full(len(mesh.faces), len(names)))
         names.append(str(node))
@@ -82,6 +83,23 @@ def read_mesh_parts(path: str | os.PathLike) -> tuple[MeshParts, np.ndarray | No
         names = [f"component_{i}" for i in range(int(face_part.max()) + 1)]
     face_rgb = None if any(c is None for c in colors) else np.concatenate(colors)
     return MeshParts(vertices, all_faces, face_part, names), face_rgb
+
+
+def material_names(path: str | os.PathLike) -> list[str]:
+    """Names of the materials a mesh file gives its geometry (OBJ's usemtl, glTF materials): where a
+    CAD export says what a part is made of (`Steel_AISI_304`). Empty when it names none or cannot be read."""
+    import trimesh
+
+    try:
+        scene = trimesh.load(str(path), force="scene", process=False)
+    except Exception:  # an unreadable file names no material; reading its mesh reports the error
+        return []
+    names = []
+    for node in scene.graph.nodes_geometry:
+        material = getattr(getattr(scene.geometry[scene.graph[node][1]], "visual", None), "material", None)
+        if getattr(material, "name", None):
+            names.append(str(material.name))
+    return names
 
 
 def _face_colors(mesh) -> np.ndarray | None:

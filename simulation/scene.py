@@ -26,7 +26,7 @@ pos = [0, 0, 0]           # object-frame origin in the world (m)
 euler_deg = [0, 0, 0]     # xyz extrinsic; or quat = [w, x, y, z]
 bottom = 0.0              # optional: lift so the lowest point is this high (overrides pos z)
 material = "plastic"      # or density = 1050 (kg/m^3)
-collision_tolerance = 0.05
+collision_tolerance = 0.1    # volume error allowed for the collision shapes
 fixed = false             # a fixture welded to the world
 ```
 Paths are relative to the scene file.
@@ -78,7 +78,7 @@ class Placement:
     bottom: float | None = None
     material: str | None = None
     density: float | None = None
-    collision_tolerance: float = 0.05
+    collision_tolerance: float = 0.1
     fixed: bool = False
     splats: int = 20000
 
@@ -154,7 +154,7 @@ def _placement(doc: dict, i: int, base: Path) -> Placement:
         bottom=None if doc.get("bottom") is None else _vec([doc["bottom"]], 1, f"{where} bottom")[0],
         material=doc.get("material"),
         density=None if doc.get("density") is None else _positive(doc["density"], f"{where} density"),
-        collision_tolerance=_positive(doc.get("collision_tolerance", 0.05), f"{where} collision_tolerance"),
+        collision_tolerance=_positive(doc.get("collision_tolerance", 0.1), f"{where} collision_tolerance"),
         fixed=bool(doc.get("fixed", False)),
         splats=int(_positive(doc.get("splats", 20000), f"{where} splats")),
     )

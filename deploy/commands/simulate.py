@@ -55,8 +55,8 @@ def _write_video(path: Path, frames: np.ndarray, fps: float) -> None:
 @click.option("--video", type=click.Choice(["gif", "mp4"]), default="gif", show_default=True, help="Animation format.")
 @click.option("--no-render", is_flag=True, help="Simulate and write poses only (no Gaussian renders).")
 @click.option("--decompose/--no-decompose", default=True, show_default=True, help="Allow CoACD decomposition for concave bodies (else their convex hull).")
-@click.option("--coacd-threshold", type=click.FloatRange(min=0.01, max=1.0), default=0.08, show_default=True, help="CoACD concavity threshold (lower: more, tighter pieces).")
-@click.option("--coacd-timeout", type=click.FloatRange(min=1.0), default=60.0, show_default=True, help="Seconds CoACD may spend per body before the hull is used.")
+@click.option("--coacd-threshold", type=click.FloatRange(min=0.01, max=1.0), default=0.05, show_default=True, help="CoACD's first concavity threshold; lowered while the pieces miss the volume tolerance.")
+@click.option("--coacd-timeout", type=click.FloatRange(min=1.0), default=300.0, show_default=True, help="Seconds CoACD may spend per part (all runs) before the best so far, or the hull, is used.")
 def simulate(scene_toml: Path, out_dir: Path, video: str, no_render: bool, decompose: bool, coacd_threshold: float, coacd_timeout: float) -> None:
     """Run SCENE_TOML in MuJoCo and render every frame with the twins' Gaussians."""
     from simulation.collision import DecompositionOptions

@@ -69,20 +69,23 @@ def test_round_trip_and_every_ply_column(tmp_path):
     assert back.cameras[0].camera.width == 64
     assert (out / "renders" / "a.png").exists() and (out / "deformation.pt").exists()
 
-    # Every column, read with plyfile directly, in the Inria order and meaning.
-    v = PlyData.read(str(out / "splats.ply"))["vertex"]
+    # Every column, read with plyfile directly, in the Inria order and meaning: padded to degree 3
+    # (what Inria's loader reads without flags), the fitted degree in a header comment.
+    ply = PlyData.read(str(out / "splats.ply"))
+    v = ply["vertex"]
     names = [p.name for p in v.properties]
-    assert names == ply_columns(2)
-    assert len(names) == 3 + 3 + 3 + 24 + 1 + 3 + 4
+    assert names == ply_columns(3) and "sh_degree 2" in ply.comments
+    assert len(names) == 3 + 3 + 3 + 45 + 1 + 3 + 4
     assert all(p.val_dtype in ("f4", "float32") for p in v.properties)
     n = twin.num_splats
     np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), twin.means, atol=1e-6)
     np.testing.assert_allclose(np.stack([v["nx"], v["ny"], v["nz"]], 1), splat_normals(twin.quats), atol=1e-6)
     np.testing.assert_allclose(np.stack([v[f"f_dc_{c}"] for c in range(3)], 1), twin.sh[:, 0], atol=1e-6)
-    # Channel-major f_rest: index c * (K - 1) + (j - 1) holds coefficient j of channel c.
+    # Channel-major f_rest: index c * 15 + (j - 1) holds coefficient j of channel c; degree 3 is zero.
     for c in range(3):
-        for j in range(1, 9):
-            np.testing.assert_allclose(v[f"f_rest_{c * 8 + j - 1}"], twin.sh[:, j, c], atol=1e-6)
+        for j in range(1, 16):
+            want = twin.sh[:, j, c] if j < 9 else 0.0
+            np.testing.assert_allclose(v[f"f_rest_{c * 15 + j - 1}"], want, atol=1e-6)
     np.testing.assert_allclose(v["opacity"], twin.opacity_logits, atol=1e-6)
     np.testing.assert_allclose(np.stack([v[f"scale_{i}"] for i in range(3)], 1), twin.log_scales, atol=1e-6)
     np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), twin.quats, atol=1e-6)

@@ -89,10 +89,68 @@ def test_concave_torus_is_decomposed_and_beats_its_hull():
 def test_decomposition_timeout_falls_back_to_the_hull_and_says_so():
     mesh = trimesh.creation.torus(major_radius=0.05, minor_radius=0.015)
     col = choose(mesh, decomposition=DecompositionOptions(timeout_s=0.01))
-    assert col.kind == "hull" and "convex hull used" in col.notes[0]
+    assert col.kind == "hull" and "convex hull used" in col.notes[-1] and "did not finish" in col.notes[0]
 
 
 def test_zero_volume_is_refused():
     mesh = trimesh.creation.box(extents=[1, 1, 1])
     with pytest.raises(ValueError, match="volume must be positive"):
         collision_geometry(mesh.vertices, mesh.faces, 0.0)
+
+
+def test_piece_count_follows_the_volume_error():
+    mesh = trimesh.creation.torus(major_radius=0.05, minor_radius=0.01, major_sections=24, minor_sections=12)
+    uncapped = DecompositionOptions(mcts_iterations=20, resolution=500, timeout_s=600)
+    loose = choose(mesh, tolerance=0.5, decomposition=uncapped)
+    tight = choose(mesh, tolerance=0.1, decomposition=uncapped)
+    assert loose.kind == tight.kind == "decomposition"
+    assert abs(tight.volume_error) <= 0.1 < mesh.convex_hull.volume / mesh.volume - 1
+    assert tight.hull_count >= loose.hull_count
+    # The collision surface lies within a few millimetres of the torus surface (tube radius 10 mm).
+    assert 0 < tight.hausdorff < 0.005
+
+
+def test_each_cad_part_gets_its_own_primitive():
+    from tests.simulation.twins import skateboard
+
+    parts, _ = skateboard()
+    mesh = trimesh.Trimesh(parts.vertices, parts.faces, process=False)
+    col = collision_geometry(parts.vertices, parts.faces, mesh.volume, face_part=parts.face_part)
+    assert col.kind == "parts" and col.hull_count == 0
+    assert sorted(p.kind for p in col.primitives) == ["box"] + ["cylinder"] * 4
+    assert abs(col.volume_error) < 0.02 and col.hausdorff < 0.001
+
+
+def test_clamp_hangs_on_a_5mm_rod_through_its_opening_which_one_hull_cannot(tmp_path):
+    """The bundled clamp CAD variant hung by the opening between its jaws and handles on a fixed
+    5 mm rod: with CoACD pieces the opening stays open and the clamp hangs; its single convex hull
+    fills the opening, so MuJoCo pushes the rod out and the clamp falls."""
+    from calibration.so3 import axis_angle_to_matrix, matrix_to_quat
+    from reconstruction.twin import MeshParts
+    from simulation.asset import build_asset, choose_density
+    from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
+    from simulation.run import load_model, simulate
+    from tests.conftest import REPO
+
+    m = trimesh.load(REPO / "sample" / "library_meshes" / "medium_clamp_cad.ply", process=False)
+    clamp = build_asset("clamp", MeshParts(m.vertices, m.faces, np.zeros(len(m.faces), int), ["clamp"]))
+    rod_mesh = trimesh.creation.capsule(radius=0.0025, height=0.08, count=[16, 16])
+    rod_mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # along world y
+    rod = build_asset("rod", MeshParts(rod_mesh.vertices, rod_mesh.faces, np.zeros(len(rod_mesh.faces), int), ["rod"]), density=choose_density(material="steel"))
+    rod_col = collision_geometry(rod.vertices, rod.faces, rod.mass.volume, decomposition=None)
+    assert rod_col.kind == "capsule"
+    # The clamp stood on edge, the opening's axis (object z) along the rod; the opening's centre
+    # (7.4 mm clear radius, found on this mesh) 3.9 mm below the rod's axis: a 1 mm drop onto it.
+    rot = axis_angle_to_matrix(np.array([np.pi / 2, 0.0, 0.0]))
+    opening = np.array([0.003, -0.018, 0.5 * (clamp.vertices[:, 2].min() + clamp.vertices[:, 2].max())])
+    pos = np.array([0.0, 0.0, -0.0039]) - rot @ opening
+    coarse = DecompositionOptions(threshold=0.08, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600)
+    heights = {}
+    for name, decomposition in [("pieces", coarse), ("hull", None)]:
+        col = collision_geometry(clamp.vertices, clamp.faces, clamp.mass.volume, tolerance=0.1, primitives=(), decomposition=decomposition, measure_hausdorff=False)
+        assert col.kind == ("decomposition" if decomposition else "hull")
+        bodies = [BodySpec(rod, rod_col, np.zeros(3), np.array([1.0, 0, 0, 0]), fixed=True), BodySpec(clamp, col, pos, matrix_to_quat(rot))]
+        traj = simulate(load_model(write_mjcf_package(tmp_path / name, bodies, SimOptions(floor=False))), 1.5, fps=20)
+        heights[name] = traj.pos[:, 1, 2]
+    assert heights["pieces"].min() > -0.04  # it swings on the rod, its origin never more than 4 cm below it
+    assert heights["hull"][-1] < -1.0  # one hull: pushed off the rod, in free fall

@@ -13,7 +13,7 @@ import trimesh
 from calibration.fileio import sha256_file
 from calibration.so3 import quat_to_matrix
 from reconstruction.twin import MeshParts
-from simulation.asset import build_asset, load_mesh_asset
+from simulation.asset import build_asset, choose_density, load_mesh_asset
 from simulation.collision import DecompositionOptions, collision_geometry
 from simulation.mjcf import BodySpec, face_atlas, write_mjcf_package
 from simulation.run import load_model
@@ -37,7 +37,7 @@ def assert_inertia_matches(model, b: int, asset) -> None:
     assert np.abs(inertia - ref).max() < 1e-2 * np.abs(ref).max()
     # Independent check against trimesh itself at the same density.
     tm = trimesh.Trimesh(asset.vertices, asset.faces)
-    tm.density = asset.density
+    tm.density = asset.density.value
     assert mass == pytest.approx(tm.mass, rel=1e-2)
     assert np.abs(inertia - tm.moment_inertia).max() < 1e-2 * np.abs(tm.moment_inertia).max()
 
@@ -47,7 +47,7 @@ def assert_inertia_matches(model, b: int, asset) -> None:
     [(("objects", "ycb", "072-c_toy_airplane", "textured.obj"), "m", "plastic"), (("cad", "parts", "idler_riser.STL"), "in", "steel")],
 )
 def test_exact_mesh_inertia_agrees_with_trimesh(where, unit, material, tmp_path):
-    asset = load_mesh_asset(require_shared(*where), unit, "body", material=material)
+    asset = load_mesh_asset(require_shared(*where), unit, "body", density=choose_density(material=material))
     col = collision_geometry(asset.vertices, asset.faces, asset.mass.volume, decomposition=None)
     model = load_model(write_mjcf_package(tmp_path / "pkg", [BodySpec(asset, col, np.zeros(3), IDENTITY)]))
     assert_inertia_matches(model, 1, asset)
@@ -56,14 +56,14 @@ def test_exact_mesh_inertia_agrees_with_trimesh(where, unit, material, tmp_path)
 def torus_asset():
     t = trimesh.creation.torus(major_radius=0.05, minor_radius=0.015, major_sections=32, minor_sections=16)
     rgb = np.where(t.triangles_center[:, :1] > 0, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
-    return build_asset("torus", MeshParts(t.vertices, t.faces, np.zeros(len(t.faces), int), ["ring"]), face_rgb=rgb, material="rubber")
+    return build_asset("torus", MeshParts(t.vertices, t.faces, np.zeros(len(t.faces), int), ["ring"]), face_rgb=rgb, density=choose_density(material="rubber"))
 
 
 def test_scene_package_with_decomposition_primitive_and_fixture(tmp_path):
     torus = torus_asset()
-    col = collision_geometry(torus.vertices, torus.faces, torus.mass.volume, decomposition=DecompositionOptions(max_convex_hull=6, mcts_iterations=20, resolution=500, timeout_s=600))
+    col = collision_geometry(torus.vertices, torus.faces, torus.mass.volume, decomposition=DecompositionOptions(max_convex_hull=6, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600))
     box_mesh = trimesh.creation.box(extents=[0.3, 0.3, 0.02])
-    box = build_asset("plate", MeshParts(box_mesh.vertices, box_mesh.faces, np.zeros(12, int), ["plate"]), material="wood")
+    box = build_asset("plate", MeshParts(box_mesh.vertices, box_mesh.faces, np.zeros(12, int), ["plate"]), density=choose_density(material="wood"))
     box_col = collision_geometry(box.vertices, box.faces, box.mass.volume)
     bodies = [BodySpec(box, box_col, np.array([0, 0, 0.01]), IDENTITY, fixed=True), BodySpec(torus, col, np.array([0, 0, 0.1]), IDENTITY)]
     xml = write_mjcf_package(tmp_path / "scene", bodies)
@@ -77,7 +77,7 @@ def test_scene_package_with_decomposition_primitive_and_fixture(tmp_path):
         if name.endswith("_visual"):
             assert model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0
     kinds = {model.geom(g).name: int(model.geom_type[g]) for g in range(model.ngeom)}
-    assert kinds["plate_collision"] == mujoco.mjtGeom.mjGEOM_BOX
+    assert kinds["plate_collision_box_0"] == mujoco.mjtGeom.mjGEOM_BOX
     assert sum(n.startswith("torus_collision_") for n in kinds) == col.hull_count >= 2
     manifest = json.loads((tmp_path / "scene" / "manifest.json").read_text())
     assert manifest["bodies"][1]["collision"]["kind"] == "decomposition"
