@@ -77,15 +77,15 @@ def errors(est_model_pts: np.ndarray, est: Sim3, gt_pts: np.ndarray, gt: Sim3, s
     return {"add_s_pct": float(add_s), "surface_pct": float(surface), "scale_ratio": float(est.scale / gt.scale)}
 
 
-def random_prior(gt: Sim3, up_rig: np.ndarray, size: float, rng: np.random.Generator) -> Sim3:
+def random_prior(gt: Sim3, up_rig: np.ndarray, size: float, centre_obj: np.ndarray, rng: np.random.Generator) -> Sim3:
     """The previous part on the conveyor: the true pose turned by a random yaw about `up_rig` [3]
-    through the object and moved on the conveyor by up to size / 3 (rig units)."""
+    through the object's centre `centre_obj` [3] and moved on the conveyor by up to size / 3 (rig units)."""
     from calibration.so3 import axis_angle_to_matrix
 
     yaw = rng.uniform(-np.pi, np.pi)
     shift = rng.uniform(-1, 1, 3) * size / 3
     shift -= up_rig * (shift @ up_rig)
-    centre_rig = gt.inverse().translation  # the object origin in the rig frame
+    centre_rig = gt.inverse().apply(centre_obj)
     turn = axis_angle_to_matrix(yaw * up_rig)
     # New rig->object: x_obj = gt(turn^T (x_rig - centre - shift) + centre).
     move = Sim3(1.0, turn.T, centre_rig - turn.T @ (centre_rig + shift))
@@ -146,7 +146,7 @@ def main() -> int:
             up = known_up(cams1)
             size = float(2 * np.linalg.norm(gt1.inverse().apply(gt_pts) - gt1.inverse().apply(gt_pts).mean(0), axis=1).max())
             for trial in range(args.trials):
-                prior = random_prior(gt1, up, size, rng)
+                prior = random_prior(gt1, up, size, gt_pts.mean(0), rng)
                 t, c = time.perf_counter(), time.process_time()
                 res = known_part_register(masks, cams1, lib, gt_doc["model_id"], prior, rig_metres_per_unit=1.0)
                 secs, cpu = time.perf_counter() - t, time.process_time() - c

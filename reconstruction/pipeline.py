@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from calibration.camera import Camera
-from calibration.capture import Capture, load_views, read_capture
+from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
 from calibration.sim3 import Sim3
 from reconstruction.library import UNIT_TO_M
 from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
@@ -157,7 +157,8 @@ def reconstruct(
     t = time.perf_counter()
     if library is not None:
         say(f"registering {len(idx)} views against {len(library.models)} library models")
-        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed)
+        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed,
+                       rig_metres_per_unit=rig_metres_per_unit(capture.meta, capture.root))
         parts = model_parts(library, reg.model_id)
     else:
         reg, parts = sphere_registration(masks, cams)

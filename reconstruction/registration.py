@@ -48,6 +48,10 @@ DISTINCT_DEG = 20.0
 AMBIGUOUS_GAP = 0.03
 # Distinct (model, pose) candidates refined briefly before the winner is chosen.
 CANDIDATES = 8
+# Models (at most CONTENDERS) whose briefly refined objective is within TIE_SCREEN of the best are
+# refined fully before the winner and any look-alike tie are decided.
+CONTENDERS = 3
+TIE_SCREEN = 0.15
 # Objective = (1 - EDGE_WEIGHT) IoU + EDGE_WEIGHT exp(-chamfer / tau): half area, half contour,
 # so a thick part is still judged mostly by area while a thin one keeps a smooth score.
 EDGE_WEIGHT = 0.5
@@ -620,6 +624,13 @@ def rig_up(cameras_rig: list[Camera]) -> np.ndarray:
     return u / n
 
 
+def area_centroid(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted centroid [3] of a triangle mesh: where silhouette centroids from around it meet."""
+    tri = verts[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return (tri.mean(1) * area[:, None]).sum(0) / max(float(area.sum()), 1e-300)
+
+
 def triangulate_centroid(masks: np.ndarray, cameras_rig: list[Camera]) -> np.ndarray | None:
     """Least-squares meeting point [3] (rig frame) of the rays through the masks' centroids; None with fewer than two usable views."""
     a, b, used = np.zeros((3, 3)), np.zeros(3), 0
@@ -828,17 +839,26 @@ def register(
             sim_r, sc_r = refine(scorer, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals // 4, fix_scale=fix_scale, band=band)
             shortlist.append((sc_r, m, sim_r))
     shortlist.sort(key=lambda s: -s[0])
-    best_model, best_sim = shortlist[0][1], shortlist[0][2]
-    # Other models that fit as well (at the same resolution and effort): a look-alike the masks cannot tell apart.
-    model_ties = []
-    for sc, m, sim in shortlist[1:]:
-        if m != best_model and shortlist[0][0] - sc < AMBIGUOUS_GAP and all(tie["model_id"] != index.model_ids[m] for tie in model_ties):
-            model_ties.append({"model_id": index.model_ids[m], "score_gap": float(shortlist[0][0] - sc),
-                               "size_ratio": float(best_sim.scale / sim.scale * index.radii[m] / index.radii[best_model])})
+    # The best pose of each model close to the top gets the full refinement: a look-alike (another
+    # model that fits as well) is then either the winner or reported as a tie, not lost to a brief refinement.
     fine = Scorer(masks, cameras_rig, REFINE_PX)
+    contenders: list[tuple[float, int, Sim3]] = []
+    for sc, m, sim in shortlist:
+        if sc >= shortlist[0][0] - TIE_SCREEN and all(m != c[1] for c in contenders) and len(contenders) < CONTENDERS:
+            v_, f_ = mesh(m)
+            sim_r, sc_r = refine(fine, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals, fix_scale=fix_scale, band=band)
+            contenders.append((sc_r, m, sim_r))
+    contenders.sort(key=lambda c: -c[0])
+    (score, best_model, refined) = contenders[0]
+    # cad_size_ratio: the tied model's size over the winner's; scale_ratio: the rig-to-object scale
+    # it fits at over the winner's. Both equal: the same shape at another size, which only a metric rig tells apart.
+    model_ties = [
+        {"model_id": index.model_ids[m], "score_gap": float(score - sc), "cad_size_ratio": float(index.radii[m] / index.radii[best_model]),
+         "scale_ratio": float(sim.scale / refined.scale)}
+        for sc, m, sim in contenders[1:] if score - sc < AMBIGUOUS_GAP
+    ]
     verts, faces = mesh(best_model)
     center, radius = index.centers[best_model], float(index.radii[best_model])
-    refined, score = refine(fine, verts, faces, best_sim, center, radius, max_evals=refine_evals, fix_scale=fix_scale, band=band)
 
     # The best pose of the same model that is not the same pose: the symmetry report.
     ambiguity = None
@@ -909,12 +929,13 @@ def known_part_register(
     center, radius = index.centers[model], float(index.radii[model])
     up = rig_up(cameras_rig) if up_rig is None else np.asarray(up_rig, np.float64) / np.linalg.norm(up_rig)
     s = float(np.clip(prior.scale, *band))
-    # The model centre where the previous part had it, and where this part's masks put it.
-    p_prev = prior.inverse().apply(center[None])[0]
+    # The model's area centroid where the previous part had it, and where this part's masks put it.
+    ref = area_centroid(verts, faces)
+    p_prev = prior.inverse().apply(ref[None])[0]
     p_now = triangulate_centroid(masks, cameras_rig)
     if p_now is None:
         p_now = p_prev
-    base = Sim3(s, prior.rotation, center - s * prior.rotation @ p_prev)
+    base = Sim3(s, prior.rotation, ref - s * prior.rotation @ p_prev)
     timings = {"observe": time.perf_counter() - t0}
 
     t = time.perf_counter()
