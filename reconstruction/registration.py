@@ -74,12 +74,16 @@ UNCERTAINTY_MAX = 0.5
 PHOTO_CELL_PX = 2
 PHOTO_DECISIVE = 0.9
 # Known-part path: yaw samples on the conveyor (15 deg apart), the longest image side they are
-# scored at, how many yaws are refined, and the evaluation budgets of the two refinements.
+# scored at, how many yaws are refined (in yaw and position; a runner-up only within
+# KNOWN_START_GAP of the best, as for a near-symmetric part) and with how many evaluations, and
+# the image side and evaluations of the final full-pose refinement.
 KNOWN_YAWS = 24
 KNOWN_SCORE_PX = 96
 KNOWN_STARTS = 2
-KNOWN_STAGE_EVALS = 40
-KNOWN_FINAL_EVALS = 80
+KNOWN_START_GAP = 0.05
+KNOWN_STAGE_EVALS = 30
+KNOWN_FINAL_PX = 128
+KNOWN_FINAL_EVALS = 60
 
 
 class RegistrationError(ValueError):
@@ -438,17 +442,20 @@ class Scorer:
         self.obs_boxes = np.tile(np.array([hm, 0, wm, 0], np.int64), (n, 1))
         for i, m in enumerate(small):
             self.masks[i, : m.shape[0], : m.shape[1]] = m
+            ys, xs = np.nonzero(m)
+            if len(xs):
+                self.obs_boxes[i] = (ys.min(), ys.max() + 1, xs.min(), xs.max() + 1)
+            if self.edge_weight == 0.0:
+                edges.append(np.zeros((0, 2), np.int64))
+                continue
             b = boundary(m)
             # Distance (px) to the nearest observed boundary pixel, over the whole padded canvas.
             canvas = np.ones((hm, wm), np.uint8)
             canvas[: m.shape[0], : m.shape[1]][b] = 0
             self.obs_dt[i] = cv2.distanceTransform(canvas, cv2.DIST_L2, 5) if b.any() else 0.0
             edges.append(np.argwhere(b))
-            ys, xs = np.nonzero(m)
             diag = float(np.hypot(np.ptp(xs) + 1, np.ptp(ys) + 1)) if len(xs) else 0.0
             self.taus[i] = max(EDGE_TAU_MIN_PX, EDGE_TAU * diag)
-            if len(xs):
-                self.obs_boxes[i] = (ys.min(), ys.max() + 1, xs.min(), xs.max() + 1)
         self.n_edges = np.array([len(e) for e in edges], dtype=np.int64)
         self.obs_edges = np.zeros((n, max(1, int(self.n_edges.max())), 2), dtype=np.int64)
         for i, e in enumerate(edges):
@@ -553,22 +560,17 @@ def camera_poses(cameras_rig: list[Camera], sim3: Sim3, sigmas: np.ndarray, cent
     its uncertainty: RMS rotation (deg) and translation (object units) over Sim(3) perturbations drawn
     from N(0, diag(`sigmas`^2)) (see `pose_sigmas`)."""
     rng = np.random.default_rng(seed)
-    draws = [perturb(sim3, np.concatenate([rng.normal(size=6) * sigmas, [0.0]]), center, radius) for _ in range(samples)]
-    out = []
-    for cam in cameras_rig:
-        c2w = sim3.apply_to_c2w(cam.c2w)
-        t_cam_obj = np.linalg.inv(c2w)
-        rot, trans = [], []
-        for d in draws:
-            t_d = np.linalg.inv(d.apply_to_c2w(cam.c2w))
-            rot.append(float(geodesic_angle_deg(t_d[:3, :3], t_cam_obj[:3, :3])))
-            trans.append(float(np.linalg.norm(t_d[:3, 3] - t_cam_obj[:3, 3])))
-        out.append({
-            "T_cam_obj": t_cam_obj.tolist(),
-            "rotation_sigma_deg": float(np.sqrt(np.mean(np.square(rot)))),
-            "translation_sigma": float(np.sqrt(np.mean(np.square(trans)))),
-        })
-    return out
+    c2w_rig = np.stack([c.c2w for c in cameras_rig])
+    t_cam_obj = np.linalg.inv(sim3.apply_to_c2w(c2w_rig))
+    rot = np.zeros((samples, len(cameras_rig)))
+    trans = np.zeros((samples, len(cameras_rig)))
+    for i in range(samples):
+        d = perturb(sim3, np.concatenate([rng.normal(size=6) * sigmas, [0.0]]), center, radius)
+        t_d = np.linalg.inv(d.apply_to_c2w(c2w_rig))
+        rot[i] = geodesic_angle_deg(t_d[:, :3, :3], t_cam_obj[:, :3, :3])
+        trans[i] = np.linalg.norm(t_d[:, :3, 3] - t_cam_obj[:, :3, 3], axis=1)
+    rot_sigma, trans_sigma = np.sqrt(np.mean(rot**2, 0)), np.sqrt(np.mean(trans**2, 0))
+    return [{"T_cam_obj": t.tolist(), "rotation_sigma_deg": float(r), "translation_sigma": float(s)} for t, r, s in zip(t_cam_obj, rot_sigma, trans_sigma)]
 
 
 # --- image evidence for near-ties --------------------------------------------------------------
@@ -696,16 +698,17 @@ def _check_inputs(masks: np.ndarray, cameras_rig: list[Camera]) -> np.ndarray:
     return masks
 
 
-def _finish(masks, cameras_rig, library, model: int, refined: Sim3, objective: float, *, alternatives, ambiguity, model_ties, timings, t0,
-            truncated, scale_observable, rig_metres_per_unit, band) -> RegistrationResult:
-    """The result of a registration: per-view IoU at full resolution, the pose per camera with its uncertainty."""
+def _finish(masks, cameras_rig, library, model: int, refined: Sim3, objective: float, fine: Scorer, *, alternatives, ambiguity, model_ties, timings,
+            t0, truncated, scale_observable, rig_metres_per_unit, band) -> RegistrationResult:
+    """The result of a registration: per-view IoU at full resolution, the pose per camera with its
+    uncertainty (from the objective of `fine`, the scorer the pose was refined on)."""
     index = library.index
     verts, faces = library.scoring_mesh(index.model_ids[model])
     center, radius = index.centers[model], float(index.radii[model])
     t = time.perf_counter()
     full = Scorer(masks, cameras_rig, max(max(c.width, c.height) for c in cameras_rig), edge_weight=0.0)
     per_view = full(verts, faces, refined)
-    sigmas = pose_sigmas(Scorer(masks, cameras_rig, REFINE_PX), verts, faces, refined, center, radius)
+    sigmas = pose_sigmas(fine, verts, faces, refined, center, radius)
     timings["poses"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     return RegistrationResult(
@@ -892,7 +895,7 @@ def register(
         if m != best_model and s > per_model.get(m, -1.0):
             per_model[m] = s
     alternatives = [(index.model_ids[m], float(s)) for m, s in sorted(per_model.items(), key=lambda kv: -kv[1])[:5]]
-    return _finish(masks, cameras_rig, library, best_model, refined, score, alternatives=alternatives, ambiguity=ambiguity, model_ties=model_ties,
+    return _finish(masks, cameras_rig, library, best_model, refined, score, fine, alternatives=alternatives, ambiguity=ambiguity, model_ties=model_ties,
                    timings=timings, t0=t0, truncated=truncated, scale_observable=scale_observable, rig_metres_per_unit=rig_metres_per_unit, band=band)
 
 
@@ -951,7 +954,7 @@ def known_part_register(
 
     t = time.perf_counter()
     best = None
-    for sc, sim in cands[:KNOWN_STARTS]:
+    for sc, sim in [c for c in cands[:KNOWN_STARTS] if c[0] >= cands[0][0] - KNOWN_START_GAP]:
         # Yaw (about the conveyor normal, seen in the object frame) and position only.
         basis = np.zeros((7, 4))
         basis[:3, 0] = sim.rotation @ up
@@ -960,10 +963,10 @@ def known_part_register(
                              steps=np.array([0.1, 0.05, 0.05, 0.05]))
         if best is None or sc_r > best[0]:
             best = (sc_r, sim_r)
-    fine = Scorer(masks, cameras_rig, REFINE_PX)
+    fine = Scorer(masks, cameras_rig, KNOWN_FINAL_PX)
     fix_scale = rig_metres_per_unit is None
     refined, score = refine(fine, verts, faces, best[1], center, radius, max_evals=KNOWN_FINAL_EVALS, fix_scale=fix_scale, band=band)
     timings["refine"] = time.perf_counter() - t
-    return _finish(masks, cameras_rig, library, model, refined, score, alternatives=[], ambiguity=None, model_ties=[], timings=timings, t0=t0,
+    return _finish(masks, cameras_rig, library, model, refined, score, fine, alternatives=[], ambiguity=None, model_ties=[], timings=timings, t0=t0,
                    truncated=[i for i, m in enumerate(masks) if m.any() and touches_border(m)], scale_observable=True,
                    rig_metres_per_unit=rig_metres_per_unit, band=band)
