@@ -7,16 +7,34 @@
    from the silhouette's size; position from the bbox centre through the intrinsics).
 2. RANSAC over Sim(3): sample two views and one hypothesis of the same model from each; rotation
    and translation from the first, scale from the ratio of inter-camera distances; score by
-   rendering the model's silhouette in every view and averaging the IoUs.
-3. The best (model, Sim(3)) is refined locally (Nelder-Mead over rotation, translation and
-   log-scale about the model centre) on the silhouette IoU.
+   rendering the model's silhouette in every view.
+3. The best distinct candidates are refined briefly (Nelder-Mead over rotation, translation and
+   log-scale about the model centre); the best pose of each model near the top is refined fully,
+   and the best of those wins. Other models that end within AMBIGUOUS_GAP are reported as ties.
+
+Score: per view, half IoU and half an edge term exp(-chamfer / tau) on the silhouette boundaries
+(`Scorer`). IoU alone collapses for thin parts (rings, wire forms, forks) a few pixels off; the
+contour distance keeps a slope the search can follow.
+
+Scale: the library is metric. On a metric rig (`rig_metres_per_unit` known, from the capture's
+`units`) the scale is a measurement: candidates and refinement stay within the part's size
+tolerance (`scale_band`), a wrong-size look-alike loses, and the result states the measured size
+deviation. Otherwise the scale comes from the data, anywhere in SCALE_SEARCH, and a look-alike
+at another size is a tie.
+
+The known part (`known_part_register`): no library search; the previous part's pose is the prior,
+the search is the part's yaw about the conveyor normal and its position, then a local refinement.
+
+Every result carries the object's pose in each camera (T_cam_obj) with an uncertainty from the
+objective's curvature (`pose_sigmas`, `camera_poses`).
 
 Hard cases: one view or coincident camera centres (the rig-to-object scale is unobservable from
-images: it is set to 1, i.e. a metric rig and a metric library, and the distance to the object
-comes from the mask size against the model size); masks touching the image border (their bbox is
-truncated, so they generate no hypotheses while any untruncated view exists, but they are still
-scored); near-symmetric objects (the best distinct pose and the score gap are reported); nothing
-above threshold (RegistrationError naming the best IoU found).
+images: it is the metric unit when known, else 1, and the distance to the object comes from the
+mask size against the model size); masks touching the image border (their bbox is truncated, so
+they generate no hypotheses while any untruncated view exists, but they are still scored);
+near-symmetric objects (the best distinct pose and the score gap are reported; with images, the
+pose whose colours agree better across views is preferred); nothing above threshold
+(RegistrationError naming the best IoU found).
 """
 
 from __future__ import annotations

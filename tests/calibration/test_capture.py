@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera, look_at_c2w
-from calibration.capture import CaptureError, FrameData, load_views, read_capture, write_capture
+from calibration.capture import CaptureError, FrameData, load_views, read_capture, rig_metres_per_unit, write_capture
 from tests.conftest import require_shared
 
 
@@ -40,6 +40,17 @@ def test_roundtrip_is_lossless_and_verified(tmp_path):
     assert images.shape == (2, 30, 40, 3) and images.dtype == np.float32 and masks.shape == (2, 30, 40)
     # No temporary directories left behind.
     assert [p.name for p in tmp_path.iterdir()] == ["cap"]
+
+
+def test_units_only_when_the_calibration_is_metric(tmp_path):
+    metric = write_capture(tmp_path / "metric", small_frames(), meta={"units": "m"})
+    assert metric.meta["units"] == "m" and rig_metres_per_unit(metric.meta) == 1.0
+    assert rig_metres_per_unit({"units": "mm"}) == 1e-3
+    unknown = write_capture(tmp_path / "sfm", small_frames())
+    assert "units" not in unknown.meta and rig_metres_per_unit(unknown.meta) is None
+    with pytest.raises(CaptureError, match="units 'furlong' is not one of m, mm, cm, in"):
+        write_capture(tmp_path / "bad", small_frames(), meta={"units": "furlong"})
+    assert not (tmp_path / "bad").exists()
 
 
 def test_transforms_json_is_nerfstudio_compatible(tmp_path):
