@@ -9,8 +9,10 @@ centres times k, no `units`: scale unknown). Errors:
 
 - ADD-S: the true surface (gt_mesh.ply) placed in the rig frame by the estimated and by the true
   Sim(3); symmetric mean closest-point distance, % of the bounding-sphere diameter (in rig units).
-  When another model is chosen, its own surface placed by the estimate against the true surface
-  placed by the truth ("surface" column) decides whether it counts as right (3 % of the diameter).
+- surface: the chosen model's own surface placed by the estimate against the true surface placed
+  by the truth (the same as ADD-S for the right model). When another model is chosen, its frame
+  is not the true one, so ADD-S is undefined for it and this is the pose error: a run passes when
+  the surface is within 3 % of the diameter (the issue's "a model whose surface is within 3 %").
 - scale: the registered scale over the true one (1 = exact).
 
 `--known` adds the known-part path (the library model named, the previous part's pose as the
@@ -137,8 +139,10 @@ def main() -> int:
             secs = time.perf_counter() - t
             e = errors(model_pts(res.model_id), res.sim3_rig_to_object, gt_pts, gt, res.model_id == gt_doc["model_id"])
             row = {"scene": name, "k": k, "model": res.model_id, "right_model": res.model_id == gt_doc["model_id"], "seconds": secs,
-                   "iou": res.score, "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]), **e}
-            row["ok"] = bool(row["add_s_pct"] < PASS_PCT and row["surface_pct"] < PASS_PCT)
+                   "iou": res.score, "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]),
+                   "decided_by": (res.ambiguity or {}).get("decided_by", ""), "model_ties": [t["model_id"] for t in res.model_ties],
+                   "part_vs_cad": res.part_scale_vs_cad, **e}
+            row["ok"] = bool(row["surface_pct"] < PASS_PCT)
             rows.append(row)
             print(json.dumps({key: (round(v, 4) if isinstance(v, float) else v) for key, v in row.items()}), flush=True)
         if args.known or args.known_only:
@@ -179,20 +183,25 @@ def write_table(rows: list[dict], path: Path) -> None:
         "",
         "`python -m benchmarks.bench_registration_rig_scenes` (" + load_line() + " at the end of the run; 2 shared cores).",
         f"k = rig-frame scale factor (1: the metric rig, `units: m`, scale band ±10 %; others: no units, scale searched). "
-        f"ADD-S and model surface in % of the bounding-sphere diameter; pass = right model (or a surface within {PASS_PCT:g} %) "
-        f"and ADD-S < {PASS_PCT:g} %.",
+        f"ADD-S and model surface in % of the bounding-sphere diameter (module docstring); pass = the chosen model's surface, placed, "
+        f"within {PASS_PCT:g} % (for the right model that is its ADD-S; for another model ADD-S is undefined, shown in brackets). "
+        "part/CAD: the measured size of the part over its CAD model's (metric rig only). Pose tie: a distinct pose within the "
+        "ambiguity gap, and what decided it. Model ties: other models within the gap.",
         "",
-        "| scene | k | model | right | ADD-S % | surface % | scale/true | IoU | near tie | s | pass |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | k | model | right | ADD-S % | surface % | scale/true | part/CAD | IoU | pose tie | model ties | s | pass |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["scene"], ks.index(r["k"]))):
-        lines.append(f"| {r['scene']} | {r['k']:g} | {r['model']} | {'yes' if r['right_model'] else 'no'} | {r['add_s_pct']:.2f} | "
-                     f"{r['surface_pct']:.2f} | {r['scale_ratio']:.4f} | {r['iou']:.3f} | {'yes' if r['near_tie'] else ''} | "
+        add_s = f"{r['add_s_pct']:.2f}" if r["right_model"] else f"({r['add_s_pct']:.1f})"
+        part = f"{r['part_vs_cad']:.3f}" if r["part_vs_cad"] is not None else "—"
+        tie = f"yes ({r['decided_by']})" if r["near_tie"] and r["decided_by"] else ("yes" if r["near_tie"] else "")
+        lines.append(f"| {r['scene']} | {r['k']:g} | {r['model']} | {'yes' if r['right_model'] else 'no'} | {add_s} | "
+                     f"{r['surface_pct']:.2f} | {r['scale_ratio']:.4f} | {part} | {r['iou']:.3f} | {tie} | {', '.join(r['model_ties'])} | "
                      f"{r['seconds']:.1f} | {'yes' if r['ok'] else '**no**'} |")
-    lines += ["", "| k | pass | right model | median ADD-S % | max ADD-S % | median s |", "|---|---|---|---|---|---|"]
+    lines += ["", "| k | pass | right model | median surface % | max surface % | median s |", "|---|---|---|---|---|---|"]
     for k in ks:
         sub = [r for r in rows if r["k"] == k]
-        a = np.array([r["add_s_pct"] for r in sub])
+        a = np.array([r["surface_pct"] for r in sub])
         lines.append(f"| {k:g} | {sum(r['ok'] for r in sub)}/{len(sub)} | {sum(r['right_model'] for r in sub)}/{len(sub)} | "
                      f"{np.median(a):.2f} | {a.max():.2f} | {np.median([r['seconds'] for r in sub]):.1f} |")
     path.write_text("\n".join(lines) + "\n")
