@@ -1,6 +1,6 @@
 """Registration on the path-traced rig scenes (issue 17): any rig scale, metric scale, the known part.
 
-    python -m benchmarks.bench_registration_rig_scenes [--scales 1,0.2,0.5,2,5] [--scenes a,b] [--known] [--work DIR]
+    python -m benchmarks.bench_registration_rig_scenes [--scales 1,0.2,0.5,2,5] [--scenes a,b] [--known] [--work DIR] [--fresh]
 
 Data: ../shared/data/rig_scenes (8 scenes, 118-model library of deformed CAD variants and
 look-alike distractors). Each scene's training capture (exact masks, noisy calibration) is
@@ -19,7 +19,8 @@ centres times k, no `units`: scale unknown). Errors:
 prior): the previous part is the true one turned by a random yaw about the conveyor normal and
 shifted by up to a third of the object's size on the conveyor; median seconds per capture.
 
-Writes benchmarks/results/registration_rig_scenes.md (and _known.md with --known).
+Writes benchmarks/results/registration_rig_scenes.md (and _known.md with --known), rewritten after
+every run; runs are cached in --work/runs.jsonl, so an interrupted sweep resumes (--fresh forgets).
 """
 
 from __future__ import annotations
@@ -96,13 +97,14 @@ def random_prior(gt: Sim3, up_rig: np.ndarray, size: float, centre_obj: np.ndarr
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scales", default="1,0.2,0.5,2,5", help="rig-frame scale factors; 1 is the metric rig")
+    ap.add_argument("--scales", default="1,0.2,5,0.5,2", help="rig-frame scale factors; 1 is the metric rig")
     ap.add_argument("--scenes", default=None, help="comma-separated scene names (default: all)")
     ap.add_argument("--known", action="store_true", help="also run the known-part path")
     ap.add_argument("--known-only", action="store_true", help="only the known-part path")
     ap.add_argument("--trials", type=int, default=5, help="known-part captures per scene")
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-registration-rig"), help="built library cache")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--fresh", action="store_true", help="forget the runs cached in --work")
     args = ap.parse_args()
     if not SCENES.is_dir():
         print(f"{SCENES}: the rig scenes are not here; set CADSPLAT_SHARED_DATA")
@@ -121,31 +123,37 @@ def main() -> int:
             pts_cache[mid] = surface_points(lib.load_mesh(mid))
         return pts_cache[mid]
 
-    rows, known_rows = [], []
-    for name in names:
-        d = SCENES / name
-        gt_doc = json.loads((d / "gt.json").read_text())
-        gt1 = Sim3.from_dict(gt_doc["sim3_rig_to_object"])
-        gt_pts = surface_points(trimesh.load(d / "gt_mesh.ply", force="mesh", process=False))
-        cap = read_capture(d / "train")
-        masks = np.stack([cap.mask(i) for i in range(len(cap))])
-        cams1 = [cap.camera(i) for i in range(len(cap))]
-        images = np.stack([cap.image(i) for i in range(len(cap))])
-        for k in [] if args.known_only else scales:
-            cams = scaled_cameras(cams1, k)
-            gt = Sim3(gt1.scale / k, gt1.rotation, gt1.translation)
-            t = time.perf_counter()
-            res = register(masks, cams, lib, rig_metres_per_unit=1.0 if k == 1 else None, images=images)
-            secs = time.perf_counter() - t
-            e = errors(model_pts(res.model_id), res.sim3_rig_to_object, gt_pts, gt, res.model_id == gt_doc["model_id"])
-            row = {"scene": name, "k": k, "model": res.model_id, "right_model": res.model_id == gt_doc["model_id"], "seconds": secs,
-                   "iou": res.score, "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]),
-                   "decided_by": (res.ambiguity or {}).get("decided_by", ""), "model_ties": [t["model_id"] for t in res.model_ties],
-                   "part_vs_cad": res.part_scale_vs_cad, **e}
-            row["ok"] = bool(row["surface_pct"] < PASS_PCT)
-            rows.append(row)
-            print(json.dumps({key: (round(v, 4) if isinstance(v, float) else v) for key, v in row.items()}), flush=True)
-        if args.known or args.known_only:
+    # Runs are cached (one JSON line each) so an interrupted sweep resumes; --fresh starts over.
+    cache = args.work / "runs.jsonl"
+    if args.fresh and cache.exists():
+        cache.unlink()
+    done = [json.loads(line) for line in cache.read_text().splitlines()] if cache.exists() else []
+    rows = [r for r in done if "k" in r and r["scene"] in names and r["k"] in scales]
+    known_rows = [r for r in done if "trial" in r and r["scene"] in names]
+    scenes: dict[str, tuple] = {}
+
+    def load(name: str) -> tuple:
+        if name not in scenes:
+            d = SCENES / name
+            gt_doc = json.loads((d / "gt.json").read_text())
+            cap = read_capture(d / "train")
+            scenes[name] = (gt_doc, Sim3.from_dict(gt_doc["sim3_rig_to_object"]), surface_points(trimesh.load(d / "gt_mesh.ply", force="mesh", process=False)),
+                            np.stack([cap.mask(i) for i in range(len(cap))]), [cap.camera(i) for i in range(len(cap))],
+                            np.stack([cap.image(i) for i in range(len(cap))]))
+        return scenes[name]
+
+    def record(row: dict, into: list) -> None:
+        into.append(row)
+        with cache.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        print(json.dumps({key: (round(v, 4) if isinstance(v, float) else v) for key, v in row.items()}), flush=True)
+
+    # Breadth first: the known part (fast), then every scene on the metric rig, then each other scale.
+    if args.known or args.known_only:
+        for name in names:
+            if any(r["scene"] == name for r in known_rows):
+                continue
+            gt_doc, gt1, gt_pts, masks, cams1, _ = load(name)
             rng = np.random.default_rng(17)
             up = known_up(cams1)
             # One untimed call: numba's compiled kernels load from its cache on first use.
@@ -157,12 +165,26 @@ def main() -> int:
                 res = known_part_register(masks, cams1, lib, gt_doc["model_id"], prior, rig_metres_per_unit=1.0)
                 secs, cpu = time.perf_counter() - t, time.process_time() - c
                 e = errors(gt_pts, res.sim3_rig_to_object, gt_pts, gt1, True)
-                known_rows.append({"scene": name, "trial": trial, "seconds": secs, "cpu_seconds": cpu, "iou": res.score, **e})
-                print(json.dumps({"known": name, "trial": trial, "seconds": round(secs, 3), "cpu": round(cpu, 3), "add_s_pct": round(e["add_s_pct"], 3)}), flush=True)
-    if rows:
-        write_table(rows, args.out / "registration_rig_scenes.md")
-    if known_rows:
+                record({"scene": name, "trial": trial, "seconds": secs, "cpu_seconds": cpu, "iou": res.score, "load": os.getloadavg()[0], **e}, known_rows)
         write_known(known_rows, args.out / "registration_rig_scenes_known.md")
+    for k in [] if args.known_only else scales:
+        for name in names:
+            if any(r["scene"] == name and r["k"] == k for r in rows):
+                continue
+            gt_doc, gt1, gt_pts, masks, cams1, images = load(name)
+            cams = scaled_cameras(cams1, k)
+            gt = Sim3(gt1.scale / k, gt1.rotation, gt1.translation)
+            t = time.perf_counter()
+            res = register(masks, cams, lib, rig_metres_per_unit=1.0 if k == 1 else None, images=images)
+            secs = time.perf_counter() - t
+            e = errors(model_pts(res.model_id), res.sim3_rig_to_object, gt_pts, gt, res.model_id == gt_doc["model_id"])
+            row = {"scene": name, "k": k, "model": res.model_id, "right_model": res.model_id == gt_doc["model_id"], "seconds": secs,
+                   "iou": res.score, "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]),
+                   "decided_by": (res.ambiguity or {}).get("decided_by", ""), "model_ties": [t["model_id"] for t in res.model_ties],
+                   "part_vs_cad": res.part_scale_vs_cad, **e}
+            row["ok"] = bool(row["surface_pct"] < PASS_PCT)
+            record(row, rows)
+            write_table(rows, args.out / "registration_rig_scenes.md")
     return 0
 
 
@@ -216,7 +238,8 @@ def write_known(rows: list[dict], path: Path) -> None:
         "The model id is given; the prior is the previous part's pose (the true pose turned by a random yaw about the conveyor "
         "normal and shifted by up to a third of the object's size on the conveyor). Metric rig.",
         "",
-        "Wall seconds per capture, and CPU seconds of the process (the wall time on an idle core; the machine is shared).",
+        "Wall seconds per capture, and CPU seconds of the process (the wall time on an idle core; the machine is shared: "
+        f"median 1-minute load during these runs {np.median([r.get('load', np.nan) for r in rows]):.1f} on 2 cores, this process at nice 15).",
         "",
         "| scene | captures | median s | max s | median CPU s | median ADD-S % | max ADD-S % | pass (< 3 %) |",
         "|---|---|---|---|---|---|---|---|",
