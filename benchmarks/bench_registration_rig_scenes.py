@@ -37,8 +37,9 @@ from scipy.spatial import cKDTree
 
 from calibration.capture import read_capture
 from calibration.sim3 import Sim3
+from calibration.so3 import axis_angle_to_matrix
 from reconstruction.library import build_library, load_library
-from reconstruction.registration import known_part_register, register
+from reconstruction.registration import known_part_register, register, rig_up
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -83,8 +84,6 @@ def errors(est_model_pts: np.ndarray, est: Sim3, gt_pts: np.ndarray, gt: Sim3, s
 def random_prior(gt: Sim3, up_rig: np.ndarray, size: float, centre_obj: np.ndarray, rng: np.random.Generator) -> Sim3:
     """The previous part on the conveyor: the true pose turned by a random yaw about `up_rig` [3]
     through the object's centre `centre_obj` [3] and moved on the conveyor by up to size / 3 (rig units)."""
-    from calibration.so3 import axis_angle_to_matrix
-
     yaw = rng.uniform(-np.pi, np.pi)
     shift = rng.uniform(-1, 1, 3) * size / 3
     shift -= up_rig * (shift @ up_rig)
@@ -155,7 +154,7 @@ def main() -> int:
                 continue
             gt_doc, gt1, gt_pts, masks, cams1, _ = load(name)
             rng = np.random.default_rng(17)
-            up = known_up(cams1)
+            up = rig_up(cams1)
             # One untimed call: numba's compiled kernels load from its cache on first use.
             known_part_register(masks, cams1, lib, gt_doc["model_id"], gt1, rig_metres_per_unit=1.0)
             size = float(2 * np.linalg.norm(gt1.inverse().apply(gt_pts) - gt1.inverse().apply(gt_pts).mean(0), axis=1).max())
@@ -186,12 +185,6 @@ def main() -> int:
             record(row, rows)
             write_table(rows, args.out / "registration_rig_scenes.md")
     return 0
-
-
-def known_up(cams: list) -> np.ndarray:
-    from reconstruction.registration import rig_up
-
-    return rig_up(cams)
 
 
 def load_line() -> str:

@@ -12,7 +12,6 @@ from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg
 from reconstruction.library import build_library
 from reconstruction.registration import (
-    PHOTO_DECISIVE,
     RegistrationError,
     Scorer,
     area_centroid,
