@@ -1,6 +1,6 @@
 """Registration benchmark (issue 4): consensus vs independent matching, grid choice, library scale.
 
-    .venv/bin/python benchmarks/registration.py [--quick] [--work DIR]
+    python -m benchmarks.registration [--quick] [--scenes-only] [--work DIR]
 
 1. Library: every shared YCB object as a "CAD" variant (decimated to 30% and smoothly deformed,
    so the true model is never the photographed mesh), plus distractors: stretched, scaled and
@@ -29,19 +29,19 @@ from pathlib import Path
 
 import numpy as np
 
+import trimesh
+
+from calibration.capture import read_capture, rig_metres_per_unit
+from calibration.so3 import geodesic_angle_deg
+from reconstruction.library import build_library
+from reconstruction.pose_metrics import registration_errors
+from reconstruction.registration import hypothesis, independent_poses, observe, register
+from reconstruction.silhouette import pack, render_silhouette, unpack
+from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, popcount_rows, read_shard, render_model_views, write_shard
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+# The synthetic rig renders off-screen (set before rig.synthetic imports MuJoCo).
 os.environ.setdefault("MUJOCO_GL", "egl")
-
-import trimesh  # noqa: E402
-
-from calibration.capture import read_capture  # noqa: E402
-from calibration.so3 import geodesic_angle_deg  # noqa: E402
-from reconstruction.library import build_library  # noqa: E402
-from reconstruction.pose_metrics import registration_errors  # noqa: E402
-from reconstruction.registration import hypothesis, independent_poses, observe, register  # noqa: E402
-from reconstruction.silhouette import pack, render_silhouette, unpack  # noqa: E402
-from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, popcount_rows, read_shard, render_model_views, write_shard  # noqa: E402
 
 SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 YCB = SHARED / "objects" / "ycb"
@@ -167,7 +167,7 @@ def run_scenes(scenes: list[Path], lib, derived: dict) -> list[dict]:
         cams = [capture.camera(i) for i in range(len(capture))]
         candidates = [derived[obj][0]] + [m for o, ids in derived.items() if o != obj for m in ids]
         t = time.perf_counter()
-        res = register(masks, cams, lib, model_ids=candidates)
+        res = register(masks, cams, lib, model_ids=candidates, rig_metres_per_unit=rig_metres_per_unit(capture.meta))
         elapsed = time.perf_counter() - t
         c2w_est = np.stack([res.sim3_rig_to_object.apply_to_c2w(c.c2w) for c in cams])
         raw, sym = scene_errors(c2w_est, gt, obj)
@@ -276,14 +276,14 @@ def scale_test(lib, n_models: int, capture_dir: Path, work: Path) -> dict:
             "index_bytes_per_model": index_bytes / n_models, "consolidate_s": t_cons, "replicate_s": t_rep}
 
 
-def write_report(rows, grid_rows, scale, build, quick: bool) -> str:
+def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = None) -> str:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    lines = ["# Registration benchmark" + (" (--quick)" if quick else ""), ""]
+    lines = ["# Registration benchmark" + (" (--quick)" if quick and name is None else " (--scenes-only)" if name else ""), ""]
     lines += [f"Load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine; times are wall clock).", ""]
     lines += ["## Scenes: consensus registration vs independent per-camera matching", "",
               "| scene | views | chosen model | right | rot ° | ctr % | rot ° (sym) | ctr % (sym) | mean IoU | ambiguous | time s | indep rot ° | indep ctr % | indep right model |",
@@ -329,7 +329,7 @@ def write_report(rows, grid_rows, scale, build, quick: bool) -> str:
                   f"{build['build_s'] / build['models'] * scale['models'] / 60:.0f} min to render {scale['models']} models at this machine's throughput "
                   f"(the replicas themselves are copies of the {build['models']} rendered models with 1-pixel shifts: the query time is real, the build time is extrapolated).", ""]
     text = "\n".join(lines)
-    (RESULTS / ("registration_quick.md" if quick else "registration.md")).write_text(text + "\n")
+    (RESULTS / (name or ("registration_quick.md" if quick else "registration.md"))).write_text(text + "\n")
     return text
 
 
@@ -339,6 +339,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-registration"))
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scenes", type=int, default=None)
+    ap.add_argument("--scenes-only", action="store_true", help="only the scene table (no grid sweep, no scale test)")
     args = ap.parse_args()
     if not YCB.exists():
         sys.exit(f"needs the shared data folder ({YCB} is absent)")
@@ -359,6 +360,9 @@ def main() -> None:
     n_scenes = args.scenes or (3 if args.quick else 8)
     scenes = make_scenes(work, n_scenes)
     rows = run_scenes(scenes, lib, derived)
+    if args.scenes_only:
+        print(write_report(rows, [], None, build, False, name="registration_scenes.md"))
+        return
     grid_rows = grid_curve(work, [100, 300, 600] if args.quick else [100, 200, 400, 600, 1000], [24, 32] if args.quick else [16, 24, 32, 48], 16 if args.quick else 40)
     big = next((d for d in scenes if json.loads((d / "gt.json").read_text())["views"] == 13), scenes[-1])
     scale = scale_test(lib, 500 if args.quick else 3500, big / "train", work)

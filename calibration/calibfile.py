@@ -44,6 +44,13 @@ class CalibrationDoc:
     created: str = ""
     notes: dict = field(default_factory=dict)
     fiducials: dict | None = None
+    # "m" when the rig frame is metric; None when its scale is unknown (an SfM calibration). A board
+    # calibration measures the board's squares, so it is metric unless said otherwise.
+    units: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.units is None and self.source == "board":
+            object.__setattr__(self, "units", "m")
 
     def camera(self, name: str) -> Camera:
         if name not in self.cameras:
@@ -122,6 +129,11 @@ def to_document(doc: CalibrationDoc) -> dict:
     }
     if doc.fiducials is not None:
         out["fiducials"] = doc.fiducials
+    if doc.units is not None:
+        out["units"] = doc.units
+        out["scale"] = f"metric: the rig frame is in {doc.units} (measured by the calibration)"
+    else:
+        out["scale"] = "unknown: the calibration does not measure size, so captures under it carry no units"
     return out
 
 
@@ -139,7 +151,8 @@ def from_document(d: dict, where: str = "calibration") -> CalibrationDoc:
     if not cameras:
         raise CalibrationFileError(f"{where}: lists no cameras")
     return CalibrationDoc(
-        cameras, figures, d.get("source", "board"), d.get("board"), d.get("version"), d.get("parent"), d.get("created", ""), d.get("notes", {}), d.get("fiducials")
+        cameras, figures, d.get("source", "board"), d.get("board"), d.get("version"), d.get("parent"), d.get("created", ""), d.get("notes", {}), d.get("fiducials"),
+        d.get("units"),
     )
 
 

@@ -338,7 +338,10 @@ def write_capture(
                 mask_rel = f"masks/{f.name}.png"
                 digests[mask_rel] = atomic_write_bytes(tmp / mask_rel, encode_png(np.asarray(f.mask, bool).astype(np.uint8) * 255))
             written.append(CaptureFrame(rel, f.camera, f.camera_id, f.timestamp_ns, mask_rel))
-        meta = {"units": "m", **(meta or {})}
+        # `units` only when the caller's calibration is metric: no units = unknown scale.
+        meta = dict(meta or {})
+        if "units" in meta:
+            rig_metres_per_unit(meta, root)
         if backgrounds:
             (tmp / "background").mkdir()
             meta["background"] = {}
@@ -357,6 +360,21 @@ def write_capture(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return read_capture(root)
+
+
+# Lengths a capture's `units` may name, in metres.
+UNITS_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
+
+
+def rig_metres_per_unit(meta: dict, where: str | os.PathLike = "capture") -> float | None:
+    """Metres per rig-frame unit from a capture's `cadsplat` block (`"units": "m"`: metric rig);
+    None when it states no units (another tool's capture, an SfM calibration: scale unknown)."""
+    units = meta.get("units")
+    if units is None:
+        return None
+    if units not in UNITS_TO_M:
+        raise CaptureError(f"{where}: units {units!r} is not one of {', '.join(UNITS_TO_M)}")
+    return UNITS_TO_M[units]
 
 
 def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:

@@ -76,6 +76,7 @@ class Appliance:
         settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
         self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(),
                                        calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
+                                       units=self.keeper.store.load().units,
                                        backgrounds=dict(backgrounds or {}))
         cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"))
         self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from calibration.camera import Camera
-from calibration.capture import Capture, load_views, read_capture
+from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
 from calibration.sim3 import Sim3
 from reconstruction.library import UNIT_TO_M
 from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
@@ -77,13 +77,6 @@ def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -
 
     all_masks, source = capture_masks(capture)
     return all_masks[list(indices)], source
-
-
-def metres_per_rig_unit(meta: dict) -> float | None:
-    """Metres per rig-frame unit when the capture's calibration is metric (`"units"` in its cadsplat
-    block, as a board calibration writes it); None when the rig frame has no known scale."""
-    units = meta.get("units")
-    return UNIT_TO_M.get(str(units)) if units is not None else None
 
 
 def metric_sim3(sim3_rig_to_object: Sim3, metres_per_unit: float, centre_object: np.ndarray) -> Sim3:
@@ -180,9 +173,11 @@ def reconstruct(
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    metric = rig_metres_per_unit(capture.meta, capture.root) if init == "cad" else None
     if library is not None:
         say(f"registering {len(idx)} views against {len(library.models)} library models")
-        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed)
+        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed,
+                       rig_metres_per_unit=metric)
         parts = model_parts(library, reg.model_id)
     else:
         reg, parts = sphere_registration(masks, cams)
@@ -191,7 +186,6 @@ def reconstruct(
 
     t = time.perf_counter()
     centre = 0.5 * (parts.vertices.min(0) + parts.vertices.max(0))
-    metric = metres_per_rig_unit(capture.meta) if init == "cad" else None
     sim3_start = reg.sim3_rig_to_object if metric is None else metric_sim3(reg.sim3_rig_to_object, metric, centre)
     c2w_init = sim3_start.apply_to_c2w(np.stack([c.c2w for c in cams]))
     stats = scene_stats(masks, c2w_init, centre)

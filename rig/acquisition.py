@@ -121,6 +121,7 @@ class Acquisition:
     calibration_id: str = "uncalibrated"
     # The calibration's stated extrinsic uncertainty; the engine picks per-camera pose correction when it is large.
     calibration_uncertainty: dict | None = None
+    units: str | None = None  # the calibration's, when metric: captures then state their scale
     thresholds: Thresholds = field(default_factory=Thresholds)
     trigger_filter: TriggerFilter = field(default_factory=TriggerFilter)
     settings: CameraSettings | None = None
@@ -173,6 +174,8 @@ class Acquisition:
         }
         if self.calibration_uncertainty is not None:
             meta["calibration_uncertainty"] = dict(self.calibration_uncertainty)
+        if self.units is not None:
+            meta["units"] = self.units
         sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
         problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
         problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)

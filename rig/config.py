@@ -64,6 +64,16 @@ class RigConfig:
     storage: StorageConfig = field(default_factory=StorageConfig)
     thresholds: Thresholds = field(default_factory=Thresholds)
     calibration: Path | None = None
+    registration: "RegistrationConfig" = field(default_factory=lambda: RegistrationConfig())
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """[registration]: `known_part` names the library model every capture holds (a line running one
+    part: no library search); `scale_tolerance` is the part's size tolerance on a metric rig."""
+
+    known_part: str = ""
+    scale_tolerance: float = 0.10
 
 
 def load_config(path: str | os.PathLike) -> RigConfig:
@@ -81,7 +91,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     """A validated RigConfig from a parsed TOML document; relative paths are relative to `base`."""
     v = _Validator(name)
     # [simulation] (material, density of exported twins) is read and checked by simulation.asset.rig_simulation_table.
-    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation"})
+    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration"})
     rig_id = v.string(doc, "rig_id", default="rig")
     calibration = v.string(doc, "calibration", default="")
     cams_doc = doc.get("cameras")
@@ -99,6 +109,15 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         storage=_storage(v, v.table(doc, "storage"), base),
         thresholds=_thresholds(v, v.table(doc, "thresholds")),
         calibration=(base / calibration) if calibration else None,
+        registration=_registration(v, v.table(doc, "registration")),
+    )
+
+
+def _registration(v: "_Validator", d: dict) -> RegistrationConfig:
+    v.known(d, "registration", {"known_part", "scale_tolerance"})
+    return RegistrationConfig(
+        known_part=v.string(d, "registration.known_part", default=""),
+        scale_tolerance=v.number(d, "registration.scale_tolerance", default=0.10, lo=0.0, hi=0.99),
     )
 
 

@@ -1,4 +1,12 @@
-"""`cadsplat register CAPTURE --library LIB --out reg.json`: best CAD model and rig-to-object Sim(3)."""
+"""`cadsplat register CAPTURE --library LIB --out reg.json`: best CAD model, rig-to-object Sim(3), and the
+object's pose in every camera (T_cam_obj with its uncertainty) plus an overlay PNG per photo.
+
+Scale: a capture whose `cadsplat` block says `"units": "m"` (a metric calibration) has its scale
+measured: the part must be within `--scale-tolerance` of its CAD size and reg.json says how far it
+is off. Without units the scale is searched. The known part (`--known-part`, or rig.toml's
+`[registration] known_part`) skips the library search; `--prior` (a previous reg.json) makes it the
+fast conveyor search (yaw and position about the previous part's pose).
+"""
 
 from __future__ import annotations
 
@@ -7,40 +15,121 @@ from pathlib import Path
 import click
 
 
-@click.command(help="Find the library model in CAPTURE and the Sim(3) from the rig frame to its CAD frame; writes reg.json.")
+@click.command(help="Find the library model in CAPTURE and the Sim(3) from the rig frame to its CAD frame; writes reg.json and overlays.")
 @click.argument("capture_dir", type=click.Path(path_type=Path))
 @click.option("--library", "lib_dir", required=True, type=click.Path(path_type=Path), help="Library directory (cadsplat library build).")
 @click.option("--out", "out_path", default="reg.json", show_default=True, type=click.Path(path_type=Path), help="Where to write the registration JSON.")
+@click.option("--overlays", "overlay_dir", default=None, type=click.Path(path_type=Path),
+              help="Directory for the per-photo overlay PNGs (default: <out stem>_overlays beside --out).")
+@click.option("--no-overlays", is_flag=True, help="Do not write overlay PNGs.")
 @click.option("--top-k", default=50, show_default=True, type=click.IntRange(1, 10000), help="Library views kept per mask.")
 @click.option("--iou-threshold", default=0.7, show_default=True, type=click.FloatRange(0, 1), help="Minimum silhouette IoU of a kept view.")
 @click.option("--model", "model_ids", multiple=True, help="Restrict the search to these model ids (repeatable).")
+@click.option("--known-part", default=None, help="The library model every capture holds (no library search).")
+@click.option("--prior", "prior_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="A previous reg.json of the known part: its pose is the prior, the search is yaw + position on the conveyor.")
+@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path), help="rig.toml: [registration] known_part and scale_tolerance.")
+@click.option("--scale-tolerance", default=None, type=click.FloatRange(0, 0.99), help="Part size tolerance against its CAD model on a metric rig [default: 0.10].")
 @click.option("--seed", default=0, show_default=True, type=int, help="RANSAC seed.")
-def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_threshold: float, model_ids: tuple[str, ...], seed: int) -> None:
+def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path | None, no_overlays: bool, top_k: int, iou_threshold: float,
+             model_ids: tuple[str, ...], known_part: str | None, prior_path: Path | None, rig_config: Path | None, scale_tolerance: float | None,
+             seed: int) -> None:
+    import json
     import time
 
-    from calibration.capture import read_capture
+    import numpy as np
+
+    from calibration.capture import read_capture, rig_metres_per_unit
     from calibration.fileio import atomic_write_json
+    from calibration.sim3 import Sim3
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
+    from reconstruction.registration import SCALE_TOLERANCE, known_part_register
     from reconstruction.registration import register as run
 
     t0 = time.perf_counter()
+    if rig_config is not None:
+        from rig.config import ConfigError, load_config
+
+        try:
+            reg_cfg = load_config(rig_config).registration
+        except ConfigError as e:
+            raise click.ClickException(str(e)) from None
+        known_part = known_part or reg_cfg.known_part or None
+        scale_tolerance = reg_cfg.scale_tolerance if scale_tolerance is None else scale_tolerance
+    tolerance = SCALE_TOLERANCE if scale_tolerance is None else scale_tolerance
+    if prior_path is not None and known_part is None:
+        raise click.ClickException("--prior needs the known part (--known-part or rig.toml's [registration] known_part)")
     capture = read_capture(capture_dir)
+    metres_per_unit = rig_metres_per_unit(capture.meta, capture.root)
     lib = load_library(lib_dir)
     masks, source = capture_masks(capture)
     t_masks = time.perf_counter() - t0
     cameras = [capture.camera(i) for i in range(len(capture))]
-    res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None)
+    images = np.stack([capture.image(i) for i in range(len(capture))]) if len({(c.width, c.height) for c in cameras}) == 1 else None
+    if known_part is not None:
+        prior = None
+        if prior_path is not None:
+            try:
+                prior_doc = json.loads(prior_path.read_text())
+                prior = Sim3.from_dict(prior_doc["sim3_rig_to_object"])
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise click.ClickException(f"{prior_path}: not a usable reg.json ({type(e).__name__}: {e})") from None
+            if prior_doc.get("model_id") != known_part:
+                raise click.ClickException(f"{prior_path}: registers {prior_doc.get('model_id')!r}, not the known part {known_part!r}")
+        res = known_part_register(masks, cameras, lib, known_part, prior, rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, seed=seed)
+    else:
+        res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None,
+                  rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, images=images)
     doc = res.to_dict()
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source
+    doc["known_part"] = known_part
     doc["views"] = [f.file_path for f in capture.frames]
+    for pose, frame in zip(doc["camera_poses"], capture.frames):
+        pose["view"], pose["camera_id"] = frame.file_path, frame.camera_id
     if out_path.parent and not out_path.parent.exists():
         out_path.parent.mkdir(parents=True)
+    if not no_overlays:
+        from calibration.fileio import atomic_write_bytes, encode_png
+
+        folder = overlay_dir or out_path.parent / f"{out_path.stem}_overlays"
+        folder.mkdir(parents=True, exist_ok=True)
+        mesh = lib.load_mesh(res.model_id)
+        doc["overlays"] = {}
+        for i, frame in enumerate(capture.frames):
+            img = overlay(capture.image(i), masks[i], np.asarray(mesh.vertices), np.asarray(mesh.faces), cameras[i], res.sim3_rig_to_object)
+            name = f"{Path(frame.file_path).stem}.png"
+            doc["overlays"][frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(folder / name, encode_png(img))}
     atomic_write_json(out_path, doc)
-    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(cameras)} views (scale {res.sim3_rig_to_object.scale:.4g}), written to {out_path}")
+    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(cameras)} views (scale {res.sim3_rig_to_object.scale:.4g}; "
+               f"{res.scale_statement()}), written to {out_path}")
+    for tie in res.model_ties:
+        click.echo(f"warning: {tie['model_id']} ({tie['cad_size_ratio']:.3g} times the size) fits within {tie['score_gap']:.3f}; "
+                   + ("a metric calibration would tell them apart" if metres_per_unit is None else "the masks cannot tell them apart"), err=True)
     if res.ambiguity and res.ambiguity["ambiguous"]:
         click.echo(
-            f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {res.ambiguity['score_gap']:.3f}; "
+            f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {abs(res.ambiguity['score_gap']):.3f}; "
             "the object looks symmetric from these views", err=True,
         )
+
+
+def overlay(image, mask, vertices, faces, camera, sim3):
+    """uint8 RGB [H, W, 3] from a float photo [H, W, 3] and its bool mask [H, W]: the photo dimmed outside
+    the registered CAD silhouette (mesh `vertices` [N, 3], `faces` [F, 3] under the rig-to-object
+    `sim3`, seen by the rig `camera`), its outline in green, the observed mask's outline in magenta."""
+    import cv2
+    import numpy as np
+
+    from reconstruction.registration import boundary
+    from reconstruction.silhouette import render_silhouette
+
+    cam_obj = camera.with_c2w(sim3.apply_to_c2w(camera.c2w))
+    sil = render_silhouette(vertices, faces, cam_obj.K, cam_obj.viewmat, camera.width, camera.height)
+    out = (np.clip(image[..., :3], 0, 1) * 255).astype(np.uint8)
+    out[~sil] = (out[~sil] * 0.55).astype(np.uint8)
+    thick = np.ones((2, 2), np.uint8)
+    out[cv2.dilate(boundary(mask).astype(np.uint8), thick) > 0] = (255, 0, 255)
+    out[cv2.dilate(boundary(sil).astype(np.uint8), thick) > 0] = (0, 255, 0)
+    return out
+

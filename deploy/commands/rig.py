@@ -46,9 +46,12 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
         cameras, synthetic = simulated_cameras(views, size[0], size[1], Path(mesh) if mesh else None)
         store = CaptureStore(store_dir, min_free_bytes=int((1.0 if min_free_gb is None else min_free_gb) * 1e9))
         rig_id, calibration_id, thresholds, settings = "simulated", "synthetic-ring", Thresholds(), CameraSettings(size[0], size[1])
-        uncertainty = None
+        uncertainty, units = None, "m"
     else:
+        from calibration.calibfile import read_calibration
+
         calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
+        units = read_calibration(cfg.calibration).units if cfg.calibration else None
         cameras = build_cameras(cfg, calibration)
         store = build_store(cfg, Path(store_dir) if store_dir else None)
         if min_free_gb is not None:
@@ -64,7 +67,7 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
         if synthetic is not None:
             synthetic.close()
         raise click.ClickException(str(e)) from None
-    acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, calibration_uncertainty=uncertainty,
+    acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, calibration_uncertainty=uncertainty, units=units,
                       thresholds=thresholds, settings=locked)
     try:
         yield acq

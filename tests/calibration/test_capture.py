@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera, look_at_c2w
-from calibration.capture import CaptureError, FrameData, load_views, read_capture, write_capture
+from calibration.capture import CaptureError, FrameData, load_views, read_capture, rig_metres_per_unit, write_capture
 from tests.conftest import require_shared
 
 
@@ -32,13 +32,25 @@ def test_roundtrip_is_lossless_and_verified(tmp_path):
         np.testing.assert_array_equal(again.mask(i), f.mask)
         np.testing.assert_allclose(again.frames[i].camera.c2w, f.camera.c2w, atol=1e-12)
         assert again.frames[i].camera_id == f.camera_id and again.frames[i].timestamp_ns == 1000 + i
-    assert again.meta["calibration_id"] == "c7" and again.meta["units"] == "m"
+    # No units given, none written: the scale of this rig frame is unknown.
+    assert again.meta["calibration_id"] == "c7" and "units" not in again.meta
     assert set(again.meta["sha256"]) == {"images/cam00.png", "images/cam01.png", "images/cam02.png", "masks/cam00.png", "masks/cam01.png", "masks/cam02.png", "background/cam00.png"}
     np.testing.assert_array_equal((again.background("cam00") * 255).round().astype(np.uint8), frames[0].image)
     images, masks, cams = load_views(again, [2, 0])
     assert images.shape == (2, 30, 40, 3) and images.dtype == np.float32 and masks.shape == (2, 30, 40)
     # No temporary directories left behind.
     assert [p.name for p in tmp_path.iterdir()] == ["cap"]
+
+
+def test_units_only_when_the_calibration_is_metric(tmp_path):
+    metric = write_capture(tmp_path / "metric", small_frames(), meta={"units": "m"})
+    assert metric.meta["units"] == "m" and rig_metres_per_unit(metric.meta) == 1.0
+    assert rig_metres_per_unit({"units": "mm"}) == 1e-3
+    unknown = write_capture(tmp_path / "sfm", small_frames())
+    assert "units" not in unknown.meta and rig_metres_per_unit(unknown.meta) is None
+    with pytest.raises(CaptureError, match="units 'furlong' is not one of m, mm, cm, in"):
+        write_capture(tmp_path / "bad", small_frames(), meta={"units": "furlong"})
+    assert not (tmp_path / "bad").exists()
 
 
 def test_transforms_json_is_nerfstudio_compatible(tmp_path):

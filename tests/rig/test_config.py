@@ -20,6 +20,12 @@ def test_example_config_loads_with_every_section():
 def test_defaults_and_relative_paths(tmp_path):
     cfg = parse_config({**MINIMAL, "storage": {"root": "caps"}}, base=tmp_path)
     assert cfg.storage.root == tmp_path / "caps" and cfg.trigger.kind == "software" and cfg.calibration is None
+    assert cfg.registration.known_part == "" and cfg.registration.scale_tolerance == 0.10
+
+
+def test_registration_names_the_known_part():
+    cfg = parse_config({**MINIMAL, "registration": {"known_part": "bracket_v3", "scale_tolerance": 0.05}})
+    assert (cfg.registration.known_part, cfg.registration.scale_tolerance) == ("bracket_v3", 0.05)
 
 
 @pytest.mark.parametrize(
@@ -40,6 +46,7 @@ def test_defaults_and_relative_paths(tmp_path):
         ({**MINIMAL, "storage": {"min_free_gb": "lots"}}, "storage.min_free_gb must be a number"),
         ({**MINIMAL, "thresholds": {"black_level": 2}}, "thresholds.black_level must be a number in [0, 1]"),
         ({**MINIMAL, "extra": 1}, "unknown key extra"),
+        ({**MINIMAL, "registration": {"scale_tolerance": 1.5}}, "registration.scale_tolerance must be a number in [0, 0.99]"),
     ],
 )
 def test_errors_name_the_key(doc, message):

@@ -1,0 +1,28 @@
+"""calibration.json states its scale: a board calibration is metric (`units: m`), an SfM one is not."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from calibration.calibfile import CalibrationDoc, CalibrationStore, read_calibration
+from calibration.camera import Camera
+
+
+def cams() -> dict[str, Camera]:
+    k = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    return {"cam0": Camera(k, 64, 48, np.zeros(0), np.eye(4))}
+
+
+def test_board_calibration_says_metric_and_sfm_says_unknown(tmp_path):
+    board = CalibrationStore(tmp_path / "board.json").commit(CalibrationDoc(cams(), source="board"))
+    doc = json.loads((tmp_path / "board.json").read_text())
+    assert board.units == "m" and doc["units"] == "m" and doc["scale"].startswith("metric")
+    # A drift correction keeps the frame, so it keeps the units.
+    assert board.with_cameras(cams(), source="drift-correction").units == "m"
+
+    CalibrationStore(tmp_path / "sfm.json").commit(CalibrationDoc(cams(), source="sfm"))
+    doc = json.loads((tmp_path / "sfm.json").read_text())
+    assert "units" not in doc and doc["scale"].startswith("unknown")
+    assert read_calibration(tmp_path / "sfm.json").units is None
