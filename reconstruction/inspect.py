@@ -382,7 +382,8 @@ class PartReport:
     out_of_tolerance_pct: float
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """JSON-ready: positions as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
 def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
@@ -421,7 +422,8 @@ class Verdict:
     at_mm: tuple[float, float, float] | None
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """JSON-ready: positions as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
 def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
@@ -440,7 +442,7 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     tol = f"{tolerance_mm:g} mm"
     if worst is not None and abs(worst) > tolerance_mm:
         status = "FAIL"
-        line = f"FAIL part '{part}' {worst:+.1f} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm (tolerance {tol})"
+        line = f"FAIL part '{part}' {worst:+.1f} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
     elif worst is None or unseen > max_unseen_pct:
         status = "UNCERTAIN"
         seen_part = "" if worst is None else f"; seen surface within tolerance, max {abs(worst):.1f} mm (tolerance {tol})"

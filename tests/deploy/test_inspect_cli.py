@@ -110,3 +110,56 @@ def test_a_twin_without_its_meshes_cannot_be_inspected(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "mesh_deformed.glb" in err and "Traceback" not in err
     assert main(["inspect", str(tmp_path / "nothing")]) == 2
+
+
+def test_the_job_record_and_the_history_carry_the_verdict_per_part_id(tmp_path, capsys):
+    from deploy.jobs import JobStore
+    from deploy.steps import PipelineConfig, inspect_step, inspection_history
+
+    work = tmp_path / "jobs" / "cap-0001"
+    make_twin(work, "twin", dented(two_parts(), np.array([0.0, -0.04, 0.0]), 0.002, 0.012))
+    record = inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=1.0))
+    assert record["status"] == "FAIL" and record["exit_code"] == 1 and record["part"] == "ball"
+    assert record["line"].startswith("FAIL part 'ball' -2.0 mm at (") and (work / "inspection" / "inspection.json").exists()
+    # A second call (a resumed job) reads the report instead of redoing it.
+    assert inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=5.0)) == record
+
+    store = JobStore(tmp_path / "jobs.sqlite")
+    outputs = [("cap-0001", "ball_and_peg", record), ("cap-0002", "ball_and_peg", {**record, "status": "PASS", "line": "PASS max 0.3 mm (tolerance 1 mm)"}),
+               ("cap-0003", "bracket", {**record, "status": "UNCERTAIN", "line": "UNCERTAIN 40 % of the surface unseen"})]
+    for i, (capture, model, insp) in enumerate(outputs, 1):
+        store.add(capture, tmp_path / capture)
+        store.claim_next()
+        store.finish_step(i, "register", {"model_id": model, "score": 0.9})
+        store.finish_step(i, "reconstruct", {"model_id": model, "twin": "", "fit_iou": 0.9, "inspection": insp})
+    store.add("cap-0004", tmp_path / "cap-0004")  # not reconstructed yet: not in the history
+    history = inspection_history(store.jobs())
+    assert {k: [r["status"] for r in v] for k, v in history.items()} == {"ball_and_peg": ["FAIL", "PASS"], "bracket": ["UNCERTAIN"]}
+    assert list(inspection_history(store.jobs(), "bracket")) == ["bracket"]
+    assert main(["service", "history", "--work", str(tmp_path), "--part", "ball_and_peg"]) == 0
+    out = capsys.readouterr().out
+    assert "ball_and_peg: 2 inspected, 1 PASS, 1 FAIL, 0 UNCERTAIN" in out and "cap-0001" in out and "bracket" not in out
+
+
+def test_the_kiosk_shows_the_part_verdict():
+    from deploy.kiosk import render_work
+    from deploy.kiosk_state import ApplianceState, Verdict
+
+    line = "FAIL part 'ball' -2.0 mm at (0.0, -38.0, 0.0) mm"
+    screen = render_work(ApplianceState(last_twin=Verdict("cap-0001", "ball_and_peg", 0.9, 0.95, "Good", "Twin is ready to use.", "", line)))
+    assert f"PART {line}" in screen and max(len(s) for s in screen.splitlines()) <= 78
+    assert "PART" not in render_work(ApplianceState(last_twin=Verdict("c", "m", 0.9, 0.95, "Good", "ok")))
+
+
+def test_rig_toml_turns_inspection_on():
+    from rig.config import ConfigError, parse_config
+
+    cams = {"cameras": [{"id": "cam0", "driver": "pattern"}]}
+    assert parse_config(cams).inspection is None
+    cfg = parse_config({**cams, "inspection": {"tolerance_mm": 0.5}})
+    assert (cfg.inspection.tolerance_mm, cfg.inspection.max_unseen_pct) == (0.5, None)
+    assert parse_config({**cams, "inspection": {"tolerance_mm": 1, "max_unseen_pct": 30}}).inspection.max_unseen_pct == 30.0
+    for bad, message in [({}, "inspection.tolerance_mm is required"), ({"tolerance_mm": 0}, "inspection.tolerance_mm must be"),
+                         ({"tolerance_mm": 1, "max_unseen_pct": 120}, "inspection.max_unseen_pct"), ({"tolerance_mm": 1, "tol": 2}, "unknown key")]:
+        with pytest.raises(ConfigError, match=message):
+            parse_config({**cams, "inspection": bad})
