@@ -7,7 +7,7 @@ CAD model (a library of that one mesh). A patch of it, centred on the side-wall 
 rig's cameras see most, is pushed inwards along the surface normal by up to `depth` (a cosine bump
 of `radius`). Both parts are photographed by the synthetic rig (`cadsplat synth`: 9 views, 320x240,
 the same cameras and pose), reconstructed against the nominal CAD with `preset`, and inspected at
-`tolerance`. Writes benchmarks/results/dent.md (and the heat map of the dented part's worst view).
+`tolerance`. Writes benchmarks/results/dent_<preset>.md.
 Needs no shared data.
 """
 
@@ -207,7 +207,7 @@ def main() -> None:
     ap.add_argument("--tolerance", type=float, default=1.5)
     ap.add_argument("--max-unseen", type=float, default=None, help="Default: the inspect command's default.")
     ap.add_argument("--work", type=Path, default=None, help="Keep the captures, twins and reports here (default: a temp dir).")
-    ap.add_argument("--out", type=Path, default=RESULTS / "dent.md")
+    ap.add_argument("--out", type=Path, default=None, help="Default: benchmarks/results/dent_<preset>.md")
     args = ap.parse_args()
     import tempfile
 
@@ -218,7 +218,7 @@ def main() -> None:
               max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen)
     print(json.dumps(res, indent=1))
     load = "1-min load average {:.1f} on {} cores".format(os.getloadavg()[0], os.cpu_count())
-    print(write_markdown(res, load, args.out))
+    print(write_markdown(res, load, args.out or RESULTS / f"dent_{args.preset}.md"))
     print(f"captures, twins and reports: {work}")
 
 

@@ -92,7 +92,25 @@ def scene_row(scene: str, twin_dir: Path) -> dict:
         mean, p95 = symmetric_distance(v, f, true_v, true_f, SAMPLES)
         row[f"{name}_mean_pct"], row[f"{name}_p95_pct"] = 100.0 * mean / diameter, 100.0 * p95 / diameter
     row["twin_vs_cad_gain_pct"] = 100.0 * (1.0 - row["twin_mean_pct"] / row["cad_mean_pct"])
+    row["figure"] = figure_tile(scene, cad.vertices, cad.faces, insp, truth_mm, twin.cameras[0].camera)
     return row
+
+
+def figure_tile(scene: str, vertices, faces, insp, truth_mm: np.ndarray, camera) -> np.ndarray:
+    """[H, 2W, 3] uint8: the CAD mesh from a training view coloured by the reported deviation (left; unseen grey)
+    and by the true one (right), on one colour scale: +-the 95th percentile of |true deviation|."""
+    import cv2
+
+    from reconstruction.inspect import deviation_colors, render_colored_mesh
+
+    scale = float(np.nanpercentile(np.abs(truth_mm), 95))
+    tiles = []
+    for dev, seen, label in ((insp.deviation_mm, insp.seen, "reported"), (truth_mm, np.isfinite(truth_mm), "true")):
+        rgba = render_colored_mesh(vertices, faces, deviation_colors(dev, seen, scale), camera)
+        rgb = (255 * (rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]))).astype(np.uint8)
+        cv2.putText(rgb, f"{scene} {label} (+-{scale:.1f} mm)", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        tiles.append(rgb)
+    return np.concatenate(tiles, 1)
 
 
 def _f(x, fmt: str = "{:.2f}") -> str:
@@ -131,6 +149,8 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
         "an edge (true hit > 3x the closest-point distance + 0.2 % of the diameter). Geometry: symmetric mean closest-point",
         f"distance to gt_mesh.ply, {SAMPLES} area-uniform samples per surface, exact point-to-triangle, % of the true",
         "bounding-sphere diameter (p95 pooled over both directions); the last column is the twin's relative gain over the CAD.",
+        f"Figure `{path.with_suffix('.png').name}`: per scene, the reported (left, unseen grey) and true (right) deviation from",
+        "the first training view, one colour scale per scene (turbo: blue inside the CAD, red outside).",
         "",
         *lines,
         "",
@@ -156,11 +176,18 @@ def main() -> None:
             print(f"{scene}: no twin in {twin_dir}, skipped")
             continue
         row = scene_row(scene, twin_dir)
-        print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}))
+        print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items() if k != "figure"}))
         rows.append(row)
     if not rows:
         raise SystemExit(f"no twins found under {args.twins}")
     load = "1-min load average {:.1f} on {} cores".format(os.getloadavg()[0], os.cpu_count())
+    tiles = [r.pop("figure") for r in rows if "figure" in r]
+    if tiles:
+        from calibration.fileio import atomic_write_png
+
+        width = max(t.shape[1] for t in tiles)
+        atomic_write_png(args.out.with_suffix(".png"), np.concatenate([np.pad(t, ((0, 0), (0, width - t.shape[1]), (0, 0)), constant_values=255)
+                                                                      for t in tiles], 0))
     print(write_markdown(rows, args.twins, load, args.out))
 
 

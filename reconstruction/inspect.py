@@ -369,12 +369,17 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
 @dataclass(frozen=True)
 class PartReport:
     """One part's findings (millimetres, object frame). Deviation figures are over its seen vertices;
-    `worst_mm` is the signed deviation of largest magnitude, at `worst_at_mm` (None when nothing was seen)."""
+    `worst_mm` is the signed deviation of largest magnitude, at `worst_at_mm` (None when nothing was seen).
+    Uncertainty: `unseen_pct` and `single_view_pct` of the part's area, and over its seen vertices the median
+    number of views and of the best angle between normal and line of sight."""
 
     name: str
     vertices: int
     area_mm2: float
     unseen_pct: float
+    single_view_pct: float
+    views_median: float | None
+    best_angle_median_deg: float | None
     worst_mm: float | None
     worst_at_mm: tuple[float, float, float] | None
     mean_mm: float | None
@@ -393,15 +398,17 @@ def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
         m = insp.part == p
         s = m & insp.seen
         area = float(insp.area_mm2[m].sum())
-        worst = worst_at = mean = p95 = None
+        worst = worst_at = mean = p95 = views = angle = None
         bad = 0.0
+        single = 100.0 * float(insp.area_mm2[s & (insp.views == 1)].sum()) / max(area, 1e-300)
         if s.any():
+            views, angle = float(np.median(insp.views[s])), float(np.median(insp.best_angle_deg[s]))
             d = insp.deviation_mm[s]
             i = int(np.argmax(np.abs(d)))
             worst, worst_at = float(d[i]), tuple(float(x) for x in insp.vertices_mm[s][i])
             mean, p95 = float(d.mean()), float(np.percentile(np.abs(d), 95))
             bad = 100.0 * float(insp.area_mm2[s][np.abs(d) > tolerance_mm].sum()) / max(area, 1e-300)
-        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), worst, worst_at, mean, p95, bad))
+        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad))
     return out
 
 

@@ -163,3 +163,34 @@ def test_rig_toml_turns_inspection_on():
                          ({"tolerance_mm": 1, "max_unseen_pct": 120}, "inspection.max_unseen_pct"), ({"tolerance_mm": 1, "tol": 2}, "unknown key")]:
         with pytest.raises(ConfigError, match=message):
             parse_config({**cams, "inspection": bad})
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="issue 18 part 1: the deformation field does not yet move the twin's surface by a 2 mm dent, "
+                                        "and drifts up to 1.6 mm on the undented part (benchmarks/results/dent_preview.md)")
+def test_a_synthetic_dent_fails_at_its_place_and_the_undented_part_passes(tmp_path):
+    from benchmarks.bench_dent import run
+    from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
+
+    res = run(tmp_path, preset="preview", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
+    assert res["nominal"]["status"] == "PASS", res["nominal"]["line"]
+    assert res["dented"]["status"] == "FAIL" and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
+
+
+def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
+    from benchmarks.bench_dent import dent, read_obj_positions, write_obj_positions
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.04)
+    text = "mtllib textured.mtl\n" + "".join(f"v {x} {y} {z}\nvt 0.5 0.5\n" for x, y, z in ball.vertices) + "vn 0 0 1\n" + \
+        "".join(f"f {a + 1}/{a + 1}/1 {b + 1}/{b + 1}/1 {c + 1}/{c + 1}/1\n" for a, b, c in ball.faces)
+    v, f = read_obj_positions(text)
+    np.testing.assert_allclose(v, ball.vertices)
+    top = int(np.argmax(v[:, 2]))
+    moved = dent(v, f, v[top], 0.002, 0.01)
+    r = np.linalg.norm(moved, axis=1)
+    assert abs(r[top] - 0.038) < 1e-6 and np.all(r <= 0.04 + 1e-9)
+    far = np.linalg.norm(v - v[top], axis=1) >= 0.01
+    np.testing.assert_allclose(moved[far], v[far])
+    out = write_obj_positions(text, moved)
+    assert "vn " not in out and f"f {f[0, 0] + 1}/{f[0, 0] + 1} " in out and "vt 0.5 0.5" in out and "mtllib textured.mtl" in out
+    np.testing.assert_allclose(read_obj_positions(out)[0], moved, atol=1e-7)

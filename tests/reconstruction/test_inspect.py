@@ -138,5 +138,6 @@ def test_part_reports_keep_unseen_parts_apart():
     insp = _inspection([0.4, -1.5, 7.0, 7.0], [1, 2, 0, 0], part=[0, 0, 1, 1], names=("body", "hidden"))
     body, hidden = part_reports(insp, 1.0)
     assert body.worst_mm == -1.5 and body.worst_at_mm == (3.0, 4.0, 5.0) and body.out_of_tolerance_pct == 50.0
-    assert body.unseen_pct == 0.0
+    assert body.unseen_pct == 0.0 and body.single_view_pct == 50.0 and body.views_median == 1.5
     assert hidden.worst_mm is None and hidden.unseen_pct == 100.0 and hidden.out_of_tolerance_pct == 0.0
+    assert hidden.views_median is None and hidden.single_view_pct == 0.0
