@@ -319,8 +319,8 @@ class Inspection:
 
     @property
     def seen(self) -> np.ndarray:
-        """[V] bool: a camera saw the vertex and the twin's surface was found along its normal."""
-        return (self.views > 0) & np.isfinite(self.deviation_mm)
+        """[V] bool: a camera saw the vertex, the twin's surface was found along its normal, and a face uses it."""
+        return (self.views > 0) & np.isfinite(self.deviation_mm) & (self.part >= 0)
 
     def unseen_pct(self, mask: np.ndarray | None = None) -> float:
         """Share of the surface area (of the vertices in `mask`, default all) that no camera saw, in %."""

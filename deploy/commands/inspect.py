@@ -213,7 +213,7 @@ def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir:
     for p in doc["parts"]:
         worst = "unseen" if p["worst_mm"] is None else f"worst {p['worst_mm']:+.2f} mm, p95 |dev| {p['p95_abs_mm']:.2f} mm"
         seen = "" if p["views_median"] is None else f", seen by {p['views_median']:.0f} views (median) at {p['best_angle_median_deg']:.0f} deg"
-        click.echo(f"  {p['name']:<24} {worst}; {p['out_of_tolerance_pct']:.1f} % out of tolerance, {p['unseen_pct']:.0f} % unseen, "
+        click.echo(f"  {p['name']:<24} {worst}; {p['out_of_tolerance_pct']:.2f} % out of tolerance, {p['unseen_pct']:.0f} % unseen, "
                    f"{p['single_view_pct']:.0f} % seen by one view only{seen}", err=True)
     click.echo(f"  report: {out}", err=True)
     v = doc["verdict"]
