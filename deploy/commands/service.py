@@ -51,7 +51,8 @@ def status(work: Path) -> None:
     if not jobs:
         click.echo("no jobs yet")
     for j in jobs:
-        click.echo(f"{j.id:>4} {j.capture_id:<28} {j.status:<8} step {j.current_step:<11} {j.error}".rstrip())
+        verdict = j.steps["reconstruct"]["output"].get("inspection", {}).get("line", "")
+        click.echo(f"{j.id:>4} {j.capture_id:<28} {j.status:<8} step {j.current_step:<11} {j.error or verdict}".rstrip())
 
 
 @service.command("retry", help="Put job JOB_ID back in the queue (after fixing what made it fail).")

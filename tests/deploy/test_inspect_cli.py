@@ -139,6 +139,8 @@ def test_the_job_record_and_the_history_carry_the_verdict_per_part_id(tmp_path, 
     assert main(["service", "history", "--work", str(tmp_path), "--part", "ball_and_peg"]) == 0
     out = capsys.readouterr().out
     assert "ball_and_peg: 2 inspected, 1 PASS, 1 FAIL, 0 UNCERTAIN" in out and "cap-0001" in out and "bracket" not in out
+    assert main(["service", "status", "--work", str(tmp_path)]) == 0
+    assert "UNCERTAIN 40 % of the surface unseen" in capsys.readouterr().out
 
 
 def test_the_kiosk_shows_the_part_verdict():
