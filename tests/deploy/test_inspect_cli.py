@@ -168,13 +168,13 @@ def test_rig_toml_turns_inspection_on():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 18 part 1: the deformation field does not yet move the twin's surface by a 2 mm dent, "
-                                        "and drifts up to 1.6 mm on the undented part (benchmarks/results/dent_preview.md)")
+@pytest.mark.xfail(strict=False, reason="issue 18 part 1: the dent is found (cpu preset: worst vertex 0.9 mm from its centre), but the "
+                                        "field drifts 1.7 mm on the undented part, beyond 1.5 mm (benchmarks/results/dent_cpu.md)")
 def test_a_synthetic_dent_fails_at_its_place_and_the_undented_part_passes(tmp_path):
     from benchmarks.bench_dent import run
     from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
 
-    res = run(tmp_path, preset="preview", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
+    res = run(tmp_path, preset="cpu", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
     assert res["nominal"]["status"] == "PASS", res["nominal"]["line"]
     assert res["dented"]["status"] == "FAIL" and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
 
