@@ -46,6 +46,7 @@ class Appliance:
         rig_id: str = "rig",
         owns_dir: bool = False,
         closers=(),
+        inspection=None,
     ) -> None:
         from deploy.service import PipelineService
         from deploy.steps import PipelineConfig, make_step_runner
@@ -78,7 +79,9 @@ class Appliance:
                                        calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
                                        units=self.keeper.store.load().units,
                                        backgrounds=dict(backgrounds or {}))
-        cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"))
+        cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
+                             inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
+                             inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None)
         self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
                                        on_event=self._on_service_event)
         self._threads = [
@@ -111,7 +114,8 @@ class Appliance:
         work = Path(work_dir)
         work.mkdir(parents=True, exist_ok=True)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   backgrounds=_load_backgrounds(work / "background"), rig_id=cfg.rig_id, closers=[trigger.stop])
+                   backgrounds=_load_backgrounds(work / "background"), rig_id=cfg.rig_id, closers=[trigger.stop],
+                   inspection=cfg.inspection)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),
@@ -262,7 +266,8 @@ class Appliance:
             grade, advice = grade_twin(reg["score"], rec["fit_iou"])
             preview = Path(rec["twin"]) / "renders"
             first = sorted(preview.glob("*.png"))
-            verdict = Verdict(job.capture_id, rec["model_id"], reg["score"], rec["fit_iou"], grade, advice, str(first[0]) if first else "")
+            verdict = Verdict(job.capture_id, rec["model_id"], reg["score"], rec["fit_iou"], grade, advice, str(first[0]) if first else "",
+                              rec.get("inspection", {}).get("line", ""))
         queued = tuple(j.capture_id for j in self.service.jobs.jobs("queued"))
         return ApplianceState(
             watching=self._watching.is_set(),

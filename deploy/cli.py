@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reconstruct": ("deploy.commands.reconstruct:reconstruct", "Reconstruct a CAD-registered twin from a capture."),
     "evaluate": ("deploy.commands.evaluate:evaluate", "Paper-protocol metrics of a twin on held-out views."),
     "render": ("deploy.commands.render:render", "Render a twin from a capture's cameras or an orbit."),
+    "inspect": ("deploy.commands.inspect:inspect", "Deviation from CAD: heat maps, CSV, PASS/FAIL/UNCERTAIN exit code."),
     "export": ("deploy.commands.export:export", "Export a twin as ply, glb, mjcf or colmap."),
     "simulate": ("deploy.commands.simulate:simulate", "MuJoCo run of exported twins, rendered."),
     "rig": ("deploy.commands.rig:rig", "Camera drivers, triggers and captures from rig.toml."),
@@ -73,7 +74,8 @@ def cli() -> None:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: bad input ends with one plain sentence on stderr and a non-zero exit."""
     try:
-        cli.main(args=argv, prog_name="cadsplat", standalone_mode=False)
+        # A command's own exit code (inspect's verdict) comes back as the return value.
+        code = cli.main(args=argv, prog_name="cadsplat", standalone_mode=False)
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         return 130
@@ -86,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         # Domain errors carry one plain sentence (CaptureError, DegenerateError, ...).
         click.echo(f"Error: {e}", err=True)
         return 2
-    return 0
+    return code if isinstance(code, int) else 0
 
 
 if __name__ == "__main__":

@@ -60,6 +60,8 @@ def render_work(s: ApplianceState) -> str:
         lines.append(f"LAST TWIN {t.capture_id}: {t.grade.upper()}  model {t.model_id}")
         lines.append(f"     registration {t.registration_score:.2f}  fit IoU {t.fit_iou:.2f}")
         lines.append(f"     {t.advice}")
+        if t.inspection:
+            lines.append(f"     PART {t.inspection}")
         if t.preview_path:
             lines.append(f"     preview: {t.preview_path}")
     else:

@@ -33,6 +33,7 @@ class Verdict:
     grade: str  # Good / Usable / Poor
     advice: str
     preview_path: str = ""
+    inspection: str = ""  # the inspection's one-line verdict (PASS/FAIL/UNCERTAIN ...) when the rig inspects parts
 
 
 @dataclass(frozen=True)

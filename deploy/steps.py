@@ -28,6 +28,8 @@ class PipelineConfig:
     preset: str = "cpu"
     export_formats: tuple[str, ...] = ("ply", "glb", "mjcf")
     seed: int = 0
+    inspection_tolerance_mm: float | None = None  # set: every twin is inspected against its CAD (rig.toml [inspection])
+    inspection_max_unseen_pct: float | None = None
 
 
 def register_step(capture_path: Path, work: Path, cfg: PipelineConfig) -> dict:
@@ -77,12 +79,43 @@ def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, model_
         reconstruct(capture_path, cfg.library, twin_dir, preset=cfg.preset, model_id=model_id, seed=cfg.seed,
                     progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
     doc = json.loads((twin_dir / "twin.json").read_text())
-    return {
+    summary = {
         "twin": str(twin_dir),
         "model_id": doc["model_id"],
         "fit_iou": fit_iou(twin_dir, capture_path),
         "total_s": float(doc.get("timings_s", {}).get("total", 0.0)),
     }
+    if cfg.inspection_tolerance_mm is not None:
+        summary["inspection"] = inspect_step(work, cfg)
+    return summary
+
+
+def inspect_step(work: Path, cfg: PipelineConfig) -> dict:
+    """`cadsplat inspect` of the job's twin into work/inspection (kept if already there): the verdict for the job record."""
+    from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT, INSPECTION_JSON, inspect_twin_dir
+
+    report = work / "inspection"
+    if (report / INSPECTION_JSON).exists():
+        doc = json.loads((report / INSPECTION_JSON).read_text())
+    else:
+        unseen = DEFAULT_MAX_UNSEEN_PCT if cfg.inspection_max_unseen_pct is None else cfg.inspection_max_unseen_pct
+        doc = inspect_twin_dir(work / "twin", report, tolerance_mm=cfg.inspection_tolerance_mm, max_unseen_pct=unseen, turntable=12)
+    v = doc["verdict"]
+    return {"status": v["status"], "line": v["line"], "exit_code": v["exit_code"], "part": v["part"], "deviation_mm": v["deviation_mm"],
+            "at_mm": v["at_mm"], "unseen_pct": v["unseen_pct"], "tolerance_mm": v["tolerance_mm"], "report": str(report)}
+
+
+def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str, list[dict]]:
+    """Finished jobs' inspection verdicts per part id (the CAD model a capture was registered to), oldest first."""
+    out: dict[str, list[dict]] = {}
+    for job in jobs:
+        rec = job.steps["reconstruct"]
+        if rec["status"] != "done" or "inspection" not in rec["output"]:
+            continue
+        part = rec["output"]["model_id"]
+        if model_id is None or part == model_id:
+            out.setdefault(part, []).append({"capture_id": job.capture_id, "finished": rec["finished"], **rec["output"]["inspection"]})
+    return out
 
 
 def export_step(work: Path, cfg: PipelineConfig) -> dict:

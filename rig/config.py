@@ -57,6 +57,14 @@ class StorageConfig:
 
 
 @dataclass(frozen=True)
+class InspectionConfig:
+    """`[inspection]`: every twin is inspected against its CAD at `tolerance_mm`; `max_unseen_pct` None = inspect's default."""
+
+    tolerance_mm: float
+    max_unseen_pct: float | None = None
+
+
+@dataclass(frozen=True)
 class RigConfig:
     rig_id: str
     cameras: tuple[CameraConfig, ...]
@@ -65,6 +73,7 @@ class RigConfig:
     thresholds: Thresholds = field(default_factory=Thresholds)
     calibration: Path | None = None
     registration: "RegistrationConfig" = field(default_factory=lambda: RegistrationConfig())
+    inspection: InspectionConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -91,7 +100,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     """A validated RigConfig from a parsed TOML document; relative paths are relative to `base`."""
     v = _Validator(name)
     # [simulation] (material, density of exported twins) is read and checked by simulation.asset.rig_simulation_table.
-    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration"})
+    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration", "inspection"})
     rig_id = v.string(doc, "rig_id", default="rig")
     calibration = v.string(doc, "calibration", default="")
     cams_doc = doc.get("cameras")
@@ -110,6 +119,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         thresholds=_thresholds(v, v.table(doc, "thresholds")),
         calibration=(base / calibration) if calibration else None,
         registration=_registration(v, v.table(doc, "registration")),
+        inspection=_inspection(v, v.table(doc, "inspection")) if "inspection" in doc else None,
     )
 
 
@@ -203,6 +213,14 @@ def _thresholds(v: "_Validator", d: dict) -> Thresholds:
         grab_timeout_s=v.number(d, "thresholds.grab_timeout_s", default=2.0, lo=0.01, hi=600.0),
         max_trigger_age_ns=int(v.number(d, "thresholds.max_trigger_age_s", default=2.0, lo=0.001, hi=3600.0) * 1e9),
     )
+
+
+def _inspection(v: "_Validator", d: dict) -> InspectionConfig:
+    v.known(d, "inspection", {"tolerance_mm", "max_unseen_pct"})
+    if "tolerance_mm" not in d:
+        raise ConfigError(f"{v.name}: inspection.tolerance_mm is required to inspect twins (or leave [inspection] out)")
+    unseen = v.number(d, "inspection.max_unseen_pct", default=0.0, lo=0.0, hi=100.0) if "max_unseen_pct" in d else None
+    return InspectionConfig(v.number(d, "inspection.tolerance_mm", default=0.0, lo=1e-6, hi=1e4), unseen)
 
 
 class _Validator:

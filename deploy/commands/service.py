@@ -1,7 +1,8 @@
-"""`cadsplat service run|status|retry`: the pipeline service over a capture store."""
+"""`cadsplat service run|status|retry|history`: the pipeline service over a capture store."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import click
@@ -20,15 +21,21 @@ def service() -> None:
 @click.option("--max-queue", default=8, show_default=True, help="Jobs waiting at most; more captures wait in the store.")
 @click.option("--max-jobs", default=None, type=int, help="Stop after this many jobs (default: serve until SIGTERM).")
 @click.option("--poll", default=2.0, show_default=True, help="Seconds between scans of the store.")
-def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float) -> None:
+@click.option("--inspect-tolerance", "tolerance_mm", default=None, type=click.FloatRange(min=0.0, min_open=True),
+              help="Inspect every twin against its CAD at this tolerance, mm (`cadsplat inspect`); the verdict goes in the job record.")
+@click.option("--max-unseen", "max_unseen_pct", default=None, type=click.FloatRange(0.0, 100.0),
+              help="With --inspect-tolerance: unseen surface share (%) above which the verdict is UNCERTAIN.")
+def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float,
+        tolerance_mm: float | None, max_unseen_pct: float | None) -> None:
     from deploy.service import PipelineService
     from deploy.steps import PipelineConfig, make_step_runner
 
     def show(e) -> None:
-        detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else ""
+        detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else e.detail.get("inspection", {}).get("line", "")
         click.echo(f"{e.kind:<12} job {e.job_id} {e.capture_id} {e.step} {detail}".rstrip())
 
-    svc = PipelineService(store, work, make_step_runner(PipelineConfig(str(library), preset)), max_queue=max_queue, on_event=show)
+    cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct)
+    svc = PipelineService(store, work, make_step_runner(cfg), max_queue=max_queue, on_event=show)
     if svc.jobs.recovered:
         click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")
     done = svc.run_forever(poll_s=poll, max_jobs=max_jobs)
@@ -44,7 +51,8 @@ def status(work: Path) -> None:
     if not jobs:
         click.echo("no jobs yet")
     for j in jobs:
-        click.echo(f"{j.id:>4} {j.capture_id:<28} {j.status:<8} step {j.current_step:<11} {j.error}".rstrip())
+        verdict = j.steps["reconstruct"]["output"].get("inspection", {}).get("line", "")
+        click.echo(f"{j.id:>4} {j.capture_id:<28} {j.status:<8} step {j.current_step:<11} {j.error or verdict}".rstrip())
 
 
 @service.command("retry", help="Put job JOB_ID back in the queue (after fixing what made it fail).")
@@ -57,3 +65,21 @@ def retry(job_id: int, work: Path) -> None:
     job = store.get(job_id)
     store.retry(job_id)
     click.echo(f"job {job_id} ({job.capture_id}) queued again")
+
+
+@service.command("history", help="Inspection verdicts of finished jobs, per part id (the CAD model each capture was registered to).")
+@click.option("--work", "work", required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--part", "part", default=None, help="Only this part id.")
+def history(work: Path, part: str | None) -> None:
+    from deploy.jobs import JobStore
+    from deploy.steps import inspection_history
+
+    found = inspection_history(JobStore(work / "jobs.sqlite").jobs(), part)
+    if not found:
+        click.echo("no inspected jobs yet" + (f" of part {part}" if part else ""))
+    for model_id, rows in found.items():
+        counts = {s: sum(r["status"] == s for r in rows) for s in ("PASS", "FAIL", "UNCERTAIN")}
+        click.echo(f"{model_id}: {len(rows)} inspected, " + ", ".join(f"{n} {s}" for s, n in counts.items()))
+        for r in rows:
+            when = time.strftime("%Y-%m-%d %H:%M", time.localtime(r["finished"])) if r["finished"] else ""
+            click.echo(f"  {when}  {r['capture_id']:<28} {r['line']}")

@@ -1,0 +1,496 @@
+"""Inspection: where a twin's surface departs from its CAD model, by how much, and how sure the rig can be.
+
+Deviation. Every CAD vertex gets the signed distance from the CAD surface to the twin's deformed
+surface along the CAD's outward vertex normal, in millimetres: positive where the part stands out of
+its drawing (material added, a bulge), negative where it lies inside it (a dent, material missing).
+The twin's `mesh_deformed` is the CAD mesh with its vertices moved by the deformation field, so the
+deviation is the move projected on the normal; meshes that do not correspond vertex by vertex are
+measured by casting the normal line onto the other surface (`line_deviation`), which is also how a
+reference surface (a scan, the truth of a benchmark) is measured.
+
+Visibility. A vertex is seen by a training camera when it projects inside the image, its normal turns
+at most `max_angle_deg` away from the camera's line of sight, and nothing of the twin's surface lies in
+front of it (a z-buffer of the deformed mesh). Where no camera sees the surface, the twin there is the
+CAD moved only by the field's smooth continuation: it is reported unseen, never in tolerance.
+
+Verdict. FAIL when a seen vertex departs by more than the tolerance (the worst one is named with its
+part and position), else UNCERTAIN when more than `max_unseen_pct` of the surface area is unseen, else
+PASS. Exit codes for a PLC: PASS 0, FAIL 1, UNCERTAIN 3 (2 stays "could not inspect", as for every
+cadsplat command).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from calibration.camera import Camera
+from reconstruction.silhouette import project_vertices
+from reconstruction.splats import face_areas_normals, sample_surface
+
+MM_PER_M = 1000.0
+MAX_ANGLE_DEG = 75.0  # beyond this the camera looks along the surface: it cannot place it
+EXIT_CODES = {"PASS": 0, "FAIL": 1, "UNCERTAIN": 3}
+_NEAR = 1e-6
+
+
+# ---------------------------------------------------------------------------------------- geometry
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals [V, 3] of `vertices` [V, 3], `faces` [F, 3], turned outward.
+
+    Outward: the winding is flipped when the mesh's signed volume is negative (an inside-out export).
+    A vertex no face uses gets +z.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    areas, normals = face_areas_normals(v, f)
+    acc = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(acc, f[:, k], normals * areas[:, None])
+    tri = v[f]
+    volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.where(norm > 0, acc / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 1.0])
+    return -out if volume < 0 else out
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Surface area each vertex stands for [V]: a third of every face around it (mesh units squared)."""
+    areas, _ = face_areas_normals(vertices, faces)
+    out = np.zeros(len(vertices))
+    for k in range(3):
+        np.add.at(out, np.asarray(faces, np.int64)[:, k], areas / 3.0)
+    return out
+
+
+def vertex_parts(num_vertices: int, faces: np.ndarray, face_part: np.ndarray) -> np.ndarray:
+    """Part label of every vertex [V] from its faces' (`face_part` [F]); -1 for a vertex no face uses."""
+    out = np.full(num_vertices, -1, np.int64)
+    for k in range(3):
+        out[np.asarray(faces, np.int64)[:, k]] = face_part
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _line_hits(origins, dirs, verts, faces, max_t, out):
+    """Signed distance along each line to the nearest crossing of a face that faces the same way (NaN if none)."""
+    for i in range(origins.shape[0]):
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        best = np.nan
+        best_abs = max_t
+        for f in range(faces.shape[0]):
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = verts[a, 0], verts[a, 1], verts[a, 2]
+            e1x, e1y, e1z = verts[b, 0] - ax, verts[b, 1] - ay, verts[b, 2] - az
+            e2x, e2y, e2z = verts[c, 0] - ax, verts[c, 1] - ay, verts[c, 2] - az
+            # Only a face whose outward side agrees with the line's: never the far wall of a thin part.
+            nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+            if nx * dx + ny * dy + nz * dz <= 0.0:
+                continue
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = e1x * px + e1y * py + e1z * pz
+            if det == 0.0:
+                continue
+            inv = 1.0 / det
+            sx, sy, sz = ox - ax, oy - ay, oz - az
+            u = (sx * px + sy * py + sz * pz) * inv
+            if u < -1e-9 or u > 1.0 + 1e-9:
+                continue
+            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+            w = (dx * qx + dy * qy + dz * qz) * inv
+            if w < -1e-9 or u + w > 1.0 + 1e-9:
+                continue
+            t = (e2x * qx + e2y * qy + e2z * qz) * inv
+            if abs(t) <= best_abs:
+                best_abs = abs(t)
+                best = t
+        out[i] = best
+
+
+def line_deviation(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray, max_distance: float) -> np.ndarray:
+    """Signed distance [P] from each point along its unit normal (both ways) to the surface (`vertices` [V, 3],
+    `faces` [F, 3], outward winding), within `max_distance`; NaN where the line meets no face facing its way.
+
+    points [P, 3], normals [P, 3] unit. Positive: the surface lies outside, along the normal.
+    """
+    out = np.empty(len(points))
+    _line_hits(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(normals, np.float64),
+               np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64), float(max_distance), out)
+    return out
+
+
+def normal_deviation(cad_vertices: np.ndarray, cad_normals: np.ndarray, moved_vertices: np.ndarray) -> np.ndarray:
+    """Signed move of each vertex along its CAD normal [V]: (moved - cad) . n; all arrays [V, 3]."""
+    return np.einsum("ij,ij->i", np.asarray(moved_vertices, np.float64) - cad_vertices, cad_normals)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dot(ax, ay, az, bx, by, bz):
+    return ax * bx + ay * by + az * bz
+
+
+@numba.njit(cache=True, nogil=True)
+def _point_triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Squared distance from a point to a triangle (Ericson, Real-Time Collision Detection 5.1.5)."""
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1, d2 = _dot(abx, aby, abz, apx, apy, apz), _dot(acx, acy, acz, apx, apy, apz)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return _dot(apx, apy, apz, apx, apy, apz)
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3, d4 = _dot(abx, aby, abz, bpx, bpy, bpz), _dot(acx, acy, acz, bpx, bpy, bpz)
+    if d3 >= 0.0 and d4 <= d3:
+        return _dot(bpx, bpy, bpz, bpx, bpy, bpz)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        qx, qy, qz = apx - v * abx, apy - v * aby, apz - v * abz
+        return _dot(qx, qy, qz, qx, qy, qz)
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5, d6 = _dot(abx, aby, abz, cpx, cpy, cpz), _dot(acx, acy, acz, cpx, cpy, cpz)
+    if d6 >= 0.0 and d5 <= d6:
+        return _dot(cpx, cpy, cpz, cpx, cpy, cpz)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        qx, qy, qz = apx - w * acx, apy - w * acy, apz - w * acz
+        return _dot(qx, qy, qz, qx, qy, qz)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        qx, qy, qz = bpx - w * (cx - bx), bpy - w * (cy - by), bpz - w * (cz - bz)
+        return _dot(qx, qy, qz, qx, qy, qz)
+    den = 1.0 / (va + vb + vc)
+    v, w = vb * den, vc * den
+    qx, qy, qz = apx - v * abx - w * acx, apy - v * aby - w * acy, apz - v * abz - w * acz
+    return _dot(qx, qy, qz, qx, qy, qz)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_of(points, verts, faces, candidates, out):
+    for i in range(points.shape[0]):
+        best = np.inf
+        for j in range(candidates.shape[1]):
+            f = candidates[i, j]
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            d = _point_triangle_sq(points[i, 0], points[i, 1], points[i, 2], verts[a, 0], verts[a, 1], verts[a, 2],
+                                   verts[b, 0], verts[b, 1], verts[b, 2], verts[c, 0], verts[c, 1], verts[c, 2])
+            if d < best:
+                best = d
+        out[i] = np.sqrt(best)
+
+
+def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *, candidates: int = 32) -> np.ndarray:
+    """Distance [P] from each of `points` [P, 3] to the closest point of the mesh (`vertices` [V, 3], `faces` [F, 3]).
+
+    Exact point-to-triangle distances over the `candidates` faces whose centroids lie nearest the
+    point (a face farther than that many centroids is never the closest on a mesh of even-sized faces).
+    """
+    v = np.ascontiguousarray(vertices, np.float64)
+    f = np.ascontiguousarray(faces, np.int64)
+    k = min(candidates, len(f))
+    _, idx = cKDTree(v[f].mean(1)).query(np.asarray(points, np.float64), k=k)
+    out = np.empty(len(points))
+    _nearest_of(np.ascontiguousarray(points, np.float64), v, f, np.ascontiguousarray(idx.reshape(len(points), k), np.int64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _zbuffer(uv, z, faces, depth, face_id, bary):
+    """Nearest face per pixel centre: perspective-correct depth, face index and barycentrics."""
+    h, w = depth.shape
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        if z[a] <= 1e-6 or z[b] <= 1e-6 or z[c] <= 1e-6:
+            continue
+        x0, y0, x1, y1, x2, y2 = uv[a, 0], uv[a, 1], uv[b, 0], uv[b, 1], uv[c, 0], uv[c, 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area == 0.0:
+            continue
+        umin = max(int(np.ceil(min(x0, x1, x2) - 0.5)), 0)
+        umax = min(int(np.floor(max(x0, x1, x2) - 0.5)), w - 1)
+        vmin = max(int(np.ceil(min(y0, y1, y2) - 0.5)), 0)
+        vmax = min(int(np.floor(max(y0, y1, y2) - 0.5)), h - 1)
+        for v in range(vmin, vmax + 1):
+            py = v + 0.5
+            for u in range(umin, umax + 1):
+                px = u + 0.5
+                l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
+                l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+                l2 = 1.0 - l0 - l1
+                if l0 < 0.0 or l1 < 0.0 or l2 < 0.0:
+                    continue
+                w0, w1, w2 = l0 / z[a], l1 / z[b], l2 / z[c]
+                s = w0 + w1 + w2
+                d = 1.0 / s
+                if d < depth[v, u]:
+                    depth[v, u] = d
+                    face_id[v, u] = f
+                    bary[v, u, 0] = w0 * d
+                    bary[v, u, 1] = w1 * d
+                    bary[v, u, 2] = w2 * d
+
+
+def rasterize_mesh(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Z-buffer of a triangle mesh seen by a pinhole `camera` (pixel centres at +0.5).
+
+    Returns depth [H, W] (camera z, inf where empty), face index [H, W] (-1 where empty) and
+    perspective-correct barycentrics [H, W, 3].
+    """
+    uv, z = project_vertices(np.asarray(vertices, np.float64), camera.K, camera.viewmat)
+    depth = np.full((camera.height, camera.width), np.inf)
+    face_id = np.full((camera.height, camera.width), -1, np.int64)
+    bary = np.zeros((camera.height, camera.width, 3))
+    _zbuffer(uv, z, np.ascontiguousarray(faces, np.int64), depth, face_id, bary)
+    return depth, face_id, bary
+
+
+# ---------------------------------------------------------------------------------------- visibility
+
+@dataclass(frozen=True)
+class Visibility:
+    """Which cameras see each vertex: `seen` [C, V] bool, `views` [V] count, `best_angle_deg` [V] (the smallest
+    angle between the normal and a seeing camera's line of sight; NaN where no camera sees the vertex)."""
+
+    seen: np.ndarray
+    views: np.ndarray
+    best_angle_deg: np.ndarray
+
+
+def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                     cameras: Sequence[Camera], *, max_angle_deg: float = MAX_ANGLE_DEG) -> Visibility:
+    """Visibility from `cameras` of `points` [P, 3] with unit `normals` [P, 3] lying on the mesh (`vertices`
+    [V, 3], `faces` [F, 3]) that may hide them.
+
+    A point is seen when it projects inside the image, its normal is within `max_angle_deg` of the
+    direction to the camera, and the z-buffer at its pixel is not nearer than the point by more than
+    the surface's own depth change across a pixel at that slant.
+    """
+    p = np.asarray(points, np.float64)
+    cos_min = np.cos(np.radians(max_angle_deg))
+    seen = np.zeros((len(cameras), len(p)), bool)
+    cos_best = np.full(len(p), -1.0)
+    for i, cam in enumerate(cameras):
+        depth, _, _ = rasterize_mesh(vertices, faces, cam)
+        uv, z = project_vertices(p, cam.K, cam.viewmat)
+        to_cam = cam.center - p
+        cos = np.einsum("ij,ij->i", normals, to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-300)
+        px = np.floor(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
+        inside = (z > _NEAR) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+        zbuf = np.full(len(p), -np.inf)
+        zbuf[inside] = depth[px[inside, 1], px[inside, 0]]
+        # A pixel centre is up to 0.71 px from the point: the point's own surface may lie that far times
+        # tan(angle) nearer; one more pixel's worth covers the neighbouring faces' kinks.
+        footprint = np.abs(z) / cam.K[0, 0]
+        tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, cos_min)
+        unoccluded = zbuf >= z - footprint * (1.0 + 2.0 * tan)
+        seen[i] = inside & (cos >= cos_min) & unoccluded
+        cos_best = np.where(seen[i], np.maximum(cos_best, cos), cos_best)
+    views = seen.sum(0)
+    best = np.where(views > 0, np.degrees(np.arccos(np.clip(cos_best, -1.0, 1.0))), np.nan)
+    return Visibility(seen, views, best)
+
+
+# ---------------------------------------------------------------------------------------- inspection
+
+@dataclass(frozen=True)
+class Inspection:
+    """Per-vertex findings on the CAD mesh, object frame, millimetres.
+
+    vertices_mm [V, 3] (CAD positions), deviation_mm [V] (signed, along the outward CAD normal; NaN where
+    the twin's surface could not be found along it), views [V], best_angle_deg [V] (NaN unseen),
+    area_mm2 [V], part [V] (index into part_names).
+    """
+
+    vertices_mm: np.ndarray
+    deviation_mm: np.ndarray
+    views: np.ndarray
+    best_angle_deg: np.ndarray
+    area_mm2: np.ndarray
+    part: np.ndarray
+    part_names: list[str]
+
+    @property
+    def seen(self) -> np.ndarray:
+        """[V] bool: a camera saw the vertex, the twin's surface was found along its normal, and a face uses it."""
+        return (self.views > 0) & np.isfinite(self.deviation_mm) & (self.part >= 0)
+
+    def unseen_pct(self, mask: np.ndarray | None = None) -> float:
+        """Share of the surface area (of the vertices in `mask`, default all) that no camera saw, in %."""
+        m = np.ones(len(self.views), bool) if mask is None else mask
+        total = self.area_mm2[m].sum()
+        return 0.0 if total <= 0 else float(100.0 * self.area_mm2[m & ~self.seen].sum() / total)
+
+
+def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: np.ndarray, part_names: Sequence[str],
+                   deformed_vertices: np.ndarray, deformed_faces: np.ndarray, cameras: Sequence[Camera], *,
+                   mm_per_unit: float = MM_PER_M, max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
+    """Deviation of the deformed surface from the CAD and its visibility from `cameras` (object frame).
+
+    The CAD mesh (`cad_vertices` [V, 3], `cad_faces` [F, 3], `face_part` [F]) and the deformed mesh are in the
+    same units (`mm_per_unit` converts them; the twin format is in metres). When the deformed mesh is the CAD
+    mesh with moved vertices (same faces) its move is projected on the CAD normal; otherwise the CAD normal
+    line is cast onto the deformed surface (up to a tenth of the CAD's bounding diagonal).
+    Visibility is judged on the deformed surface, the one the cameras photographed.
+    """
+    cad_v = np.asarray(cad_vertices, np.float64)
+    normals = vertex_normals(cad_v, cad_faces)
+    same = np.shape(deformed_vertices) == cad_v.shape and np.array_equal(deformed_faces, cad_faces)
+    if same:
+        deviation = normal_deviation(cad_v, normals, deformed_vertices)
+        on_twin = np.asarray(deformed_vertices, np.float64)
+        vis = point_visibility(on_twin, vertex_normals(on_twin, cad_faces), on_twin, cad_faces, cameras, max_angle_deg=max_angle_deg)
+    else:
+        reach = 0.1 * float(np.linalg.norm(cad_v.max(0) - cad_v.min(0)))
+        deviation = line_deviation(cad_v, normals, deformed_vertices, deformed_faces, reach)
+        # Each CAD vertex where its normal line meets the deformed surface (the CAD place where it missed).
+        on_twin = cad_v + np.nan_to_num(deviation)[:, None] * normals
+        vis = point_visibility(on_twin, normals, deformed_vertices, deformed_faces, cameras, max_angle_deg=max_angle_deg)
+    return Inspection(
+        vertices_mm=cad_v * mm_per_unit,
+        deviation_mm=deviation * mm_per_unit,
+        views=vis.views,
+        best_angle_deg=vis.best_angle_deg,
+        area_mm2=vertex_areas(cad_v, cad_faces) * mm_per_unit**2,
+        part=vertex_parts(len(cad_v), cad_faces, face_part),
+        part_names=list(part_names),
+    )
+
+
+# ---------------------------------------------------------------------------------------- report
+
+@dataclass(frozen=True)
+class PartReport:
+    """One part's findings (millimetres, object frame). Deviation figures are over its seen vertices;
+    `worst_mm` is the signed deviation of largest magnitude, at `worst_at_mm` (None when nothing was seen).
+    Uncertainty: `unseen_pct` and `single_view_pct` of the part's area, and over its seen vertices the median
+    number of views and of the best angle between normal and line of sight."""
+
+    name: str
+    vertices: int
+    area_mm2: float
+    unseen_pct: float
+    single_view_pct: float
+    views_median: float | None
+    best_angle_median_deg: float | None
+    worst_mm: float | None
+    worst_at_mm: tuple[float, float, float] | None
+    mean_mm: float | None
+    p95_abs_mm: float | None
+    out_of_tolerance_pct: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready: positions as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
+
+
+def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
+    """Per-part summary of `insp`; `out_of_tolerance_pct` is the seen area beyond `tolerance_mm`, % of the part."""
+    out = []
+    for p, name in enumerate(insp.part_names):
+        m = insp.part == p
+        s = m & insp.seen
+        area = float(insp.area_mm2[m].sum())
+        worst = worst_at = mean = p95 = views = angle = None
+        bad = 0.0
+        single = 100.0 * float(insp.area_mm2[s & (insp.views == 1)].sum()) / max(area, 1e-300)
+        if s.any():
+            views, angle = float(np.median(insp.views[s])), float(np.median(insp.best_angle_deg[s]))
+            d = insp.deviation_mm[s]
+            i = int(np.argmax(np.abs(d)))
+            worst, worst_at = float(d[i]), tuple(float(x) for x in insp.vertices_mm[s][i])
+            mean, p95 = float(d.mean()), float(np.percentile(np.abs(d), 95))
+            bad = 100.0 * float(insp.area_mm2[s][np.abs(d) > tolerance_mm].sum()) / max(area, 1e-300)
+        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad))
+    return out
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The one-line verdict and its exit code (`EXIT_CODES`); `part`, `deviation_mm`, `at_mm` name the worst
+    seen vertex, `max_abs_mm` its magnitude (None when nothing was seen)."""
+
+    status: str
+    line: str
+    exit_code: int
+    tolerance_mm: float
+    max_unseen_pct: float
+    unseen_pct: float
+    max_abs_mm: float | None
+    part: str | None
+    deviation_mm: float | None
+    at_mm: tuple[float, float, float] | None
+
+    def to_dict(self) -> dict:
+        """JSON-ready: positions as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
+
+
+def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
+    """FAIL if a seen vertex departs by more than `tolerance_mm`; else UNCERTAIN if more than `max_unseen_pct`
+    of the area is unseen; else PASS. A twin nobody saw any of is UNCERTAIN, whatever `max_unseen_pct` says."""
+    if not tolerance_mm > 0:
+        raise ValueError(f"the tolerance must be a positive number of millimetres, got {tolerance_mm}")
+    unseen = insp.unseen_pct()
+    seen = insp.seen
+    worst = part = at = None
+    if seen.any():
+        d = np.where(seen, np.abs(insp.deviation_mm), -np.inf)
+        i = int(np.argmax(d))
+        worst, at = float(insp.deviation_mm[i]), tuple(float(x) for x in insp.vertices_mm[i])
+        part = insp.part_names[insp.part[i]] if insp.part[i] >= 0 else None
+    tol = f"{tolerance_mm:g} mm"
+    if worst is not None and abs(worst) > tolerance_mm:
+        status = "FAIL"
+        line = f"FAIL part '{part}' {worst:+.1f} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
+    elif worst is None or unseen > max_unseen_pct:
+        status = "UNCERTAIN"
+        seen_part = "" if worst is None else f"; seen surface within tolerance, max {abs(worst):.1f} mm (tolerance {tol})"
+        line = f"UNCERTAIN {unseen:.0f} % of the surface unseen{seen_part}"
+    else:
+        status = "PASS"
+        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {unseen:.0f} % of the surface unseen" if unseen >= 0.5 else "")
+    return Verdict(status, line, EXIT_CODES[status], float(tolerance_mm), float(max_unseen_pct), unseen,
+                   None if worst is None else abs(worst), part, worst, at)
+
+
+# ---------------------------------------------------------------------------------------- pictures
+
+UNSEEN_RGB = np.array([0.35, 0.35, 0.35])
+
+
+def deviation_colors(deviation_mm: np.ndarray, seen: np.ndarray, range_mm: float) -> np.ndarray:
+    """RGB [V, 3] in [0, 1]: the turbo colour map from -`range_mm` (blue, inside the CAD) through 0 (green)
+    to +`range_mm` (red, outside), clipped; unseen vertices dark grey."""
+    from matplotlib import colormaps
+
+    x = np.clip(0.5 + 0.5 * np.nan_to_num(deviation_mm) / range_mm, 0.0, 1.0)
+    rgb = colormaps["turbo"](x)[:, :3]
+    return np.where(seen[:, None], rgb, UNSEEN_RGB)
+
+
+def render_colored_mesh(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, camera: Camera) -> np.ndarray:
+    """Straight-alpha RGBA [H, W, 4] float32 of a mesh with per-vertex `colors` [V, 3], shaded by a headlight
+    (the interpolated vertex normal against the line of sight) so the shape reads in a flat colour map."""
+    _, face_id, bary = rasterize_mesh(vertices, faces, camera)
+    hit = face_id >= 0
+    f = np.asarray(faces, np.int64)[face_id[hit]]
+    w = bary[hit]
+    normals = vertex_normals(vertices, faces)
+    n = np.einsum("pk,pkd->pd", w, normals[f])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    v = np.asarray(vertices, np.float64)
+    p = np.einsum("pk,pkd->pd", w, v[f])
+    view = camera.center - p
+    shade = 0.35 + 0.65 * np.abs(np.einsum("pd,pd->p", n, view)) / np.maximum(np.linalg.norm(view, axis=1), 1e-12)
+    out = np.zeros((camera.height, camera.width, 4), np.float32)
+    out[hit, :3] = np.einsum("pk,pkd->pd", w, np.asarray(colors, np.float64)[f]) * shade[:, None]
+    out[hit, 3] = 1.0
+    return out

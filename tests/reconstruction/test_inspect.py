@@ -1,0 +1,143 @@
+"""Inspection arithmetic: signs, units, the far wall of thin parts, visibility, and the verdict's codes."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from calibration.camera import Camera, look_at_c2w
+from reconstruction.inspect import (EXIT_CODES, Inspection, inspect_meshes, line_deviation, part_reports, point_visibility,
+                                    rasterize_mesh, surface_distance, vertex_normals, verdict)
+
+
+def sphere(radius=0.05, subdivisions=3):
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+
+
+def camera_at(eye, target=(0.0, 0.0, 0.0), size=(160, 120), f=150.0):
+    w, h = size
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    return Camera(K, w, h, np.zeros(0), look_at_c2w(np.asarray(eye, float), np.asarray(target, float)))
+
+
+def ring(n=8, distance=0.4, elevations=(-35.0, 35.0)):
+    cams = []
+    for el in np.radians(elevations):
+        for az in np.linspace(0, 2 * np.pi, n, endpoint=False):
+            cams.append(camera_at(distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])))
+    return cams
+
+
+def test_normals_point_outward_even_for_an_inside_out_mesh():
+    v, f = sphere()
+    radial = v / np.linalg.norm(v, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", vertex_normals(v, f), radial).min() > 0.99
+    assert np.einsum("ij,ij->i", vertex_normals(v, f[:, ::-1]), radial).min() > 0.99
+
+
+@pytest.mark.parametrize("delta_m, expected_mm", [(0.001, 1.0), (-0.002, -2.0)])
+def test_deviation_is_signed_along_the_outward_normal_in_millimetres(delta_m, expected_mm):
+    v, f = sphere()
+    grown = v * (1 + delta_m / 0.05)  # every vertex moved radially by delta_m metres
+    insp = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], grown, f, ring())
+    # Vertex normals of a tessellated sphere are radial to within a fraction of a degree.
+    np.testing.assert_allclose(insp.deviation_mm, expected_mm, atol=2e-3 * abs(expected_mm))
+    np.testing.assert_allclose(insp.area_mm2.sum(), trimesh.Trimesh(v, f).area * 1e6)
+    np.testing.assert_allclose(insp.vertices_mm, v * 1000)
+
+
+def test_a_surface_that_is_not_the_moved_cad_is_found_along_the_normal():
+    v, f = sphere(subdivisions=3)
+    other_v, other_f = sphere(radius=0.0515, subdivisions=4)  # a different tessellation, 1.5 mm outside
+    insp = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], other_v, other_f, ring())
+    # A chord of the finer sphere lies up to r(1 - cos(edge/2r)) inside it: about 0.1 mm here.
+    assert np.all(np.abs(insp.deviation_mm - 1.5) < 0.15)
+    assert insp.unseen_pct() < 5.0
+
+
+def test_the_far_wall_of_a_thin_part_is_never_taken_for_its_surface():
+    plate = trimesh.creation.box(extents=[0.1, 0.1, 0.002])
+    top = np.array([[0.01, 0.02, 0.001]])
+    up = np.array([[0.0, 0.0, 1.0]])
+    lifted = plate.vertices + [0, 0, 0.0005]
+    # The lifted top is 0.5 mm out; the bottom wall, 1.5 mm in, faces the other way and is ignored.
+    np.testing.assert_allclose(line_deviation(top, up, lifted, plate.faces, 0.01), [0.0005])
+    sunk = plate.vertices - [0, 0, 0.0015]
+    np.testing.assert_allclose(line_deviation(top, up, sunk, plate.faces, 0.01), [-0.0015])
+    assert np.isnan(line_deviation(top, up, plate.vertices + [0, 0, 0.02], plate.faces, 0.01))[0]
+
+
+def test_surface_distance_is_the_exact_point_to_triangle_distance():
+    tri_v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    tri_f = np.array([[0, 1, 2]])
+    pts = np.array([[0.2, 0.2, 0.3], [2.0, 0.0, 0.0], [-1.0, -1.0, 0.0], [1.0, 1.0, 0.0]])
+    np.testing.assert_allclose(surface_distance(pts, tri_v, tri_f), [0.3, 1.0, np.sqrt(2), np.sqrt(0.5)])
+
+
+def test_zbuffer_depth_matches_the_surface():
+    v, f = sphere(radius=0.05, subdivisions=4)
+    cam = camera_at([0, 0, 0.4])
+    depth, face, bary = rasterize_mesh(v, f, cam)
+    centre = depth[60, 80]
+    assert face[60, 80] >= 0 and abs(centre - 0.35) < 2e-4
+    assert np.isinf(depth[0, 0]) and face[0, 0] == -1
+    np.testing.assert_allclose(bary[face >= 0].sum(1), 1.0)
+
+
+def test_visibility_counts_views_and_hides_what_is_behind_or_occluded():
+    v, f = sphere()
+    n = vertex_normals(v, f)
+    cam = camera_at([0, 0, 0.4])
+    vis = point_visibility(v, n, v, f, [cam])
+    facing = n[:, 2]
+    assert vis.seen[0][facing > 0.5].all() and not vis.seen[0][facing < 0].any()
+    top = int(np.argmax(v[:, 2]))
+    assert vis.views[top] == 1 and vis.best_angle_deg[top] < 1.0
+    assert np.isnan(vis.best_angle_deg[int(np.argmin(v[:, 2]))])
+    # A second ball between the camera and the first hides the first one's top.
+    blocker = v * 0.5 + [0, 0, 0.15]
+    both_v = np.concatenate([v, blocker])
+    both_f = np.concatenate([f, f + len(v)])
+    vis = point_visibility(v, n, both_v, both_f, [cam])
+    assert not vis.seen[0, top]
+
+
+def _inspection(deviation, views, part=None, names=("a",)):
+    deviation = np.asarray(deviation, float)
+    k = len(deviation)
+    return Inspection(vertices_mm=np.arange(3 * k, dtype=float).reshape(k, 3), deviation_mm=deviation, views=np.asarray(views),
+                      best_angle_deg=np.where(np.asarray(views) > 0, 10.0, np.nan), area_mm2=np.ones(k),
+                      part=np.zeros(k, np.int64) if part is None else np.asarray(part), part_names=list(names))
+
+
+def test_verdict_lines_and_exit_codes():
+    ok = verdict(_inspection([0.2, -0.8, 0.5, 0.1], [2, 3, 1, 4]), 1.0, 25.0)
+    assert (ok.status, ok.exit_code, ok.line) == ("PASS", 0, "PASS max 0.8 mm (tolerance 1 mm)")
+    bad = verdict(_inspection([0.2, -2.3, 0.5, 0.1], [2, 3, 1, 4], part=[0, 1, 1, 0], names=("body", "jaw")), 1.0, 25.0)
+    assert (bad.status, bad.exit_code, bad.part) == ("FAIL", 1, "jaw")
+    assert bad.line == "FAIL part 'jaw' -2.3 mm at (3.0, 4.0, 5.0) mm"
+    assert EXIT_CODES == {"PASS": 0, "FAIL": 1, "UNCERTAIN": 3}
+
+
+def test_unseen_surface_is_never_in_tolerance_and_never_fails():
+    # The 9 mm vertex is unseen: it neither fails the part nor counts as measured.
+    insp = _inspection([0.2, 9.0, 0.5, 0.1], [2, 0, 1, 4])
+    assert verdict(insp, 1.0, 30.0).line == "PASS max 0.5 mm (tolerance 1 mm), 25 % of the surface unseen"
+    unsure = verdict(insp, 1.0, 20.0)
+    assert (unsure.status, unsure.exit_code) == ("UNCERTAIN", 3)
+    assert unsure.line.startswith("UNCERTAIN 25 % of the surface unseen")
+    blind = verdict(_inspection([0.0, 0.0], [0, 0]), 1.0, 100.0)
+    assert blind.status == "UNCERTAIN" and blind.max_abs_mm is None
+    # A seen vertex out of tolerance fails even when much of the surface is unseen.
+    assert verdict(_inspection([3.0, 0.0, 0.0], [1, 0, 0]), 1.0, 10.0).status == "FAIL"
+    with pytest.raises(ValueError, match="tolerance"):
+        verdict(insp, 0.0, 10.0)
+
+
+def test_part_reports_keep_unseen_parts_apart():
+    insp = _inspection([0.4, -1.5, 7.0, 7.0], [1, 2, 0, 0], part=[0, 0, 1, 1], names=("body", "hidden"))
+    body, hidden = part_reports(insp, 1.0)
+    assert body.worst_mm == -1.5 and body.worst_at_mm == (3.0, 4.0, 5.0) and body.out_of_tolerance_pct == 50.0
+    assert body.unseen_pct == 0.0 and body.single_view_pct == 50.0 and body.views_median == 1.5
+    assert hidden.worst_mm is None and hidden.unseen_pct == 100.0 and hidden.out_of_tolerance_pct == 0.0
+    assert hidden.views_median is None and hidden.single_view_pct == 0.0
