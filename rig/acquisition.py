@@ -1,9 +1,15 @@
 """Synchronized acquisition: trigger -> a frame from every camera -> validated -> committed or quarantined.
 
 Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
-capture in the store), `quarantined` (kept with its reason), `refused` (disk below its threshold:
-no capture is taken), `late` (the trigger waited longer than the part stays in view), `dropped`
-(a duplicate or too-soon trigger) or `failed` (not even a quarantine entry could be written).
+capture in the store), `quarantined` (kept with its reason), `refused` (no room on the disk for a
+whole capture, checked before its frames are taken: nothing is lost), `late` (the trigger waited
+longer than the part stays in view), `dropped` (a duplicate or too-soon trigger), `failed` (not
+even a quarantine entry could be written) or `reference` (the belt was empty: a new empty-rig
+reference was taken, see rig.reference).
+
+The empty-rig reference is taken on command (`take_reference`), on schedule (`reference_every_s`,
+while no trigger waits) and whenever a trigger says the belt is empty (payload `belt: "empty"`,
+e.g. a serial pattern with a `(?P<belt>empty)` group). Cameras are armed with seq -1 for it.
 """
 
 from __future__ import annotations
@@ -18,10 +24,12 @@ import numpy as np
 
 from calibration.capture import FrameData
 from rig.camera import CameraDriver, CameraError, CameraSettings, Frame
+from rig.reference import ReferenceError
 from rig.store import CaptureStore, StoreError, is_enospc
 from rig.triggers import TriggerEvent, TriggerFilter, TriggerSource
 
-OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed")
+OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference")
+EMPTY_BELT_SEQ = -1  # what cameras are armed with for an empty-rig reference (the simulated rig renders no part)
 
 
 @dataclass(frozen=True)
@@ -44,6 +52,7 @@ class Outcome:
     capture_id: str = ""
     reason: str = ""
     latency_ns: int = 0
+    state_change: str = ""  # "stopped" on the first refusal for a full disk, "resumed" on the first capture after
 
 
 def brightness(image: np.ndarray) -> tuple[float, float]:
@@ -118,8 +127,11 @@ class Acquisition:
     settings: CameraSettings | None = None
     clock: Callable[[], int] = time.monotonic_ns
     counts: dict = field(default_factory=lambda: dict.fromkeys(OUTCOMES, 0))
-    # Empty-rig frames per camera, stored with every capture so masks come from background subtraction.
+    # Empty-rig frames per camera, stored with every capture so masks come from background subtraction;
+    # by default the store's current reference (rig.reference), whose id every capture records.
     backgrounds: dict[str, np.ndarray] = field(default_factory=dict)
+    background_id: str = ""
+    reference_every_s: float | None = None
 
     def __post_init__(self) -> None:
         ids = [c.camera_id for c in self.cameras]
@@ -127,6 +139,40 @@ class Acquisition:
             raise ValueError(f"camera ids must be unique and at least one camera is needed, got {ids}")
         self._pool = ThreadPoolExecutor(max_workers=len(self.cameras), thread_name_prefix="grab")
         self._next_seq = 0
+        self.stopped = ""
+        self.reference_note = ""
+        self._reference_t = time.monotonic()
+        if not self.backgrounds:
+            try:
+                ref = self.store.references.current()
+            except ReferenceError as e:
+                ref, self.reference_note = None, f"{e}; take a new one with the belt empty"
+            if ref is not None:
+                self.backgrounds, self.background_id = dict(ref.frames), ref.reference_id
+
+    def capture_bytes(self) -> int:
+        """Disk a capture needs at most: its PNG frames (and the reference copy), with room for the manifests."""
+        raw = sum(c.camera.width * c.camera.height * 3 for c in self.cameras)
+        return int(1.1 * raw * (2 if self.backgrounds else 1)) + (256 << 10)
+
+    # ---- the empty-rig reference ---------------------------------------------------------------
+
+    def take_reference(self, reason: str) -> Outcome:
+        """Grab every camera with the belt empty and store the frames as the next reference version."""
+        event = TriggerEvent(EMPTY_BELT_SEQ, "reference", self.clock(), {"belt": "empty", "why": reason})
+        self._reference_t = time.monotonic()
+        frames, errors = self._grab_all(EMPTY_BELT_SEQ)
+        sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
+        problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
+        problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
+        if problems:
+            return self._count(Outcome("refused", event, reason=f"empty-rig reference not taken: {'; '.join(problems)}"))
+        try:
+            ref = self.store.references.commit({cid: f.image for cid, f in frames.items()}, reason)
+        except (OSError, ReferenceError) as e:
+            return self._count(Outcome("refused", event, reason=f"empty-rig reference not stored: {getattr(e, 'strerror', None) or e}"))
+        self.backgrounds, self.background_id, self.reference_note = dict(ref.frames), ref.reference_id, ""
+        return self._count(Outcome("reference", event, ref.reference_id, reason))
 
     # ---- one trigger ---------------------------------------------------------------------------
 
@@ -135,18 +181,33 @@ class Acquisition:
         verdict = self.trigger_filter.check(event)
         if not verdict.accept:
             return self._count(Outcome("dropped", event, reason=verdict.reason))
+        if event.payload.get("belt") == "empty":
+            return self.take_reference("the trigger said the belt is empty")
         age = self.clock() - event.timestamp_ns
         if age > self.thresholds.max_trigger_age_ns:
             return self._count(Outcome("late", event, reason=f"trigger waited {age / 1e9:.2f} s, longer than the part stays in view"))
-        if not self.store.disk_ok():
-            return self._count(Outcome("refused", event, reason=self.store.alarm))
-        return self._count(self.capture(event))
+        # Room for the whole capture (and its id) is made sure of before any frame is taken.
+        capture_id = ""
+        if self.store.room_for(self.capture_bytes()):
+            try:
+                capture_id = self.store.reserve_id()
+            except StoreError:
+                pass
+        if not capture_id:
+            change = "" if self.stopped else "stopped"
+            self.stopped = self.store.alarm
+            return self._count(Outcome("refused", event, reason=self.store.alarm, state_change=change))
+        out = self.capture(event, capture_id)
+        if self.stopped:
+            self.stopped = ""
+            out = replace(out, state_change="resumed")
+        return self._count(out)
 
-    def capture(self, event: TriggerEvent) -> Outcome:
+    def capture(self, event: TriggerEvent, capture_id: str | None = None) -> Outcome:
         seq = event.seq if event.seq is not None else self._next_seq
         self._next_seq = seq + 1
+        capture_id = capture_id or self.store.reserve_id()
         frames, errors = self._grab_all(seq)
-        capture_id = self.store.reserve_id()
         cams = {c.camera_id: c for c in self.cameras}
         data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
         spread = int(np.ptp([f.timestamp_ns for f in frames.values()])) if frames else 0
@@ -159,6 +220,8 @@ class Acquisition:
         }
         if self.calibration_uncertainty is not None:
             meta["calibration_uncertainty"] = dict(self.calibration_uncertainty)
+        if self.backgrounds:
+            meta["background_id"] = self.background_id or "unversioned"
         sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
         problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
         problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
@@ -233,6 +296,10 @@ class Acquisition:
         while not stop.is_set() and (max_captures is None or self.taken < max_captures):
             ev = source.get(timeout=poll_s)
             if ev is None:
+                if self.reference_every_s is not None and time.monotonic() - self._reference_t >= self.reference_every_s:
+                    out = self.take_reference(f"scheduled (every {self.reference_every_s:g} s)")
+                    if on_outcome is not None:
+                        on_outcome(out)
                 if on_idle is not None:
                     on_idle()
                 continue
