@@ -22,15 +22,18 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, top_k: int, iou_t
     from calibration.fileio import atomic_write_json
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
+    from reconstruction.quality import check_masks, check_registration
     from reconstruction.registration import register as run
 
     t0 = time.perf_counter()
     capture = read_capture(capture_dir)
     lib = load_library(lib_dir)
     masks, source = capture_masks(capture)
+    check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
     t_masks = time.perf_counter() - t0
     cameras = [capture.camera(i) for i in range(len(capture))]
     res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None)
+    check_registration(res.score, res.alternatives, masks, len(lib.models), res.model_id)
     doc = res.to_dict()
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source

@@ -20,15 +20,23 @@ def service() -> None:
 @click.option("--max-queue", default=8, show_default=True, help="Jobs waiting at most; more captures wait in the store.")
 @click.option("--max-jobs", default=None, type=int, help="Stop after this many jobs (default: serve until SIGTERM).")
 @click.option("--poll", default=2.0, show_default=True, help="Seconds between scans of the store.")
-def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float) -> None:
+@click.option("--min-free-gb", default=0.25, show_default=True, type=click.FloatRange(0), help="Claim no job while WORK has less free disk than this.")
+def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float, min_free_gb: float) -> None:
     from deploy.service import PipelineService
     from deploy.steps import PipelineConfig, make_step_runner
 
     def show(e) -> None:
+        if e.kind == "stopped":
+            click.echo(e.detail["error"])
+            return
+        if e.kind == "resumed":
+            click.echo("RESUMED: disk space is back; serving jobs again")
+            return
         detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else ""
         click.echo(f"{e.kind:<12} job {e.job_id} {e.capture_id} {e.step} {detail}".rstrip())
 
-    svc = PipelineService(store, work, make_step_runner(PipelineConfig(str(library), preset)), max_queue=max_queue, on_event=show)
+    svc = PipelineService(store, work, make_step_runner(PipelineConfig(str(library), preset)), max_queue=max_queue, on_event=show,
+                          min_free_bytes=int(min_free_gb * 1e9))
     if svc.jobs.recovered:
         click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")
     done = svc.run_forever(poll_s=poll, max_jobs=max_jobs)
