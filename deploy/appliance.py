@@ -191,7 +191,11 @@ class Appliance:
             with self._lock:
                 self._last_trigger = f"#{out.trigger.seq} {time.strftime('%H:%M:%S')} {out.status}"
             if out.status == "committed":
-                self._check_drift(out.capture_id)
+                try:
+                    self._check_drift(out.capture_id)
+                except OSError as e:  # a full disk must not end acquisition: the check is retried with the next capture
+                    with self._lock:
+                        self._keeper_note = f"drift check not recorded ({e.strerror or e})"
 
         self.acquisition.run(self.software_trigger, self._stop, on_outcome=outcome)
 

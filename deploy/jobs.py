@@ -117,11 +117,13 @@ class JobStore:
         with self._lock:
             return self._db.execute(sql, args).fetchall()
 
-    def requeue_interrupted(self) -> int:
-        """Interrupted steps go back to pending; their jobs back to queued. Returns how many."""
+    def requeue_interrupted(self, *, refund: bool = False) -> int:
+        """Interrupted steps go back to pending; their jobs back to queued (`refund`: the attempt they
+        were on is given back, when the interruption was the disk's fault, not the job's). Returns how many."""
         with self._tx() as db:
             n = db.execute("UPDATE steps SET status='pending', started=NULL WHERE status='running'").rowcount
-            db.execute("UPDATE jobs SET status='queued', updated=? WHERE status='running'", (time.time(),))
+            attempts = "MAX(attempts-1, 0)" if refund else "attempts"
+            db.execute(f"UPDATE jobs SET status='queued', attempts={attempts}, updated=? WHERE status='running'", (time.time(),))
         return n
 
     def add(self, capture_id: str, capture_path: str | Path) -> bool:

@@ -92,7 +92,7 @@ class PipelineService:
             return False
         if self.state:
             self.state, self._full_at = "", None
-            self.jobs.requeue_interrupted()
+            self.jobs.requeue_interrupted(refund=True)
             self.on_event(ServiceEvent("resumed", 0, "", detail={"free_bytes": free}))
         return True
 
@@ -149,18 +149,19 @@ class PipelineService:
 
     def run_once(self) -> bool:
         """Scan, then run one queued job; False when there was nothing to do (or the disk is full)."""
-        if not self.room():
-            return False
         try:
+            if not self.room():
+                return False
             self.scan()
             job = self.jobs.claim_next()
             if job is None:
                 return False
             self.run_job(job)
-        except sqlite3.OperationalError as e:
+        except (sqlite3.OperationalError, OSError) as e:
             if not is_disk_full(e):
                 raise
-            self._disk_full("the job store could not be written")
+            # The job in flight stays "running" in the job store; it is requeued, its attempt refunded, on resuming.
+            self._disk_full("the job store or a job's folder could not be written")
             return False
         return self.state == ""
 

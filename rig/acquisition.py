@@ -168,7 +168,7 @@ class Acquisition:
         if problems:
             return self._count(Outcome("refused", event, reason=f"empty-rig reference not taken: {'; '.join(problems)}"))
         try:
-            ref = self.store.references.commit({cid: f.image for cid, f in frames.items()}, reason)
+            ref = self.store.with_reserve(lambda: self.store.references.commit({cid: f.image for cid, f in frames.items()}, reason))
         except (OSError, ReferenceError) as e:
             return self._count(Outcome("refused", event, reason=f"empty-rig reference not stored: {getattr(e, 'strerror', None) or e}"))
         self.backgrounds, self.background_id, self.reference_note = dict(ref.frames), ref.reference_id, ""

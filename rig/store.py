@@ -126,12 +126,11 @@ class CaptureStore:
         Raises StoreError (the old counter stays on disk) when not even that can be written."""
         n = self._next
         try:
-            self._with_reserve(lambda: atomic_write_json(self.root / STATE, {"next_counter": n + 1}))
+            self.with_reserve(lambda: atomic_write_json(self.root / STATE, {"next_counter": n + 1}))
         except OSError as e:
             what = "cannot record the capture counter"
-            if is_enospc(e):
-                self.alarm = self._full_alarm(what)
-            raise StoreError(self.alarm if is_enospc(e) else f"{what}: {e.strerror or e}") from e
+            self.alarm = self._full_alarm(what) if is_enospc(e) else f"STOPPED: {what} ({e.strerror or e}); captures resume when it can be written"
+            raise StoreError(self.alarm) from e
         self._next = n + 1
         return f"{n:06d}-{dt.datetime.now(dt.timezone.utc):%Y%m%dT%H%M%SZ}"
 
@@ -152,7 +151,12 @@ class CaptureStore:
             self.alarm = (f"{DISK_FULL}: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; "
                           "captures resume when space is freed")
             return False
-        if need_bytes > 0 and not self._hold_reserve(need_bytes):
+        try:
+            held = need_bytes <= 0 or self._hold_reserve(need_bytes)
+        except OSError as e:
+            self.alarm = f"STOPPED: the store cannot be written ({e.strerror or e}); captures resume when it can"
+            return False
+        if not held:
             self.alarm = self._full_alarm(f"no room to reserve {need_bytes / 1e6:.1f} MB for the next capture")
             return False
         self.alarm = ""
@@ -187,7 +191,7 @@ class CaptureStore:
             return False
         return True
 
-    def _with_reserve(self, write: Callable[[], object]):
+    def with_reserve(self, write: Callable[[], object]):
         """Run `write`; on ENOSPC release the reserve (the disk filled behind our back) and run it once more."""
         try:
             return write()
@@ -218,7 +222,7 @@ class CaptureStore:
                 raise
 
         try:
-            self._with_reserve(write)
+            self.with_reserve(write)
         except OSError as e:
             if is_enospc(e):
                 self.alarm = self._full_alarm(f"capture {capture_id} did not fit even into its reserve")
@@ -245,7 +249,7 @@ class CaptureStore:
                     raise
 
             try:
-                self._with_reserve(write_frames)
+                self.with_reserve(write_frames)
             except (OSError, CaptureError) as e:
                 record["frames_not_saved"] = f"{len(frames)} frames could not be written: {getattr(e, 'strerror', None) or e}"
 
@@ -257,7 +261,7 @@ class CaptureStore:
             fsync_dir(staging.parent)
 
         try:
-            self._with_reserve(write_reason)
+            self.with_reserve(write_reason)
         except OSError as e:
             shutil.rmtree(staging, ignore_errors=True)
             raise StoreError(f"could not quarantine capture {capture_id} ({reason}): {e.strerror or e}") from e
