@@ -153,7 +153,7 @@ class Acquisition:
     def capture_bytes(self) -> int:
         """Disk a capture needs at most: its PNG frames (and the reference copy), with room for the manifests."""
         raw = sum(c.camera.width * c.camera.height * 3 for c in self.cameras)
-        return int(1.1 * raw * (2 if self.backgrounds else 1)) + (256 << 10)
+        return int(1.1 * raw * (2 if self.backgrounds else 1)) + 4096 * (len(self.cameras) + 4)
 
     # ---- the empty-rig reference ---------------------------------------------------------------
 
