@@ -119,6 +119,7 @@ class PipelineService:
         """Run `job`'s unfinished steps; returns the job's status afterwards."""
         work = self.job_dir(job)
         work.mkdir(parents=True, exist_ok=True)
+        remove_half_written(work)
         for step in STEPS:
             if job.steps[step]["status"] == "done":
                 continue
@@ -186,6 +187,21 @@ class PipelineService:
 
     def stop(self) -> None:
         self._stop.set()
+
+
+def remove_half_written(folder: Path) -> list[Path]:
+    """Delete what a killed write left under `folder`: hidden `.X.*.incoming` directories (a twin or an
+    export being assembled) and `.X.*.tmp` files (an atomic write's temp file). Published outputs and
+    the training checkpoint are kept. Returns what was removed."""
+    gone = []
+    for p in sorted(folder.rglob(".*"), key=lambda q: -len(q.parts)):
+        if p.name.endswith(".incoming") and p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+            gone.append(p)
+        elif p.name.endswith(".tmp") and p.is_file():
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
 
 
 def _caused_by_full_disk(exc: BaseException) -> bool:
