@@ -3,9 +3,10 @@
 Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
 capture in the store), `quarantined` (kept with its reason), `refused` (no room on the disk for a
 whole capture, checked before its frames are taken: nothing is lost), `late` (the trigger waited
-longer than the part stays in view), `dropped` (a duplicate or too-soon trigger), `failed` (not
-even a quarantine entry could be written) or `reference` (the belt was empty: a new empty-rig
-reference was taken, see rig.reference).
+longer than the part stays in view), `dropped` (a duplicate or too-soon trigger), `held` (the store
+could take neither the capture nor a quarantine entry, e.g. it went read-only mid-write: the frames
+stay in memory and are written as soon as it can; `failed` only if the rig stops first) or
+`reference` (the belt was empty: a new empty-rig reference was taken, see rig.reference).
 
 The empty-rig reference is taken on command (`take_reference`), on schedule (`reference_every_s`,
 while no trigger waits) and whenever a trigger says the belt is empty (payload `belt: "empty"`,
@@ -28,7 +29,7 @@ from rig.reference import ReferenceError
 from rig.store import CaptureStore, StoreError, is_enospc
 from rig.triggers import TriggerEvent, TriggerFilter, TriggerSource
 
-OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference")
+OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference", "held")
 EMPTY_BELT_SEQ = -1  # what cameras are armed with for an empty-rig reference (the simulated rig renders no part)
 
 
@@ -112,6 +113,18 @@ def agree_photometry(cameras: Sequence[CameraDriver], settings: CameraSettings) 
     return locked
 
 
+@dataclass(frozen=True)
+class _Held:
+    """A capture whose frames the store could not take yet: committed (or quarantined, with `reason`) later."""
+
+    event: TriggerEvent
+    capture_id: str
+    data: list
+    meta: dict
+    backgrounds: dict | None
+    quarantine_reason: str = ""
+
+
 @dataclass
 class Acquisition:
     """Turns triggers into stored captures. `cameras` must be open (see `open_cameras`)."""
@@ -141,6 +154,7 @@ class Acquisition:
         self._next_seq = 0
         self.stopped = ""
         self.reference_note = ""
+        self.held: list[_Held] = []
         self._reference_t = time.monotonic()
         if not self.backgrounds:
             try:
@@ -227,9 +241,13 @@ class Acquisition:
         problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
         if problems:
             return self._quarantine(event, capture_id, "; ".join(problems), data, meta)
+        backgrounds = {k: v for k, v in self.backgrounds.items() if k in frames} or None
         try:
-            self.store.commit(capture_id, data, meta, backgrounds={k: v for k, v in self.backgrounds.items() if k in frames} or None)
+            self.store.commit(capture_id, data, meta, backgrounds=backgrounds)
         except (OSError, ValueError, StoreError) as e:
+            if isinstance(e, OSError) and not is_enospc(e):
+                # The store cannot be written at all (read-only, I/O error): keep the frames, write them later.
+                return self._hold(_Held(event, capture_id, data, meta, backgrounds), f"the store could not be written ({e.strerror or e})")
             what = "disk full while writing" if is_enospc(e) else "write failed"
             return self._quarantine(event, capture_id, f"{what}: {e}", data, meta)
         return Outcome("committed", event, capture_id, latency_ns=self.clock() - event.timestamp_ns)
@@ -238,8 +256,31 @@ class Acquisition:
         try:
             self.store.quarantine(capture_id, reason, data, meta, {"trigger": event.to_dict()})
         except StoreError as e:
-            return Outcome("failed", event, capture_id, f"{reason}; and {e}")
+            return self._hold(_Held(event, capture_id, data, meta, None, reason), f"{reason}; and {e}")
         return Outcome("quarantined", event, capture_id, reason, self.clock() - event.timestamp_ns)
+
+    def _hold(self, held: _Held, why: str) -> Outcome:
+        self.held.append(held)
+        return Outcome("held", held.event, held.capture_id, f"{why}; its frames are kept in memory and written as soon as the store can take them")
+
+    def flush_held(self) -> list[Outcome]:
+        """Write the held captures the store can now take, oldest first; their outcomes replace "held" in the counts."""
+        out = []
+        while self.held:
+            h = self.held[0]
+            try:
+                if h.quarantine_reason:
+                    self.store.quarantine(h.capture_id, h.quarantine_reason, h.data, h.meta, {"trigger": h.event.to_dict()})
+                else:
+                    self.store.commit(h.capture_id, h.data, h.meta, backgrounds=h.backgrounds)
+            except (OSError, ValueError, StoreError):
+                break
+            self.held.pop(0)
+            self.counts["held"] -= 1
+            status = "quarantined" if h.quarantine_reason else "committed"
+            out.append(self._count(Outcome(status, h.event, h.capture_id, h.quarantine_reason or "written after the store could take it again",
+                                           self.clock() - h.event.timestamp_ns)))
+        return out
 
     def _grab_all(self, seq: int) -> tuple[dict[str, Frame], dict[str, str]]:
         """Arm every camera, then grab from all at once. A camera that failed before is reopened first."""
@@ -279,8 +320,8 @@ class Acquisition:
 
     @property
     def taken(self) -> int:
-        """Captures taken: committed or quarantined."""
-        return self.counts["committed"] + self.counts["quarantined"]
+        """Captures taken: committed, quarantined or held in memory."""
+        return self.counts["committed"] + self.counts["quarantined"] + self.counts["held"]
 
     def run(
         self,
@@ -293,7 +334,12 @@ class Acquisition:
         poll_s: float = 0.1,
     ) -> None:
         """Handle triggers until `stop` is set or `max_captures` are taken. A capture in flight always completes."""
-        while not stop.is_set() and (max_captures is None or self.taken < max_captures):
+        while not stop.is_set() and (max_captures is None or self.taken < max_captures or self.held):
+            for out in self.flush_held() if self.held else ():
+                if on_outcome is not None:
+                    on_outcome(out)
+            if max_captures is not None and self.taken >= max_captures and not self.held:
+                break
             ev = source.get(timeout=poll_s)
             if ev is None:
                 if self.reference_every_s is not None and time.monotonic() - self._reference_t >= self.reference_every_s:
@@ -307,13 +353,20 @@ class Acquisition:
             if on_outcome is not None:
                 on_outcome(out)
 
-    def close(self) -> None:
+    def close(self) -> list[Outcome]:
+        """Close the cameras; returns what became of the held captures (committed now, or failed: the rig stopped first)."""
         self._pool.shutdown(wait=True)
         for cam in self.cameras:
             try:
                 cam.close()
             except CameraError:
                 pass
+        out = self.flush_held()
+        for h in self.held:
+            self.counts["held"] -= 1
+            out.append(self._count(Outcome("failed", h.event, h.capture_id, "the rig stopped before the store could be written; its frames are lost")))
+        self.held.clear()
+        return out
 
 
 def open_cameras(cameras: Sequence[CameraDriver], settings: CameraSettings) -> CameraSettings:

@@ -91,7 +91,7 @@ def _report(out) -> None:
         click.echo("RESUMED: disk space is back; capturing again")
     if out.status == "committed":
         click.echo(f"committed {out.capture_id}  ({out.latency_ns / 1e6:.0f} ms after trigger {out.trigger.seq})")
-    elif out.status in ("quarantined", "failed"):
+    elif out.status in ("quarantined", "failed", "held"):
         click.echo(f"{out.status} {out.capture_id}: {out.reason}")
     elif out.status == "reference":
         click.echo(f"reference {out.capture_id}: empty-rig frames taken ({out.reason})")
