@@ -193,9 +193,9 @@ class Appliance:
             if out.status == "committed":
                 try:
                     self._check_drift(out.capture_id)
-                except OSError as e:  # a full disk must not end acquisition: the check is retried with the next capture
+                except (OSError, ValueError) as e:  # a full disk must not end acquisition: the check is retried with the next capture
                     with self._lock:
-                        self._keeper_note = f"drift check not recorded ({e.strerror or e})"
+                        self._keeper_note = f"drift check not recorded ({getattr(e, 'strerror', None) or e})"
 
         self.acquisition.run(self.software_trigger, self._stop, on_outcome=outcome)
 
