@@ -178,8 +178,8 @@ def table(title: str, tally: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch and of service run each (acceptance: 100)")
-    ap.add_argument("--skip-service-kills", action="store_true", help="skip part 3 (the slowest: real reconstructions)")
+    ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
+    ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
     ap.add_argument("--seed", type=int, default=16)
     args = ap.parse_args()
@@ -196,14 +196,17 @@ def main() -> None:
         print(sections[-1], flush=True)
         sections.append(table(f"SIGKILL of `rig watch --simulate` at {args.kills} random points", kill_rig(tmp, args.kills, rng)))
         print(sections[-1], flush=True)
-        if not args.skip_service_kills:
-            sections.append(table(f"SIGKILL of `service run` at {args.kills} random points, then one run to the end", kill_service(tmp, args.kills, rng)))
+        service_kills = args.kills if args.service_kills is None else args.service_kills
+        if service_kills:
+            sections.append(table(f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
+                                  kill_service(tmp, service_kills, rng)))
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     import os
 
-    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --kills {args.kills}`, {time.perf_counter() - t0:.0f} s, "
+    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --kills {args.kills} --service-kills {service_kills}`, "
+            f"{time.perf_counter() - t0:.0f} s, "
             f"load average {os.getloadavg()[0]:.1f} at the end.\n\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(head + "\n".join(sections))
