@@ -23,11 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from tests.deploy.test_faults import TRIGGERS, _captures, _keeper_flow, _run_rig, _Steps
+from tests.deploy.test_faults import _captures, _keeper_flow, _run_rig, _Steps
 from tests.faultfs import FaultyDisk
 from tests.killing import REPO, cadsplat, job_statuses, reported, run_until_killed, store_after_kill, work_after_kill
 
 RESULTS = Path(__file__).resolve().parent / "results"
+TRIGGERS = 3  # captures per write-site run, after the reference
 
 
 def one_sentence(text: str) -> bool:
@@ -39,7 +40,7 @@ def rig_sweep(tmp: Path, mode: str) -> dict:
     from rig.store import CaptureStore
 
     count = FaultyDisk(tmp / f"{mode}-count")
-    _run_rig(tmp / f"{mode}-count", count)
+    _run_rig(tmp / f"{mode}-count", count, triggers=TRIGGERS)
     sites = len(count.calls)
     tally = {"sites": sites, "triggers": 0, "committed": 0, "of_which_held_then_written": 0, "refused": 0, "quarantined": 0, "failed": 0,
              "lost": 0, "half_written": 0, "not_one_sentence": 0}
@@ -47,7 +48,7 @@ def rig_sweep(tmp: Path, mode: str) -> dict:
         root = tmp / f"{mode}-{n}"
         disk = {"enospc": lambda: FaultyDisk(root, fail_at=n), "filled": lambda: FaultyDisk(root, fill_at=n),
                 "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True)}[mode]()  # then writable again
-        outs, _ = _run_rig(root, disk, heal=mode == "erofs")
+        outs, _ = _run_rig(root, disk, heal=mode == "erofs", triggers=TRIGGERS)
         for o in outs[1:]:
             if o.status == "held":
                 continue
