@@ -250,7 +250,8 @@ class Appliance:
         cams = []
         for d in self.drivers:
             c = checks.get(d.camera_id, {})
-            cams.append(CameraStatus(d.camera_id, d.health().ok, c.get("status", "—"), c.get("rotation_deg"), c.get("effect_px")))
+            h = d.health()
+            cams.append(CameraStatus(d.camera_id, h.ok, c.get("status", "—"), c.get("rotation_deg"), c.get("effect_px"), "" if h.ok else h.detail))
         alarms = [a for a in (drift_alarm(c) for c in cams) if a]
         if note and not any(c.calibration == RECALIBRATE for c in cams):
             alarms.append(Alarm(f"keeper:{note}", f"Calibration keeper {note}."))

@@ -13,6 +13,7 @@ class CameraStatus:
     calibration: str = "—"  # OK, WARN, RECALIBRATE, or — before the first check
     drift_deg: float | None = None
     drift_px: float | None = None
+    detail: str = ""  # why it is offline, from the driver (e.g. "OAK … is disconnected (X_LINK_ERROR); reconnecting …")
 
 
 @dataclass(frozen=True)
@@ -86,5 +87,6 @@ def drift_alarm(camera: CameraStatus) -> Alarm | None:
         deg = f"{camera.drift_deg:.1f}°" if camera.drift_deg is not None else "a little"
         return Alarm(f"drift:{camera.name}", f"Camera {camera.name} moved {deg} — run calibration check.")
     if not camera.online:
-        return Alarm(f"offline:{camera.name}", f"Camera {camera.name} is not answering — check its cable and power.")
+        why = f" ({camera.detail})" if camera.detail else ""
+        return Alarm(f"offline:{camera.name}", f"Camera {camera.name} is not answering{why} — captures are refused until it is back; check its cable and power.")
     return None

@@ -32,6 +32,10 @@ class FieldConfig:
     # Remove the field's best-fit similarity (translation, infinitesimal rotation, uniform scale) at
     # its evaluation points, so the field cannot mimic the global Sim(3) the pose correction owns.
     project_similarity: bool = False
+    # With `project_similarity`, keep the uniform scaling in the field (remove only the rigid motion):
+    # on a metric rig the pose's scale is fixed by the calibration, and a part larger than its CAD
+    # model is a deformation to measure, not a pose.
+    projection_keeps_scale: bool = False
 
 
 def positional_encoding(x: torch.Tensor, bands: int) -> torch.Tensor:
@@ -69,14 +73,14 @@ class DeformationMLP(nn.Module):
         return self.head(h)
 
 
-def similarity_basis(points: torch.Tensor) -> torch.Tensor:
+def similarity_basis(points: torch.Tensor, with_scale: bool = True) -> torch.Tensor:
     """Offsets [P * 3, 7] of points [P, 3] (about their centre, in about [-1, 1]) under the 7 infinitesimal
-    similarities: 3 translations, 3 rotations (ω × x), 1 uniform scaling (x)."""
+    similarities: 3 translations, 3 rotations (ω × x), 1 uniform scaling (x); [P * 3, 6] (rigid) without scale."""
     p = len(points)
     eye = torch.eye(3, dtype=points.dtype).expand(p, 3, 3)  # [P, 3 (dim), 3 (generator)]
     rot = torch.cross(torch.eye(3, dtype=points.dtype)[None].expand(p, 3, 3), points[:, None, :].expand(p, 3, 3), dim=-1)
-    cols = torch.cat([eye, rot.transpose(1, 2), points[:, :, None]], 2)  # [P, 3, 7]
-    return cols.reshape(p * 3, 7)
+    cols = torch.cat([eye, rot.transpose(1, 2), *([points[:, :, None]] if with_scale else [])], 2)  # [P, 3, 7 or 6]
+    return cols.reshape(p * 3, -1)
 
 
 def remove_similarity(offsets: torch.Tensor, basis: torch.Tensor, pinv: torch.Tensor) -> torch.Tensor:
@@ -147,7 +151,7 @@ class DeformationField(nn.Module):
             return
         at = self.anchors if self.anchors is not None else self.points
         x = (at.double() - self.center.double()) / self.radius.double()
-        basis = similarity_basis(x)
+        basis = similarity_basis(x, with_scale=not self.config.projection_keeps_scale)
         self.sim_basis, self.sim_pinv = basis.float(), torch.linalg.pinv(basis).float()
 
     @property

@@ -130,7 +130,7 @@ def refine_camera_pose(
     seen (the last step's pose may sit on an Adam oscillation).
     """
     correction = PoseCorrection(1, mode="per_camera")
-    opt = torch.optim.Adam([correction.r6, correction.t], lr=lr)
+    opt = torch.optim.Adam(correction.camera_parameters(), lr=lr)
     c2w0 = torch.as_tensor(camera.c2w, dtype=torch.float64)[None]
     target = torch.as_tensor(np.asarray(gt_rgb, np.float32))
     mask = torch.as_tensor(np.asarray(gt_mask, bool))

@@ -80,6 +80,23 @@ def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -
     return all_masks[list(indices)], source
 
 
+def metres_per_rig_unit(meta: dict) -> float | None:
+    """Metres per rig-frame unit when the capture's calibration is metric (`"units"` in its cadsplat
+    block, as a board calibration writes it); None when the rig frame has no known scale."""
+    units = meta.get("units")
+    return UNIT_TO_M.get(str(units)) if units is not None else None
+
+
+def metric_sim3(sim3_rig_to_object: Sim3, metres_per_unit: float, centre_object: np.ndarray) -> Sim3:
+    """The registration with its scale set to the calibration's (`metres_per_unit`; object frame in
+    metres), turned about the object's centre `centre_object` [3] so the object stays where the
+    silhouettes put it. A silhouette fit's scale errs by a few % (thin and elongated parts: 2-6 %
+    on the path-traced rig scenes); a metric rig measures it."""
+    r = sim3_rig_to_object.rotation
+    centre_rig = sim3_rig_to_object.inverse().apply(np.asarray(centre_object, np.float64)[None])[0]
+    return Sim3(metres_per_unit, r, centre_object - metres_per_unit * r @ centre_rig)
+
+
 def calibration_error_px(meta: dict, cams: Sequence[Camera], centre_rig: np.ndarray) -> float | None:
     """The capture's stated calibration uncertainty in pixels at the object (rig-frame centre [3]); None if unstated."""
     uncertainty = meta.get("calibration_uncertainty")
@@ -88,6 +105,14 @@ def calibration_error_px(meta: dict, cams: Sequence[Camera], centre_rig: np.ndar
     metres_per_unit = UNIT_TO_M.get(str(meta.get("units", "m")), 1.0)
     distance_m = metres_per_unit * np.linalg.norm(np.stack([c.c2w[:3, 3] for c in cams]) - centre_rig, axis=1)
     return extrinsics_error_px(uncertainty, np.array([c.K[0, 0] for c in cams]), distance_m)
+
+
+def _scale_choice(metres_per_unit: float | None, reg: RegistrationResult) -> dict:
+    if metres_per_unit is None:
+        return {"value": float(reg.sim3_rig_to_object.scale), "why": "the rig frame has no metric scale: the registration's "
+                "silhouette scale; the deformation field carries no uniform scaling"}
+    return {"value": metres_per_unit, "why": "metric rig: the calibration's scale, fixed; a part whose size departs from its "
+            "CAD model shows as a deformation"}
 
 
 def sphere_registration(masks: np.ndarray, cams: Sequence[Camera]) -> tuple[RegistrationResult, MeshParts]:
@@ -169,8 +194,10 @@ def reconstruct(
     say(f"registered {reg.model_id} (mean silhouette IoU {reg.score:.3f})")
 
     t = time.perf_counter()
-    c2w_init = reg.sim3_rig_to_object.apply_to_c2w(np.stack([c.c2w for c in cams]))
     centre = 0.5 * (parts.vertices.min(0) + parts.vertices.max(0))
+    metric = metres_per_rig_unit(capture.meta) if init == "cad" else None
+    sim3_start = reg.sim3_rig_to_object if metric is None else metric_sim3(reg.sim3_rig_to_object, metric, centre)
+    c2w_init = sim3_start.apply_to_c2w(np.stack([c.c2w for c in cams]))
     stats = scene_stats(masks, c2w_init, centre)
     cfg, choices = resolve_preset(preset, stats)
     if ablations:
@@ -181,6 +208,9 @@ def reconstruct(
             raise ValueError(f"unknown preset field {unknown[0]!r} in overrides")
         cfg = replace(cfg, **overrides)
         choices["overrides"] = {"value": dict(overrides), "why": "set by the caller after the preset was resolved"}
+    if cfg.field.project_similarity:
+        cfg = replace(cfg, field=replace(cfg.field, projection_keeps_scale=metric is not None))
+    choices["scale"] = _scale_choice(metric, reg)
     if init == "sphere":
         choices["init"] = {"value": "sphere", "why": "paper 4.4.2: no CAD; an icosphere at the optical axes' meeting point, "
                            "sized so its projections match the masks' areas"}
@@ -214,7 +244,7 @@ def reconstruct(
         c2w_refined = model.pose(torch.tensor(c2w_init)).numpy()
         sh = model.sh().numpy()
     delta = model.pose.delta_sim3()
-    sim3_refined: Sim3 = delta @ reg.sim3_rig_to_object
+    sim3_refined: Sim3 = delta @ sim3_start
     twin_cams = [
         TwinCamera(capture.frames[i].file_path, capture.frames[i].camera_id, cams[j].K, cams[j].width, cams[j].height, c2w_refined[j])
         for j, i in enumerate(idx)

@@ -7,11 +7,13 @@ The pivot p (the object's centre) and the length unit u (its radius) condition t
 and scaling about the object rather than the CAD origin decouples them from translation, and a
 translation measured in object radii makes one learning rate mean the same for a screw and a car.
 
-`per_camera`: an independent SE(3) delta per camera for rough poses, or for a rig whose calibration
-states an extrinsic uncertainty above a pixel at the object (`choose_pose_mode`). It multiplies on the camera's
-side (c2w @ Δ) so a rotation turns the camera about its own centre and a translation moves it along
-its own axes (in units u): per-view pointing errors are then decoupled from the camera's distance
-to the object.
+`per_camera`: the rig's Sim(3) delta as in `global`, then an SE(3) residual per camera, for rough
+poses or a rig whose calibration states an extrinsic uncertainty above a pixel at the object
+(`choose_pose_mode`). A residual multiplies on the camera's side (c2w @ Δ), so its rotation turns
+the camera about its own centre and its translation moves it along its own axes (in units u):
+per-view pointing errors are then decoupled from the camera's distance to the object. The rig's
+part stays what a new camera of the rig gets (`delta_sim3`); the residuals are what the training
+views' calibration got wrong on its own.
 """
 
 from __future__ import annotations
@@ -48,7 +50,11 @@ def viewmats_from_c2w(c2w: torch.Tensor) -> torch.Tensor:
 
 
 class PoseCorrection(nn.Module):
-    """Corrects camera-to-object poses c2w [C, 4, 4] (OpenCV axes). Identity at initialisation."""
+    """Corrects camera-to-object poses c2w [C, 4, 4] (OpenCV axes). Identity at initialisation.
+
+    Parameters: the rig's Sim(3) delta `rig_r6` [1, 6], `rig_t` [1, 3], `rig_log_scale` [1] (ten
+    numbers), and in `per_camera` mode the residuals `cam_r6` [C, 6], `cam_t` [C, 3].
+    """
 
     def __init__(self, num_cameras: int, mode: str = "global", *, pivot: np.ndarray | None = None, unit: float = 1.0):
         super().__init__()
@@ -57,28 +63,32 @@ class PoseCorrection(nn.Module):
         if mode not in POSE_MODES:
             raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {mode!r}")
         self.mode = mode
-        n = 1 if mode == "global" else num_cameras
         self.num_cameras = num_cameras
-        self.r6 = nn.Parameter(torch.tensor([IDENTITY_6D] * n, dtype=torch.float64))
-        self.t = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
-        # Only the global mode carries a scale (the rig-to-CAD unit ambiguity); per-camera is SE(3).
-        self.log_scale = nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=mode == "global")
+        self.rig_r6 = nn.Parameter(torch.tensor([IDENTITY_6D], dtype=torch.float64))
+        self.rig_t = nn.Parameter(torch.zeros(1, 3, dtype=torch.float64))
+        self.rig_log_scale = nn.Parameter(torch.zeros(1, dtype=torch.float64))
+        n = num_cameras if mode == "per_camera" else 0
+        self.cam_r6 = nn.Parameter(torch.tensor([IDENTITY_6D] * n, dtype=torch.float64).reshape(n, 6))
+        self.cam_t = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
         self.register_buffer("pivot", torch.zeros(3, dtype=torch.float64) if pivot is None else torch.tensor(pivot, dtype=torch.float64))
         self.register_buffer("unit", torch.tensor(float(unit), dtype=torch.float64))
+
+    def rig_parameters(self) -> list[nn.Parameter]:
+        return [self.rig_r6, self.rig_t, self.rig_log_scale]
+
+    def camera_parameters(self) -> list[nn.Parameter]:
+        return [self.cam_r6, self.cam_t] if self.mode == "per_camera" else []
 
     def forward(self, c2w: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
         """Corrected c2w [C, 4, 4] (float64) for cameras `index` [C] (default: all)."""
         c2w = c2w.to(torch.float64)
-        r_in, c_in = c2w[:, :3, :3], c2w[:, :3, 3]
-        if self.mode == "global":
-            rd = rotation_6d_to_matrix(self.r6[0])
-            r_out = rd @ r_in
-            c_out = (torch.exp(self.log_scale) * (c_in - self.pivot)) @ rd.T + self.pivot + self.unit * self.t[0]
-        else:
+        rd = rotation_6d_to_matrix(self.rig_r6[0])
+        r_out = rd @ c2w[:, :3, :3]
+        c_out = (torch.exp(self.rig_log_scale) * (c2w[:, :3, 3] - self.pivot)) @ rd.T + self.pivot + self.unit * self.rig_t[0]
+        if self.mode == "per_camera":
             sel = torch.arange(len(c2w)) if index is None else index
-            rd = rotation_6d_to_matrix(self.r6[sel])
-            r_out = r_in @ rd
-            c_out = c_in + self.unit * (r_in @ self.t[sel, :, None])[..., 0]
+            c_out = c_out + self.unit * (r_out @ self.cam_t[sel, :, None])[..., 0]
+            r_out = r_out @ rotation_6d_to_matrix(self.cam_r6[sel])
         out = torch.zeros_like(c2w)
         out[:, :3, :3] = r_out
         out[:, :3, 3] = c_out
@@ -88,19 +98,18 @@ class PoseCorrection(nn.Module):
     @torch.no_grad()
     def reset_(self) -> None:
         """Back to the identity correction."""
-        self.r6.copy_(torch.tensor(IDENTITY_6D, dtype=torch.float64).expand_as(self.r6))
-        self.t.zero_()
-        self.log_scale.zero_()
+        for r6 in (self.rig_r6, self.cam_r6):
+            r6.copy_(torch.tensor(IDENTITY_6D, dtype=torch.float64).expand_as(r6))
+        for p in (self.rig_t, self.cam_t, self.rig_log_scale):
+            p.zero_()
 
     @torch.no_grad()
     def delta_sim3(self) -> Sim3:
-        """The global correction as a Sim(3) in the object frame (identity for per-camera mode)."""
-        if self.mode != "global":
-            return Sim3.identity()
-        r = rotation_6d_to_matrix(self.r6[0]).numpy()
-        s = float(torch.exp(self.log_scale))
+        """The rig's correction as a Sim(3) in the object frame: what every camera of the rig shares."""
+        r = rotation_6d_to_matrix(self.rig_r6[0]).numpy()
+        s = float(torch.exp(self.rig_log_scale))
         p = self.pivot.numpy()
-        return Sim3(s, r, p - s * r @ p + float(self.unit) * self.t[0].numpy())
+        return Sim3(s, r, p - s * r @ p + float(self.unit) * self.rig_t[0].numpy())
 
 
 # Above this per-camera error of the rig's extrinsics (in pixels), one global Sim(3) leaves every view

@@ -126,6 +126,52 @@ def knn_indices(points: np.ndarray, k: int) -> np.ndarray:
     return np.asarray(idx[:, 1:], np.int64)
 
 
+def point_visibility(
+    points: np.ndarray,
+    normals: np.ndarray,
+    viewmats: np.ndarray,
+    Ks: np.ndarray,
+    width: int,
+    height: int,
+    masks: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which views see which points: visible [V, N] bool and the pixel each lands in, flat [V, N] int.
+
+    points/normals [N, 3], viewmats [V, 4, 4], Ks [V, 3, 3], masks [V, H, W] bool. A view sees a
+    point when the point faces it, projects inside the image (and its mask) and is not behind a
+    nearer point (a z-buffer of the points themselves, one pixel each, with a depth tolerance of 1%
+    of the object's extent).
+    """
+    pts = np.asarray(points, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    v, n = len(viewmats), len(pts)
+    visible = np.zeros((v, n), bool)
+    flat_px = np.zeros((v, n), np.int64)
+    tol = 0.01 * float(np.ptp(pts, axis=0).max() if n else 1.0)
+    for i in range(v):
+        cam = pts @ viewmats[i, :3, :3].T + viewmats[i, :3, 3]
+        z = cam[:, 2]
+        ok = z > 1e-9
+        uv = cam[:, :2] / np.where(ok, z, 1.0)[:, None] @ Ks[i, :2, :2].T + Ks[i, :2, 2]
+        px = np.floor(uv).astype(np.int64)
+        ok &= (px[:, 0] >= 0) & (px[:, 0] < width) & (px[:, 1] >= 0) & (px[:, 1] < height)
+        # Facing the camera: normal against the viewing ray (camera centre minus point).
+        centre = -viewmats[i, :3, :3].T @ viewmats[i, :3, 3]
+        ok &= np.einsum("nd,nd->n", nrm, centre - pts) > 0
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            continue
+        flat = px[idx, 1] * width + px[idx, 0]
+        zbuf = np.full(height * width, np.inf)
+        np.minimum.at(zbuf, flat, z[idx])
+        vis = z[idx] <= zbuf[flat] + tol
+        if masks is not None:
+            vis &= masks[i].reshape(-1)[flat]
+        visible[i, idx[vis]] = True
+        flat_px[i, idx[vis]] = flat[vis]
+    return visible, flat_px
+
+
 def project_colors(
     means: np.ndarray,
     normals: np.ndarray,
@@ -136,43 +182,19 @@ def project_colors(
     *,
     default: float = 0.5,
 ) -> np.ndarray:
-    """Mean colour [N, 3] of each point over the views that see it; `default` grey where none does.
-
-    images [V, H, W, 3], masks [V, H, W] bool, viewmats [V, 4, 4], Ks [V, 3, 3]. A view sees a point
-    when the point faces it, projects inside its mask and is not behind a nearer point (a z-buffer
-    of the points themselves, one pixel each, with a depth tolerance of 1% of the object's extent).
-    """
-    pts = np.asarray(means, np.float64)
-    nrm = np.asarray(normals, np.float64)
+    """Mean colour [N, 3] of each point over the views that see it (`point_visibility`); `default`
+    grey where none does. images [V, H, W, 3], masks [V, H, W] bool, viewmats [V, 4, 4], Ks [V, 3, 3]."""
     v, h, w = images.shape[:3]
-    acc = np.zeros((len(pts), 3))
-    cnt = np.zeros(len(pts))
-    tol = 0.01 * float(np.ptp(pts, axis=0).max() if len(pts) else 1.0)
+    visible, flat_px = point_visibility(means, normals, viewmats, Ks, w, h, masks)
+    acc = np.zeros((len(means), 3))
+    cnt = np.zeros(len(means))
     for i in range(v):
-        cam = pts @ viewmats[i, :3, :3].T + viewmats[i, :3, 3]
-        z = cam[:, 2]
-        ok = z > 1e-9
-        uv = cam[:, :2] / np.where(ok, z, 1.0)[:, None] @ Ks[i, :2, :2].T + Ks[i, :2, 2]
-        px = np.floor(uv).astype(np.int64)
-        ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        # Facing the camera: normal against the viewing ray (camera centre minus point).
-        centre = -viewmats[i, :3, :3].T @ viewmats[i, :3, 3]
-        ok &= np.einsum("nd,nd->n", nrm, centre - pts) > 0
-        idx = np.flatnonzero(ok)
-        if idx.size == 0:
-            continue
-        flat = px[idx, 1] * w + px[idx, 0]
-        zbuf = np.full(h * w, np.inf)
-        np.minimum.at(zbuf, flat, z[idx])
-        vis = z[idx] <= zbuf[flat] + tol
-        if masks is not None:
-            vis &= masks[i].reshape(-1)[flat]
-        idx, flat = idx[vis], flat[vis]
-        vals = images[i].reshape(-1, 3)[flat]
+        idx = np.flatnonzero(visible[i])
+        vals = images[i].reshape(-1, 3)[flat_px[i, idx]]
         good = np.all(np.isfinite(vals), 1)  # a corrupt pixel must not poison a splat's colour
         acc[idx[good]] += vals[good]
         cnt[idx[good]] += 1
-    out = np.full((len(pts), 3), default)
+    out = np.full((len(means), 3), default)
     seen = cnt > 0
     out[seen] = acc[seen] / cnt[seen, None]
     return out

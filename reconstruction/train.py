@@ -33,10 +33,11 @@ from torch import nn
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField
 from reconstruction.losses import composite, dropout_active, dropout_fraction, fill_loss, mask_l1, photometric_loss, sh_neighbour_loss
+from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.render import rasterize
-from reconstruction.splats import CanonicalSplats, knn_indices, project_colors, rgb_to_sh_dc
+from reconstruction.splats import CanonicalSplats, knn_indices, point_visibility, project_colors, rgb_to_sh_dc
 
 STAGES = ("pose", "deform", "photo")
 ProgressFn = Callable[[str, int, int, float], None]
@@ -106,9 +107,10 @@ class SplatModel(nn.Module):
         return viewmats_from_c2w(corrected).to(torch.float32)
 
     def param_groups(self, lr: dict) -> list[dict]:
-        pose = [p for p in self.pose.parameters() if p.requires_grad]
+        camera = self.pose.camera_parameters()
         return [
-            {"name": "pose", "params": pose, "lr": lr["pose"]},
+            {"name": "pose", "params": self.pose.rig_parameters(), "lr": lr["pose"]},
+            *([{"name": "pose_camera", "params": camera, "lr": lr.get("pose_camera", lr["pose"])}] if camera else []),
             {"name": "deformation", "params": list(self.field.parameters()), "lr": lr["deformation"]},
             {"name": "scales", "params": [self.log_scales], "lr": lr["scales"]},
             {"name": "opacities", "params": [self.opacity_logits], "lr": lr["opacities"]},
@@ -123,9 +125,9 @@ class SplatModel(nn.Module):
 
 
 TRAINABLE = {
-    "pose": ("pose",),
-    "deform": ("pose", "deformation"),
-    "photo": ("pose", "deformation", "scales", "opacities", "sh0", "shN"),
+    "pose": ("pose", "pose_camera"),
+    "deform": ("pose", "pose_camera", "deformation"),
+    "photo": ("pose", "pose_camera", "deformation", "scales", "opacities", "sh0", "shN"),
 }
 
 
@@ -164,8 +166,17 @@ def _set_trainable(model: SplatModel, stage: str, pose_scale: bool = True) -> No
     for group in model.param_groups({k: 0.0 for k in ("pose", "deformation", "scales", "opacities", "sh0", "shN")}):
         for p in group["params"]:
             p.requires_grad_(group["name"] in on)
-    # Only the global Sim(3) has a scale; per-camera SE(3) deltas never learn one.
-    model.pose.log_scale.requires_grad_("pose" in on and pose_scale and model.pose.mode == "global")
+    # The rig's scale learns only when the preset says so; per-camera residuals are SE(3).
+    model.pose.rig_log_scale.requires_grad_("pose" in on and pose_scale)
+
+
+def pose_stage_lr(lr: dict, group: str, stage: str) -> float:
+    """Learning rate of pose group `group` ("pose": the rig's Sim(3); "pose_camera": per-camera
+    residuals) at the start of `stage`: `lr[group_stage]`, else `lr[group]`; the camera group falls
+    back to the rig's rates."""
+    if group == "pose_camera":
+        return lr.get(f"pose_camera_{stage}", lr.get("pose_camera", pose_stage_lr(lr, "pose", stage)))
+    return lr.get(f"pose_{stage}", lr["pose"])
 
 
 def _grads_finite(params) -> bool:
@@ -192,6 +203,15 @@ def _recolor(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init:
     rgb = project_colors(means, splats.normals, views.images, views.masks, viewmats, views.Ks)
     seen = ~np.all(rgb == 0.5, axis=1)
     model.sh0[torch.from_numpy(seen), 0] = torch.tensor(rgb_to_sh_dc(rgb[seen]), dtype=torch.float32)
+
+
+@torch.no_grad()
+def _consistency_weights(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor) -> torch.Tensor:
+    """Which training views see which splats [V, N], at the current pose and field (full resolution, inside the masks)."""
+    viewmats = model.viewmats(c2w_init, torch.arange(len(views.images))).numpy().astype(np.float64)
+    h, w = views.masks.shape[1:]
+    visible, _ = point_visibility(model.means().numpy(), splats.normals, viewmats, views.Ks, w, h, views.masks)
+    return visibility_weights(visible)
 
 
 @torch.no_grad()
@@ -254,6 +274,9 @@ def train(
     neighbours = torch.from_numpy(knn_indices(splats.means, preset.sh_neighbours))
     c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
     mask_data = views.resized(preset.mask_scale)
+    if preset.lambda_consistency > 0:
+        pc_images = blurred(torch.tensor(views.images, dtype=torch.float32), preset.consistency_blur_px)
+        pc_ks = torch.tensor(views.Ks, dtype=torch.float32)
     photo_data = views.resized(preset.image_scale)
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -282,8 +305,7 @@ def train(
     for si in range(state["stage"], len(STAGES)):
         stage = STAGES[si]
         _set_trainable(model, stage, preset.pose_scale)
-        pose_group = next(g for g in opt.param_groups if g["name"] == "pose")
-        pose_lr = preset.lr.get(f"pose_{stage}", preset.lr["pose"])
+        pose_groups = [(g, pose_stage_lr(preset.lr, g["name"], stage)) for g in opt.param_groups if g["name"].startswith("pose")]
         cap = caps[stage]
         plateau = Plateau(window=max(20, cap // 12) if batch == 1 else max(10, cap // 15),
                           rel_tol=0.01 if stage != "photo" else 0.003)
@@ -291,13 +313,17 @@ def train(
         hist = state["history"].setdefault(stage, [])
         t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
         imgs, cov, ks, w, h = mask_data if stage != "photo" else photo_data
+        use_consistency = stage != "photo" and preset.lambda_consistency > 0
+        if use_consistency:
+            pc_weights = _consistency_weights(model, splats, views, c2w_init)
         if stage == "photo" and state["it"] == 0:
             state["stage2_start"] = _choose_stage2_start(model, opt, splats, views, c2w_init, photo_data, preset)
         last: dict = {}
         it = state["it"]
         while it < cap:
             # The pose settles as its rate decays 10x over the stage (as 3DGS decays its position rate).
-            pose_group["lr"] = pose_lr * preset.pose_lr_final ** (it / max(cap, 1))
+            for group, lr0 in pose_groups:
+                group["lr"] = lr0 * preset.pose_lr_final ** (it / max(cap, 1))
             idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
             means = model.means()
             scales = torch.exp(model.log_scales)
@@ -308,6 +334,10 @@ def train(
                 l_mask = mask_l1(alpha, cov[idx])
                 loss = l_mask
                 last = {"mask": l_mask}
+                if use_consistency:
+                    l_pc = consistency_loss(sample_colors(pc_images[idx], means, viewmats, pc_ks[idx]), pc_weights[idx])
+                    loss = loss + preset.lambda_consistency * l_pc
+                    last["consistency"] = l_pc
             else:
                 bg = torch.rand(len(idx), 3, generator=gen)
                 p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)

@@ -2,11 +2,12 @@
 
 Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
 capture in the store), `quarantined` (kept with its reason), `refused` (no room on the disk for a
-whole capture, checked before its frames are taken: nothing is lost), `late` (the trigger waited
-longer than the part stays in view), `dropped` (a duplicate or too-soon trigger), `held` (the store
-could take neither the capture nor a quarantine entry, e.g. it went read-only mid-write: the frames
-stay in memory and are written as soon as it can; `failed` only if the rig stops first) or
-`reference` (the belt was empty: a new empty-rig reference was taken, see rig.reference).
+whole capture, or a camera down and reconnecting by itself; decided before its frames are taken:
+nothing is stored, nothing lost), `late` (the trigger waited longer than the part stays in view),
+`dropped` (a duplicate or too-soon trigger), `held` (the store could take neither the capture nor a
+quarantine entry, e.g. it went read-only mid-write: the frames stay in memory and are written as
+soon as it can; `failed` only if the rig stops first) or `reference` (the belt was empty: a new
+empty-rig reference was taken, see rig.reference).
 
 The empty-rig reference is taken on command (`take_reference`), on schedule (`reference_every_s`,
 while no trigger waits) and whenever a trigger says the belt is empty (payload `belt: "empty"`,
@@ -19,7 +20,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -44,6 +45,14 @@ class Thresholds:
     saturated_fraction: float = 0.5
     grab_timeout_s: float = 2.0
     max_trigger_age_ns: int = 2_000_000_000
+
+
+@runtime_checkable
+class SelfRecovering(Protocol):
+    """A driver that re-opens a lost device in the background (OAK); the rig waits for it instead of reopening it inline."""
+
+    @property
+    def reconnecting(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -200,6 +209,8 @@ class Acquisition:
         age = self.clock() - event.timestamp_ns
         if age > self.thresholds.max_trigger_age_ns:
             return self._count(Outcome("late", event, reason=f"trigger waited {age / 1e9:.2f} s, longer than the part stays in view"))
+        if self.camera_alarm:
+            return self._count(Outcome("refused", event, reason=f"{self.camera_alarm}; no capture taken"))
         # Room for the whole capture (and its id) is made sure of before any frame is taken.
         capture_id = ""
         if self.store.room_for(self.capture_bytes()):
@@ -220,8 +231,13 @@ class Acquisition:
     def capture(self, event: TriggerEvent, capture_id: str | None = None) -> Outcome:
         seq = event.seq if event.seq is not None else self._next_seq
         self._next_seq = seq + 1
+        if self.camera_alarm:
+            return Outcome("refused", event, reason=f"{self.camera_alarm}; no capture taken")
         capture_id = capture_id or self.store.reserve_id()
         frames, errors = self._grab_all(seq)
+        if self.camera_alarm:
+            # A camera dropped while this capture was in flight: refused whole, none of its frames stored.
+            return Outcome("refused", event, capture_id, f"{self.camera_alarm}; the capture in flight was refused whole")
         cams = {c.camera_id: c for c in self.cameras}
         data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
         spread = int(np.ptp([f.timestamp_ns for f in frames.values()])) if frames else 0
@@ -230,6 +246,7 @@ class Acquisition:
             "calibration_id": self.calibration_id,
             "trigger": event.to_dict(),
             "sync_spread_ns": spread,
+            "trigger_to_exposure_ns": {cid: f.timestamp_ns - event.timestamp_ns for cid, f in sorted(frames.items())},
             "camera_settings": {cid: f.settings for cid, f in sorted(frames.items())},
         }
         if self.calibration_uncertainty is not None:
@@ -287,7 +304,7 @@ class Acquisition:
         errors: dict[str, str] = {}
         for cam in self.cameras:
             try:
-                if not cam.health().ok:
+                if not cam.health().ok and not (isinstance(cam, SelfRecovering) and cam.reconnecting):
                     self._reopen(cam)
                 cam.arm(seq)
             except CameraError as e:
@@ -311,6 +328,15 @@ class Acquisition:
             pass
         cam.open()
         cam.configure(self.settings or CameraSettings(cam.camera.width, cam.camera.height))
+
+    @property
+    def camera_alarm(self) -> str:
+        """'' while every camera is up; else which cameras are down and reconnecting, by name."""
+        why: dict[str, list[str]] = {}
+        for c in self.cameras:
+            if isinstance(c, SelfRecovering) and c.reconnecting:
+                why.setdefault(c.health().detail, []).append(c.camera_id)
+        return "; ".join(f"camera{'s' if len(ids) > 1 else ''} {', '.join(ids)} {'are' if len(ids) > 1 else 'is'} down: {detail}" for detail, ids in why.items())
 
     def _count(self, out: Outcome) -> Outcome:
         self.counts[out.status] += 1

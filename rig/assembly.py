@@ -44,7 +44,7 @@ def load_rig_calibration(path: Path | None) -> RigCalibrationRef:
 
 def build_camera(cfg: CameraConfig, calibrated: Camera | None, index: int, n: int) -> CameraDriver:
     if cfg.driver == "oak":
-        return make_driver("oak", camera_id=cfg.id, device_id=cfg.device, socket=cfg.socket, camera=calibrated)
+        return make_driver("oak", camera_id=cfg.id, device_id=cfg.device, socket=cfg.socket, camera=calibrated, fsin_discard=cfg.fsin_discard)
     if cfg.driver == "replay":
         return make_driver("replay", camera_id=cfg.id, path=cfg.path)
     return make_driver("pattern", camera_id=cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height)

@@ -33,6 +33,7 @@ class CameraConfig:
     device: str = ""  # OAK device id (MX id / serial)
     socket: str = "CAM_A"
     path: str = ""  # replay: a capture or a directory of captures
+    fsin_discard: int = 0  # OAK snapshot sync: frames dropped after each FSIN edge (the first may be degraded)
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
 def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
     if not isinstance(d, dict):
         raise ConfigError(f"{v.name}: {key} must be a table")
-    v.known(d, key, {"id", "driver", "device", "socket", "path", "width", "height", "exposure_us", "iso", "white_balance_k", "focus", "sync"})
+    v.known(d, key, {"id", "driver", "device", "socket", "path", "width", "height", "exposure_us", "iso", "white_balance_k", "focus", "sync", "fsin_discard"})
     driver = v.choice(d, f"{key}.driver", CAMERA_DRIVERS, default="oak")
     settings = CameraSettings(
         width=v.integer(d, f"{key}.width", default=640, lo=16, hi=8192),
@@ -119,6 +120,9 @@ def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
     device = v.string(d, f"{key}.device", default="")
     if driver == "oak" and not device:
         raise ConfigError(f"{v.name}: {key}.device is required for an OAK camera (its device id; see `cadsplat rig list`)")
+    fsin_discard = v.integer(d, f"{key}.fsin_discard", default=0, lo=0, hi=8)
+    if fsin_discard and (driver != "oak" or settings.sync != "fsin"):
+        raise ConfigError(f"{v.name}: {key}.fsin_discard only applies to an OAK camera with sync = 'fsin'")
     path = v.string(d, f"{key}.path", default="")
     if driver == "replay" and not path:
         raise ConfigError(f"{v.name}: {key}.path is required for a replay camera (a capture or a directory of captures)")
@@ -129,6 +133,7 @@ def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
         device=device,
         socket=v.string(d, f"{key}.socket", default="CAM_A", pattern=r"CAM_[A-J]"),
         path=str(base / path) if path else "",
+        fsin_discard=fsin_discard,
     )
 
 

@@ -112,7 +112,7 @@ def _status(acq, source) -> str:
         f"triggers {f.received} | captures {c['committed']} | quarantined {c['quarantined']} | dropped {c['dropped']} "
         f"| missed {f.missed} | refused {c['refused']} | disk {free:.1f} GB free"
     )
-    alarm = acq.stopped or acq.store.alarm or source.last_error
+    alarm = acq.stopped or acq.store.alarm or acq.camera_alarm or source.last_error
     return f"{line} | {alarm}" if alarm else line
 
 
@@ -140,9 +140,9 @@ def rig() -> None:
 @rig.command("list")
 @click.option("--config", "config", type=click.Path(dir_okay=False), help="rig.toml whose cameras to list.")
 def list_cmd(config: str | None) -> None:
-    """Cameras: configured ones, OAK devices depthai can see, and the synthetic rig."""
+    """Cameras: configured ones, OAK devices depthai can see (sockets, sensors, sync modes), and the synthetic rig."""
     from rig.camera import CameraError, driver_names
-    from rig.oak import list_oak_devices
+    from rig.oak import describe_oak_device, import_depthai, list_oak_devices
 
     if config:
         cfg = _load(config, False)
@@ -151,13 +151,35 @@ def list_cmd(config: str | None) -> None:
             where = c.device and f"{c.device} {c.socket}" or c.path or "test pattern"
             click.echo(f"  {c.id:<10} {c.driver:<8} {where}  {c.settings.width}x{c.settings.height} sync {c.settings.sync}")
     try:
-        devices = list_oak_devices()
+        dai = import_depthai()
+        devices = list_oak_devices(dai)
     except (CameraError, RuntimeError) as e:
-        devices = []
-        click.echo(f"OAK devices: cannot enumerate ({e})")
-    click.echo(f"OAK devices: {len(devices)} found")
+        dai, devices = None, []
+        click.echo(f"OAK devices: cannot enumerate ({e}).")
+    if dai is not None and getattr(dai, "__name__", "") != "depthai":
+        click.echo("OAK devices below come from a depthai fake, not from hardware.")
+    if dai is not None and not devices:
+        click.echo("OAK devices: none found (depthai sees no OAK on USB or the network).")
+    elif devices:
+        click.echo(f"OAK devices: {len(devices)} found")
+    sockets: dict[str, set[str] | None] = {}
     for d in devices:
-        click.echo(f"  {d['device_id']}  {d['name']}  {d['state']}")
+        try:
+            info = describe_oak_device(d["device_id"], dai)
+        except CameraError as e:
+            sockets[d["device_id"]] = None
+            click.echo(f"  {d['device_id']}  {d['platform']}  {d['state']}: {e}")
+            continue
+        sockets[d["device_id"]] = {sk["socket"] for sk in info["sockets"]}
+        click.echo(f"  {d['device_id']}  {info['product']}  {info['platform']}  {len(info['sockets'])} sockets")
+        for sk in info["sockets"]:
+            click.echo(f"    {sk['socket']}  {sk['sensor']:<8} {sk['width']}x{sk['height']}  sync: {', '.join(sk['sync'])}")
+    if config and dai is not None:
+        for c in (c for c in cfg.cameras if c.driver == "oak"):
+            if c.device not in sockets:
+                click.echo(f"camera {c.id}: OAK {c.device} is not connected.")
+            elif sockets[c.device] is not None and c.socket not in sockets[c.device]:
+                click.echo(f"camera {c.id}: OAK {c.device} has no camera on {c.socket}.")
     click.echo(f"drivers: {', '.join(driver_names())} (synthetic: `--simulate`)")
 
 

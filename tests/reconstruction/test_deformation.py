@@ -130,3 +130,22 @@ def test_projected_field_has_no_similarity_component(anchors):
     g = field_from_state(f.export_state(), pts)
     np.testing.assert_allclose(g().detach().numpy(), f().detach().numpy(), atol=1e-7)
     np.testing.assert_allclose(f.offsets_at(pts), f().detach().numpy(), atol=1e-6)
+
+
+def test_projection_can_keep_the_uniform_scaling():
+    """On a metric rig the pose has no scale to learn: the field removes only rigid motion, so a part
+    larger than its CAD model stays a deformation, while a rigid shift is still invisible."""
+    from reconstruction.deformation import remove_similarity, similarity_basis
+
+    pts = sphere_points(400, r=0.1)
+    x = torch.tensor((pts - pts.mean(0)) / 0.1, dtype=torch.float64)
+    rigid = similarity_basis(x, with_scale=False)
+    assert rigid.shape == (3 * len(pts), 6)
+    pinv = torch.linalg.pinv(rigid)
+    grow = 0.03 * x  # 3 % larger about the centre
+    np.testing.assert_allclose(remove_similarity(grow, rigid, pinv).numpy(), grow.numpy(), atol=1e-9)
+    shift = torch.tensor([0.01, -0.02, 0.0], dtype=torch.float64).expand_as(x)
+    assert float(remove_similarity(grow + shift, rigid, pinv).sub(grow).abs().max()) < 1e-9
+    f = DeformationField(pts, FieldConfig(depth=2, width=16, bands=3, project_similarity=True, projection_keeps_scale=True))
+    g = field_from_state(f.export_state(), pts)
+    assert g.sim_basis.shape[1] == 6

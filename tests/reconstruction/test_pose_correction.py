@@ -39,9 +39,9 @@ def test_starts_at_identity(mode):
     c2w = ring()
     corr = PoseCorrection(len(c2w), mode)
     np.testing.assert_allclose(corrected_c2w_numpy(corr, c2w), c2w, atol=1e-14)
-    if mode == "global":
-        assert sum(p.numel() for p in corr.parameters() if p.requires_grad) == 10
-        np.testing.assert_allclose(corr.delta_sim3().matrix(), np.eye(4), atol=1e-14)
+    assert sum(p.numel() for p in corr.rig_parameters()) == 10
+    assert sum(p.numel() for p in corr.camera_parameters()) == (0 if mode == "global" else 9 * len(c2w))
+    np.testing.assert_allclose(corr.delta_sim3().matrix(), np.eye(4), atol=1e-14)
 
 
 def test_global_correction_is_the_papers_sim3():
@@ -49,9 +49,9 @@ def test_global_correction_is_the_papers_sim3():
     corr = PoseCorrection(len(c2w), "global")
     rd = axis_angle_to_matrix(np.array([0.1, 0.2, -0.05]))
     with torch.no_grad():
-        corr.r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]) * 3.0)  # any positive scaling
-        corr.t[0] = torch.tensor([0.01, -0.02, 0.03])
-        corr.log_scale[0] = np.log(1.1)
+        corr.rig_r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]) * 3.0)  # any positive scaling
+        corr.rig_t[0] = torch.tensor([0.01, -0.02, 0.03])
+        corr.rig_log_scale[0] = np.log(1.1)
     out = corrected_c2w_numpy(corr, c2w)
     delta = Sim3(1.1, rd, np.array([0.01, -0.02, 0.03]))
     np.testing.assert_allclose(out, delta.apply_to_c2w(c2w), atol=1e-12)
@@ -66,15 +66,33 @@ def test_per_camera_rotates_about_own_centre_and_has_gradients():
     c2w = ring(3)
     corr = PoseCorrection(3, "per_camera")
     with torch.no_grad():
-        corr.r6[1] = torch.tensor([np.cos(0.1), np.sin(0.1), 0, -np.sin(0.1), np.cos(0.1), 0])
+        corr.cam_r6[1] = torch.tensor([np.cos(0.1), np.sin(0.1), 0, -np.sin(0.1), np.cos(0.1), 0])
     out = corrected_c2w_numpy(corr, c2w)
     np.testing.assert_allclose(out[:, :3, 3], c2w[:, :3, 3], atol=1e-14)  # centres unchanged
     np.testing.assert_allclose(out[[0, 2]], c2w[[0, 2]], atol=1e-14)
     vm = viewmats_from_c2w(corr(torch.tensor(c2w)))
     np.testing.assert_allclose(vm.detach().numpy() @ out, np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
     vm.sum().backward()
-    assert corr.r6.grad is not None and torch.all(torch.isfinite(corr.r6.grad))
-    assert not corr.log_scale.requires_grad
+    assert corr.cam_r6.grad is not None and torch.all(torch.isfinite(corr.cam_r6.grad))
+
+
+def test_per_camera_residuals_sit_on_the_rigs_sim3():
+    # The rig's Sim(3) is what a new camera gets; each training camera adds its own SE(3) residual.
+    c2w = ring(4)
+    corr = PoseCorrection(4, "per_camera", pivot=np.array([0.01, 0.0, 0.02]), unit=0.05)
+    rd = axis_angle_to_matrix(np.array([0.02, -0.01, 0.03]))
+    rc = axis_angle_to_matrix(np.array([0.0, 0.01, 0.0]))
+    with torch.no_grad():
+        corr.rig_r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]))
+        corr.rig_t[0] = torch.tensor([0.1, 0.0, -0.2])
+        corr.cam_r6[2] = torch.tensor(np.concatenate([rc[:, 0], rc[:, 1]]))
+        corr.cam_t[2] = torch.tensor([0.0, 0.3, 0.0])
+    out = corrected_c2w_numpy(corr, c2w)
+    rig = corr.delta_sim3().apply_to_c2w(c2w)
+    np.testing.assert_allclose(out[[0, 1, 3]], rig[[0, 1, 3]], atol=1e-12)
+    residual = np.eye(4)
+    residual[:3, :3], residual[:3, 3] = rc, 0.05 * np.array([0.0, 0.3, 0.0])
+    np.testing.assert_allclose(out[2], rig[2] @ residual, atol=1e-12)
 
 
 def test_mode_from_provenance():
@@ -107,9 +125,9 @@ def test_pivot_and_unit_keep_the_correction_a_sim3():
     np.testing.assert_allclose(corrected_c2w_numpy(corr, c2w), c2w, atol=1e-14)
     rd = axis_angle_to_matrix(np.array([0.05, -0.1, 0.2]))
     with torch.no_grad():
-        corr.r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]))
-        corr.t[0] = torch.tensor([0.5, 0.2, -0.1])
-        corr.log_scale[0] = np.log(0.9)
+        corr.rig_r6[0] = torch.tensor(np.concatenate([rd[:, 0], rd[:, 1]]))
+        corr.rig_t[0] = torch.tensor([0.5, 0.2, -0.1])
+        corr.rig_log_scale[0] = np.log(0.9)
     out = corrected_c2w_numpy(corr, c2w)
     delta = corr.delta_sim3()
     np.testing.assert_allclose(out, delta.apply_to_c2w(c2w), atol=1e-12)

@@ -74,7 +74,7 @@ def test_short_run_is_finite_and_pose_moves_towards_truth(tmp_path):
     # The Stage-II losses are all recorded (the preview preset saturates alpha inside the mask).
     assert set(res.losses["photo"]) >= {"rgb", "mask", "sh", "fill"}
     # pose_scale=False: the registration's scale is kept exactly, rotation and translation still learn.
-    assert not preset.pose_scale and float(res.model.pose.log_scale) == 0.0
+    assert not preset.pose_scale and float(res.model.pose.rig_log_scale) == 0.0
 
 
 def test_checkpoint_resumes_where_it_stopped(tmp_path):
