@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import os
 import random
 import shutil
 import tempfile
@@ -181,32 +182,34 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
     ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
+    ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
     ap.add_argument("--seed", type=int, default=16)
     args = ap.parse_args()
     rng = random.Random(args.seed)
     tmp = Path(tempfile.mkdtemp(prefix="bench-faults-"))
     sections, t0 = [], time.perf_counter()
+    parts = set(args.parts.split(","))
+    service_kills = args.kills if args.service_kills is None else args.service_kills
     try:
-        for mode in ("enospc", "filled", "erofs"):
-            sections.append(table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode)))
+        if "sites" in parts:
+            for mode in ("enospc", "filled", "erofs"):
+                sections.append(table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode)))
+                print(sections[-1], flush=True)
+            sections.append(table("Calibration keeper, ENOSPC at each write site", keeper_sweep(tmp)))
             print(sections[-1], flush=True)
-        sections.append(table("Calibration keeper, ENOSPC at each write site", keeper_sweep(tmp)))
-        print(sections[-1], flush=True)
-        sections.append(table("Service, ENOSPC from each write site on, then space returns", service_sweep(tmp)))
-        print(sections[-1], flush=True)
-        sections.append(table(f"SIGKILL of `rig watch --simulate` at {args.kills} random points", kill_rig(tmp, args.kills, rng)))
-        print(sections[-1], flush=True)
-        service_kills = args.kills if args.service_kills is None else args.service_kills
-        if service_kills:
+            sections.append(table("Service, ENOSPC from each write site on, then space returns", service_sweep(tmp)))
+            print(sections[-1], flush=True)
+        if "kills" in parts and args.kills:
+            sections.append(table(f"SIGKILL of `rig watch --simulate` at {args.kills} random points", kill_rig(tmp, args.kills, rng)))
+            print(sections[-1], flush=True)
+        if "kills" in parts and service_kills:
             sections.append(table(f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
                                   kill_service(tmp, service_kills, rng)))
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    import os
-
-    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --kills {args.kills} --service-kills {service_kills}`, "
+    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --parts {args.parts} --kills {args.kills} --service-kills {service_kills}`, "
             f"{time.perf_counter() - t0:.0f} s, "
             f"load average {os.getloadavg()[0]:.1f} at the end.\n\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
