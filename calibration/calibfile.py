@@ -32,6 +32,38 @@ class CalibrationFileError(ValueError):
 
 
 @dataclass(frozen=True)
+class QualityGate:
+    """What a calibration must satisfy to be stored: reprojection RMS, principal point near the image
+    centre, focal length of a real lens, and board corners over enough of the image."""
+
+    max_rms_px: float = 2.0
+    max_principal_offset: float = 0.25  # |cx - w/2| / w and |cy - h/2| / h
+    focal_range: tuple[float, float] = (0.2, 20.0)  # fx, fy in units of the image's larger side
+    min_coverage: float = 0.15
+
+
+def quality_problems(doc: "CalibrationDoc", gate: QualityGate = QualityGate()) -> list[str]:
+    """One sentence per camera figure that makes `doc` implausible (empty list: it passes the gate)."""
+    out = []
+    for name, cam in doc.cameras.items():
+        fig = doc.figures.get(name, {})
+        w, h = cam.width, cam.height
+        fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+        rms = fig.get("rms_px")
+        if rms is not None and not float(rms) <= gate.max_rms_px:
+            out.append(f"camera '{name}' reprojects with RMS {float(rms):.1f} px, above the {gate.max_rms_px:g} px a good calibration stays under")
+        if not (abs(cx - w / 2) <= gate.max_principal_offset * w and abs(cy - h / 2) <= gate.max_principal_offset * h):
+            out.append(f"camera '{name}' has its principal point at ({cx:.0f}, {cy:.0f}) px, far from the centre of its {w}x{h} image")
+        lo, hi = (f * max(w, h) for f in gate.focal_range)
+        if not (lo <= fx <= hi and lo <= fy <= hi):
+            out.append(f"camera '{name}' has focal lengths fx {fx:.0f} / fy {fy:.0f} px, outside {lo:.0f}..{hi:.0f} px for a {w}x{h} image")
+        cov = fig.get("coverage")
+        if cov is not None and float(cov) < gate.min_coverage:
+            out.append(f"camera '{name}' saw board corners on only {100 * float(cov):.0f}% of its image (at least {100 * gate.min_coverage:.0f}% is needed)")
+    return out
+
+
+@dataclass(frozen=True)
 class CalibrationDoc:
     """Cameras (c2w = camera-to-rig) plus provenance and quality figures per camera."""
 
@@ -200,12 +232,22 @@ class CalibrationStore:
             raise CalibrationFileError(f"{self.path}: has no version {version} (versions: {self.versions() or 'none'})")
         return read_calibration(p)
 
-    def commit(self, doc: CalibrationDoc) -> CalibrationDoc:
+    def commit(self, doc: CalibrationDoc, *, force: bool = False, gate: QualityGate = QualityGate()) -> CalibrationDoc:
         """Store `doc` as the next version and make it current; returns it with version, parent, created set.
 
-        A current file that is not yet in the version store (made by hand or by an older tool) is
-        archived first, so nothing is ever lost.
+        A calibration that fails the quality gate is refused (CalibrationFileError, nothing written)
+        unless `force`, which stores it with the problems under notes["forced"]. A current file that
+        is not yet in the version store (made by hand or by an older tool) is archived first, so
+        nothing is ever lost.
         """
+        problems = quality_problems(doc, gate)
+        if problems and not force:
+            more = f" (and {len(problems) - 1} more problem{'s' * (len(problems) > 2)})" if len(problems) > 1 else ""
+            raise CalibrationFileError(
+                f"calibration refused and not stored: {problems[0]}{more}; check the board spec and the photos, or pass --force to store it marked as forced"
+            )
+        if problems:
+            doc = replace(doc, notes={**doc.notes, "forced": problems})
         self.versions_dir.mkdir(parents=True, exist_ok=True)
         parent = doc.parent
         if self.path.exists():

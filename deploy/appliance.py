@@ -114,8 +114,7 @@ class Appliance:
         work = Path(work_dir)
         work.mkdir(parents=True, exist_ok=True)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   backgrounds=_load_backgrounds(work / "background"), rig_id=cfg.rig_id, closers=[trigger.stop],
-                   inspection=cfg.inspection)
+                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),
@@ -147,10 +146,13 @@ class Appliance:
             return {d.camera_id: render_planes(rig.true_camera(i), walls, supersample=2) for i, d in enumerate(drivers)}
 
         keeper.set_reference(monitor())
-        empty = rig.empty_views()
-        return cls(drivers, SoftwareTrigger(), CaptureStore(work / "store", min_free_bytes=256 << 20), keeper, lib_dir, work,
-                   preset=preset, interval_s=interval_s, backgrounds={d.camera_id: empty[i] for i, d in enumerate(drivers)},
-                   monitor_views=monitor, rig=rig, rig_id="simulated-rig", owns_dir=owns, closers=[rig.close])
+        app = cls(drivers, SoftwareTrigger(), CaptureStore(work / "store", min_free_bytes=256 << 20), keeper, lib_dir, work,
+                  preset=preset, interval_s=interval_s, monitor_views=monitor, rig=rig, rig_id="simulated-rig", owns_dir=owns,
+                  closers=[rig.close])
+        if not app.acquisition.backgrounds:
+            app.take_background()  # the simulated belt starts empty
+        app._message = "ready: press t to take a capture, w to start watching the line"
+        return app
 
     # ---- rig and keeper ------------------------------------------------------------------------
 
@@ -193,7 +195,11 @@ class Appliance:
             with self._lock:
                 self._last_trigger = f"#{out.trigger.seq} {time.strftime('%H:%M:%S')} {out.status}"
             if out.status == "committed":
-                self._check_drift(out.capture_id)
+                try:
+                    self._check_drift(out.capture_id)
+                except (OSError, ValueError) as e:  # a full disk must not end acquisition: the check is retried with the next capture
+                    with self._lock:
+                        self._keeper_note = f"drift check not recorded ({getattr(e, 'strerror', None) or e})"
 
         self.acquisition.run(self.software_trigger, self._stop, on_outcome=outcome)
 
@@ -253,8 +259,9 @@ class Appliance:
         alarms = [a for a in (drift_alarm(c) for c in cams) if a]
         if note and not any(c.calibration == RECALIBRATE for c in cams):
             alarms.append(Alarm(f"keeper:{note}", f"Calibration keeper {note}."))
-        if self.store.alarm:
-            alarms.append(Alarm("disk", self.store.alarm))
+        disk_full = next((a for a in (self.acquisition.stopped, self.store.alarm, self.service.state) if a.startswith("STOPPED")), "")
+        if self.store.alarm or self.service.state:
+            alarms.append(Alarm("disk", "; ".join(a for a in (self.store.alarm, self.service.state) if a)))
         for job in self.service.jobs.jobs("failed"):
             alarms.append(Alarm(f"job:{job.id}", f"Capture {job.capture_id} failed ({job.error}) — press r to re-run."))
         alarms = tuple(Alarm(a.key, a.text, a.key in self._acked) for a in alarms)
@@ -282,6 +289,7 @@ class Appliance:
             last_twin=verdict,
             alarms=alarms,
             message=self._message,
+            disk_full=disk_full,
         )
 
     def toggle_watch(self) -> None:
@@ -304,20 +312,12 @@ class Appliance:
         self._message = "capture requested"
 
     def take_background(self) -> None:
-        """Store every camera's current frame as the empty-rig background (the rig must be empty)."""
-        seq = -1
-        frames = {}
-        for d in self.drivers:
-            d.arm(seq)
-            frames[d.camera_id] = d.grab(5.0).image
-        self.acquisition.backgrounds = frames
-        if self.rig is None:
-            from calibration.fileio import atomic_write_png
-
-            (self.dir / "background").mkdir(parents=True, exist_ok=True)
-            for cid, img in frames.items():
-                atomic_write_png(self.dir / "background" / f"{cid}.png", img)
-        self._message = f"empty-rig frames taken for {len(frames)} cameras"
+        """Take the empty-rig reference (the rig must be empty): a new version in the store (rig.reference)."""
+        out = self.acquisition.take_reference("taken at the kiosk")
+        if out.status == "reference":
+            self._message = f"empty-rig frames taken for {len(self.acquisition.backgrounds)} cameras ({out.capture_id})"
+        else:
+            self._message = out.reason
 
     def rerun(self) -> None:
         failed = self.service.jobs.jobs("failed")
@@ -344,11 +344,3 @@ class Appliance:
         if self._own_dir:
             shutil.rmtree(self.dir, ignore_errors=True)
 
-
-def _load_backgrounds(folder: Path) -> dict[str, np.ndarray]:
-    """Empty-rig frames saved by `take_background` (uint8 RGB per camera id)."""
-    from calibration.capture import read_image
-
-    if not folder.exists():
-        return {}
-    return {p.stem: (read_image(p)[..., :3] * 255).round().astype(np.uint8) for p in sorted(folder.glob("*.png"))}

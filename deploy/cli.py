@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("deploy.commands.export:export", "Export a twin as ply, glb, mjcf or colmap."),
     "simulate": ("deploy.commands.simulate:simulate", "MuJoCo run of exported twins, rendered."),
     "rig": ("deploy.commands.rig:rig", "Camera drivers, triggers and captures from rig.toml."),
+    "store": ("deploy.commands.store:store", "Verify every digest of a capture store."),
     "calibrate": ("deploy.commands.calibrate:calibrate", "The calibration keeper: board, sfm, check, history."),
     "kiosk": ("deploy.commands.kiosk:kiosk", "The operator screen."),
     "service": ("deploy.commands.service:service", "The pipeline service: captures -> twins, resumable."),

@@ -45,6 +45,21 @@ CREATE TABLE IF NOT EXISTS steps (
 """
 
 
+class JobStoreError(RuntimeError):
+    """The job store cannot be opened or written (read-only, full or damaged file); one plain sentence."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """ENOSPC from a file write, or SQLite's "database or disk is full"."""
+    if isinstance(exc, sqlite3.OperationalError):
+        return "full" in str(exc)
+    if isinstance(exc, OSError):
+        import errno
+
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    return False
+
+
 @dataclass(frozen=True)
 class Job:
     id: int
@@ -70,15 +85,19 @@ class JobStore:
 
     def __init__(self, path: str | Path, *, max_attempts: int = 3) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.max_attempts = max_attempts
-        # One connection shared by the service and the kiosk's threads, serialised by a lock.
-        self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
         self._lock = threading.RLock()
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(_SCHEMA)
-        self.recovered = self._recover()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # One connection shared by the service and the kiosk's threads, serialised by a lock.
+            self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.executescript(_SCHEMA)
+            self.recovered = self.requeue_interrupted()
+        except (sqlite3.Error, OSError) as e:
+            why = "the disk is full" if is_disk_full(e) else getattr(e, "strerror", None) or str(e)
+            raise JobStoreError(f"cannot open the job store {self.path}: {why}") from None
 
     def close(self) -> None:
         self._db.close()
@@ -98,11 +117,13 @@ class JobStore:
         with self._lock:
             return self._db.execute(sql, args).fetchall()
 
-    def _recover(self) -> int:
-        """Interrupted steps go back to pending; their jobs back to queued. Returns how many."""
+    def requeue_interrupted(self, *, refund: bool = False) -> int:
+        """Interrupted steps go back to pending; their jobs back to queued (`refund`: the attempt they
+        were on is given back, when the interruption was the disk's fault, not the job's). Returns how many."""
         with self._tx() as db:
             n = db.execute("UPDATE steps SET status='pending', started=NULL WHERE status='running'").rowcount
-            db.execute("UPDATE jobs SET status='queued', updated=? WHERE status='running'", (time.time(),))
+            attempts = "MAX(attempts-1, 0)" if refund else "attempts"
+            db.execute(f"UPDATE jobs SET status='queued', attempts={attempts}, updated=? WHERE status='running'", (time.time(),))
         return n
 
     def add(self, capture_id: str, capture_path: str | Path) -> bool:

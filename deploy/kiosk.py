@@ -23,8 +23,9 @@ def _bar(fraction: float, width: int = 20) -> str:
 
 def render_rig(s: ApplianceState) -> str:
     online = sum(c.online for c in s.cameras)
+    state = "STOPPED: disk full" if s.disk_full else "WATCHING" if s.watching else "STOPPED"
     return (
-        f"RIG {'WATCHING' if s.watching else 'STOPPED'}\n"
+        f"RIG {state}\n"
         f"trigger: {s.trigger_source}\n"
         f"cameras online {online}/{len(s.cameras)}\n"
         f"last trigger: {s.last_trigger}\n"

@@ -57,6 +57,7 @@ class ApplianceState:
     last_twin: Verdict | None = None
     alarms: tuple[Alarm, ...] = ()
     message: str = ""
+    disk_full: str = ""  # "STOPPED: disk full ..." while the rig or the service cannot write
 
 
 class ApplianceBackend(Protocol):

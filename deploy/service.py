@@ -5,18 +5,24 @@ and runs every job's remaining steps in order. Work is bounded: at most `max_que
 once; further captures stay safely in the store and are enqueued as the queue drains. A capture
 is never moved or deleted by the service, so a crash can lose no capture; a restart resumes each
 job at its first unfinished step.
+
+A full disk is not a job's failure: the step in flight goes back to pending without spending an
+attempt, the service says "STOPPED: disk full" (`state`, and a "stopped" event) and claims no job
+until space returns, then says "resumed" and carries on where it stopped.
 """
 
 from __future__ import annotations
 
+import shutil
 import signal
+import sqlite3
 import threading
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
-from deploy.jobs import STEPS, Job, JobStore
+from deploy.jobs import STEPS, Job, JobStore, is_disk_full
 
 
 class StepInterrupted(Exception):
@@ -31,7 +37,7 @@ class StepRunner(Protocol):
 
 @dataclass
 class ServiceEvent:
-    kind: str  # "enqueued", "step-started", "step-done", "job-done", "job-failed", "job-retry"
+    kind: str  # "enqueued", "step-started", "step-done", "job-done", "job-failed", "job-retry", "stopped", "resumed"
     job_id: int
     capture_id: str
     step: str = ""
@@ -50,6 +56,9 @@ class PipelineService:
         max_queue: int = 8,
         max_attempts: int = 3,
         on_event: Callable[[ServiceEvent], None] | None = None,
+        min_free_bytes: int = 256 << 20,
+        resume_margin_bytes: int = 64 << 20,
+        free_bytes: Callable[[Path], int] = lambda p: shutil.disk_usage(p).free,
     ) -> None:
         self.captures_dir = Path(store_root) / "captures"
         self.work_root = Path(work_root)
@@ -58,7 +67,34 @@ class PipelineService:
         self.run_step = run_step
         self.max_queue = max_queue
         self.on_event = on_event or (lambda e: None)
+        self.min_free_bytes, self.resume_margin_bytes, self._free_bytes = int(min_free_bytes), int(resume_margin_bytes), free_bytes
+        self.state = ""  # "" while serving, else "STOPPED: disk full ..."
+        self._full_at: int | None = None
         self._stop = threading.Event()
+
+    # ---- disk ----------------------------------------------------------------------------------
+
+    def _disk_full(self, why: str) -> None:
+        free = int(self._free_bytes(self.work_root))
+        self._full_at = free if self._full_at is None else min(self._full_at, free)
+        first = not self.state
+        self.state = f"STOPPED: disk full ({why}; {free / 1e6:.0f} MB free under {self.work_root}); jobs resume when space is freed"
+        if first:
+            self.on_event(ServiceEvent("stopped", 0, "", detail={"error": self.state}))
+
+    def room(self) -> bool:
+        """True when there is room to run a job; False (and `state` says why) while the disk is full."""
+        free = int(self._free_bytes(self.work_root))
+        if free < self.min_free_bytes:
+            self._disk_full(f"below the {self.min_free_bytes / 1e6:.0f} MB threshold")
+            return False
+        if self._full_at is not None and free < self._full_at + self.resume_margin_bytes:
+            return False
+        if self.state:
+            self.state, self._full_at = "", None
+            self.jobs.requeue_interrupted(refund=True)
+            self.on_event(ServiceEvent("resumed", 0, "", detail={"free_bytes": free}))
+        return True
 
     def job_dir(self, job: Job) -> Path:
         return self.work_root / "jobs" / job.capture_id
@@ -83,6 +119,7 @@ class PipelineService:
         """Run `job`'s unfinished steps; returns the job's status afterwards."""
         work = self.job_dir(job)
         work.mkdir(parents=True, exist_ok=True)
+        remove_half_written(work)
         for step in STEPS:
             if job.steps[step]["status"] == "done":
                 continue
@@ -95,6 +132,10 @@ class PipelineService:
                 self.jobs.interrupt(job.id, step)
                 return "queued"
             except Exception as e:  # a failed step is recorded, retried, then reported: never lost
+                if _caused_by_full_disk(e):
+                    self.jobs.interrupt(job.id, step)  # not the job's fault: no attempt spent
+                    self._disk_full(f"while {step} of {job.capture_id} was writing")
+                    return "queued"
                 msg = str(e).splitlines()[0] if str(e) else type(e).__name__
                 status = self.jobs.fail_attempt(job.id, step, msg)
                 kind = "job-failed" if status == "failed" else "job-retry"
@@ -108,13 +149,22 @@ class PipelineService:
         return "done"
 
     def run_once(self) -> bool:
-        """Scan, then run one queued job; False when there was nothing to do."""
-        self.scan()
-        job = self.jobs.claim_next()
-        if job is None:
+        """Scan, then run one queued job; False when there was nothing to do (or the disk is full)."""
+        try:
+            if not self.room():
+                return False
+            self.scan()
+            job = self.jobs.claim_next()
+            if job is None:
+                return False
+            self.run_job(job)
+        except (sqlite3.OperationalError, OSError) as e:
+            if not is_disk_full(e):
+                raise
+            # The job in flight stays "running" in the job store; it is requeued, its attempt refunded, on resuming.
+            self._disk_full("the job store or a job's folder could not be written")
             return False
-        self.run_job(job)
-        return True
+        return self.state == ""
 
     def run_forever(self, poll_s: float = 1.0, max_jobs: int | None = None) -> int:
         """Serve until stopped (SIGTERM/SIGINT finish the step in flight first) or `max_jobs` ran."""
@@ -137,3 +187,29 @@ class PipelineService:
 
     def stop(self) -> None:
         self._stop.set()
+
+
+def remove_half_written(folder: Path) -> list[Path]:
+    """Delete what a killed write left under `folder`: hidden `.X.*.incoming` directories (a twin or an
+    export being assembled) and `.X.*.tmp` files (an atomic write's temp file). Published outputs and
+    the training checkpoint are kept. Returns what was removed."""
+    gone = []
+    for p in sorted(folder.rglob(".*"), key=lambda q: -len(q.parts)):
+        if p.name.endswith(".incoming") and p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+            gone.append(p)
+        elif p.name.endswith(".tmp") and p.is_file():
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
+
+
+def _caused_by_full_disk(exc: BaseException) -> bool:
+    """ENOSPC anywhere in the exception's chain (steps wrap I/O errors in their own sentences)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if is_disk_full(exc):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

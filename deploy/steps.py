@@ -38,13 +38,17 @@ def register_step(capture_path: Path, work: Path, cfg: PipelineConfig) -> dict:
         return json.loads(out.read_text())["summary"]
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
+    from reconstruction.quality import check_masks, check_registration
     from reconstruction.registration import register
 
     capture = read_capture(capture_path)
     _, masks, cams = load_views(capture)
     if masks is None:
         masks, _ = capture_masks(capture)
-    reg = register(masks, cams, load_library(cfg.library), seed=cfg.seed)
+    check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
+    library = load_library(cfg.library)
+    reg = register(masks, cams, library, seed=cfg.seed)
+    check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
     summary = {"model_id": reg.model_id, "score": float(reg.score), "path": str(out)}
     atomic_write_json(out, {"summary": summary, "registration": reg.to_dict()})
     return summary
@@ -119,9 +123,7 @@ def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str
 
 
 def export_step(work: Path, cfg: PipelineConfig) -> dict:
-    import importlib
-
-    from deploy.commands.export import FORMATS
+    from deploy.commands.export import write_export
 
     twin_dir = work / "twin"
     outputs = {}
@@ -129,8 +131,7 @@ def export_step(work: Path, cfg: PipelineConfig) -> dict:
         target = work / "export" / (f"twin.{fmt}" if fmt in ("ply", "glb") else fmt)
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
-            module, attr = FORMATS[fmt][0].split(":")
-            getattr(importlib.import_module(module), attr)(twin_dir, target)
+            write_export(fmt, twin_dir, target)
         outputs[fmt] = str(target)
     return outputs
 

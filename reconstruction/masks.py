@@ -4,9 +4,16 @@ A static rig sees the same empty scene in every capture, so the per-camera empty
 object the set of pixels that changed. The threshold adapts to each view's noise (median absolute
 difference), then small specks are removed and holes closed so the bounding box the silhouette
 matcher normalises by is the object's.
+
+Every background-difference view gets a quality score (`MaskQuality`), and a view whose difference
+is implausible is refused in one sentence: nothing changed (no part, or a reference taken with the
+part on the belt), nearly everything changed, or the whole frame shifted (lighting or exposure
+changed since the reference was taken).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -39,6 +46,37 @@ def remove_specks(mask: np.ndarray, min_area_frac: float) -> np.ndarray:
     return keep[labels]
 
 
+@dataclass(frozen=True)
+class MaskQuality:
+    """How plausible one view's background difference is. `cover`: foreground fraction; `frame_shift`:
+    median colour difference over the whole frame (0 for a static scene); `score` in [0, 1]; `problem`:
+    the sentence that refuses the view, or ""."""
+
+    cover: float
+    frame_shift: float
+    score: float
+    problem: str = ""
+
+
+def mask_quality(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, min_cover: float = 0.0005,
+                 max_cover: float = 0.9, max_shift: float = 0.06) -> MaskQuality:
+    """Quality of the mask [H, W] `subtract_background(image [H, W, 3], background [H, W, 3])` returned."""
+    diff = np.linalg.norm(image.astype(np.float32) - background.astype(np.float32), axis=-1)
+    shift = float(np.median(diff))
+    cover = float(np.mean(mask))
+    problem = ""
+    if shift > max_shift:
+        problem = (f"the whole frame differs from the empty-rig reference (median colour change {shift:.2f}): the lighting or "
+                   "exposure changed since it was taken; take a new reference with the belt empty")
+    elif cover > max_cover:
+        problem = f"{100 * cover:.0f}% of the frame differs from the empty-rig reference, far more than a part covers"
+    elif cover < min_cover:
+        problem = "nothing differs from the empty-rig reference: no part in view, or the reference was taken with the part on the belt"
+    in_range = min(1.0, cover / (10 * min_cover)) * min(1.0, (1.0 - cover) / (1.0 - max_cover))
+    score = 0.0 if problem else float(np.clip(in_range * (1.0 - shift / max_shift), 0.0, 1.0))
+    return MaskQuality(cover, shift, score, problem)
+
+
 def capture_masks(capture: Capture) -> tuple[np.ndarray, str]:
     """Undistorted bool masks [V, H, W] of every view and where they came from ("masks" or "background").
 
@@ -54,5 +92,13 @@ def capture_masks(capture: Capture) -> tuple[np.ndarray, str]:
         raise CaptureError(f"{capture.root}: has no masks/ and no background frame for camera {missing[0]}")
     out = []
     for i, frame in enumerate(capture.frames):
-        out.append(subtract_background(capture.image(i), capture.background(frame.camera_id)))
+        image, background = capture.image(i), capture.background(frame.camera_id)
+        if image.shape != background.shape:
+            raise CaptureError(f"{capture.root}: the background frame of {frame.camera_id} is {background.shape[1]}x{background.shape[0]}, "
+                               f"its image {image.shape[1]}x{image.shape[0]}")
+        mask = subtract_background(image, background)
+        quality = mask_quality(image, background, mask)
+        if quality.problem:
+            raise CaptureError(f"{capture.root}: view {i} ({frame.camera_id}) refused: {quality.problem}")
+        out.append(mask)
     return np.stack(out), "background"

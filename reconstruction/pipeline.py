@@ -23,11 +23,12 @@ from calibration.sim3 import Sim3
 from reconstruction.library import UNIT_TO_M
 from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
+from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
-from reconstruction.twin import MeshParts, Twin, TwinCamera, read_mesh_parts, save_twin, software_versions
+from reconstruction.twin import MeshParts, Twin, TwinCamera, check_replaceable, read_mesh_parts, save_twin, software_versions
 
 Log = Callable[[str], None]
 
@@ -158,6 +159,7 @@ def reconstruct(
     out = Path(out_dir)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists; choose another --out or remove it")
+    check_replaceable(out, overwrite)
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
     torch.manual_seed(seed)
@@ -167,6 +169,7 @@ def reconstruct(
     idx = list(range(len(capture))) if views is None else list(views)
     images, cap_masks, cams = load_views(capture, idx)
     masks, mask_source = _masks(capture, idx, cap_masks)
+    check_masks(masks, names=[f"view {i} ({capture.frames[i].camera_id})" for i in idx])
     if init not in ("cad", "sphere"):
         raise ValueError(f"unknown init {init!r}; choose cad or sphere")
     library = load_library(library_path) if init == "cad" else None
@@ -178,6 +181,7 @@ def reconstruct(
         say(f"registering {len(idx)} views against {len(library.models)} library models")
         reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed,
                        rig_metres_per_unit=metric)
+        check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
         parts = model_parts(library, reg.model_id)
     else:
         reg, parts = sphere_registration(masks, cams)

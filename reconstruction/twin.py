@@ -12,9 +12,10 @@ mesh_cad.glb            the retrieved CAD mesh (object frame, metres), one node 
                         root node that turns the z-up object frame into glTF's +Y up
 mesh_deformed.glb       the CAD vertices moved by the field, same layout
 renders/*.png           RGBA renders of the training views
+manifest.json           sha256 of every file above (written last; `load_twin` verifies it)
 ```
 The whole directory is written beside its destination and renamed into place, so a twin is
-either complete or absent.
+either complete or absent; an existing directory is only ever replaced when it holds a twin.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ CANONICAL_NPZ = "splats_canonical.npz"
 DEFORMATION_PT = "deformation.pt"
 MESH_CAD_GLB = "mesh_cad.glb"
 MESH_DEFORMED_GLB = "mesh_deformed.glb"
+MANIFEST_JSON = "manifest.json"
 FORMAT_VERSION = 1
 
 
@@ -230,8 +232,8 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     try:
         ply = PlyData.read(str(path))
         v = ply["vertex"]
-    except (OSError, ValueError, KeyError) as e:
-        raise TwinError(f"{path}: not a readable 3DGS PLY ({e})") from None
+    except Exception as e:  # noqa: BLE001 - plyfile raises its own parse errors (not ValueError) on a truncated file
+        raise TwinError(f"{path}: not a readable 3DGS PLY ({type(e).__name__}: {e})") from None
     names = [p.name for p in v.properties]
     n_rest = sum(1 for c in names if c.startswith("f_rest_"))
     k = 1 + n_rest // 3
@@ -373,12 +375,12 @@ def save_twin(
     Returns `out_dir`; `twin.root` points there afterwards.
     """
     out = Path(out_dir)
-    if out.exists() and not overwrite:
-        raise TwinError(f"{out}: already exists; pass overwrite to replace the twin")
+    check_replaceable(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
     try:
-        atomic_write_bytes(
+        digests = {}
+        digests[SPLATS_PLY] = atomic_write_bytes(
             tmp / SPLATS_PLY,
             splats_to_ply_bytes(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, splat_normals(twin.quats)),
         )
@@ -387,23 +389,25 @@ def save_twin(
             buf, means_canonical=twin.means_canonical, face_index=twin.face_index, barycentrics=twin.barycentrics,
             part_label=twin.part_label, part_names=np.array(twin.part_names, dtype=str),
         )
-        atomic_write_bytes(tmp / CANONICAL_NPZ, buf.getvalue())
+        digests[CANONICAL_NPZ] = atomic_write_bytes(tmp / CANONICAL_NPZ, buf.getvalue())
         if deformation_state is not None:
             import torch
 
             buf = io.BytesIO()
             torch.save(deformation_state, buf)
-            atomic_write_bytes(tmp / DEFORMATION_PT, buf.getvalue())
+            digests[DEFORMATION_PT] = atomic_write_bytes(tmp / DEFORMATION_PT, buf.getvalue())
         if mesh_cad is not None:
-            atomic_write_bytes(tmp / MESH_CAD_GLB, parts_glb_bytes(mesh_cad))
+            digests[MESH_CAD_GLB] = atomic_write_bytes(tmp / MESH_CAD_GLB, parts_glb_bytes(mesh_cad))
         if mesh_deformed is not None:
-            atomic_write_bytes(tmp / MESH_DEFORMED_GLB, parts_glb_bytes(mesh_deformed))
+            digests[MESH_DEFORMED_GLB] = atomic_write_bytes(tmp / MESH_DEFORMED_GLB, parts_glb_bytes(mesh_deformed))
         if renders:
             (tmp / "renders").mkdir()
             for name, rgba in renders.items():
-                atomic_write_bytes(tmp / "renders" / f"{Path(name).stem}.png", encode_png(rgba))
+                rel = f"renders/{Path(name).stem}.png"
+                digests[rel] = atomic_write_bytes(tmp / rel, encode_png(rgba))
             fsync_dir(tmp / "renders")
-        atomic_write_json(tmp / TWIN_JSON, _twin_document(twin))
+        digests[TWIN_JSON] = atomic_write_json(tmp / TWIN_JSON, _twin_document(twin))
+        atomic_write_json(tmp / MANIFEST_JSON, {"format": "cadsplat-twin-manifest", "sha256": digests})
         fsync_dir(tmp)
         old = None
         if out.exists():
@@ -421,24 +425,74 @@ def save_twin(
     return out
 
 
-def load_twin(path: str | os.PathLike) -> Twin:
-    """Read a twin directory written by `save_twin`."""
+def is_twin_dir(path: str | os.PathLike) -> bool:
+    """True when `path` is a directory whose twin.json says it is a cadsplat twin (damaged or not)."""
+    try:
+        return json.loads((Path(path) / TWIN_JSON).read_text()).get("format") == "cadsplat-twin"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def check_replaceable(out: Path, overwrite: bool) -> None:
+    """Raise TwinError unless `out` is free, or holds a twin and `overwrite` allows replacing it."""
+    if not out.exists():
+        return
+    if not overwrite:
+        raise TwinError(f"{out}: already exists; pass overwrite to replace the twin")
+    if not is_twin_dir(out):
+        raise TwinError(f"{out}: is not a twin directory (no cadsplat twin.json), so it is not replaced; choose another output")
+
+
+def verify_twin(root: Path) -> None:
+    """Check every file against manifest.json (twins written before manifests have none: nothing to check)."""
+    path = root / MANIFEST_JSON
+    if not path.exists():
+        return
+    from calibration.fileio import sha256_file
+
+    try:
+        digests = json.loads(path.read_text())["sha256"]
+        items = sorted(digests.items())
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise TwinError(f"{path}: not a readable twin manifest") from None
+    for rel, digest in items:
+        if not (root / rel).is_file():
+            raise TwinError(f"{root / rel}: listed in {MANIFEST_JSON} but missing")
+        if sha256_file(root / rel) != digest:
+            raise TwinError(f"{root / rel}: sha256 does not match {MANIFEST_JSON} (file changed or corrupt)")
+
+
+def load_twin(path: str | os.PathLike, *, verify: bool = True) -> Twin:
+    """Read a twin directory written by `save_twin`, every file checked against its manifest by default."""
     root = Path(path)
     doc_path = root / TWIN_JSON
     if not doc_path.exists():
         raise TwinError(f"{root}: no {TWIN_JSON} here; is this a twin directory?")
     try:
         doc = json.loads(doc_path.read_text())
-    except json.JSONDecodeError as e:
-        raise TwinError(f"{doc_path}: invalid JSON ({e.msg} at line {e.lineno})") from None
-    if doc.get("format") != "cadsplat-twin":
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise TwinError(f"{doc_path}: invalid JSON ({getattr(e, 'msg', e)})") from None
+    if not isinstance(doc, dict) or doc.get("format") != "cadsplat-twin":
         raise TwinError(f"{doc_path}: not a cadsplat twin document")
+    if verify:
+        verify_twin(root)
     for name in (SPLATS_PLY, CANONICAL_NPZ):
         if not (root / name).exists():
             raise TwinError(f"{root / name}: file is missing")
     ply = read_splats_ply(root / SPLATS_PLY)
-    with np.load(root / CANONICAL_NPZ) as z:
-        canon = {k: z[k] for k in z.files}
+    try:
+        with np.load(root / CANONICAL_NPZ) as z:
+            canon = {k: z[k] for k in z.files}
+        canon = {k: canon[k] for k in ("means_canonical", "face_index", "barycentrics", "part_label", "part_names")}
+    except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types on a damaged archive
+        raise TwinError(f"{root / CANONICAL_NPZ}: not a readable splat archive ({type(e).__name__})") from None
+    try:
+        return _twin_from(doc, ply, canon, root)
+    except (KeyError, TypeError, ValueError) as e:
+        raise TwinError(f"{doc_path}: a field is missing or malformed ({e})") from None
+
+
+def _twin_from(doc: dict, ply: dict, canon: dict, root: Path) -> Twin:
     return Twin(
         model_id=doc["model_id"],
         sim3_rig_to_object_init=Sim3.from_dict(doc["sim3_rig_to_object_init"]),

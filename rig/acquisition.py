@@ -1,9 +1,17 @@
 """Synchronized acquisition: trigger -> a frame from every camera -> validated -> committed or quarantined.
 
 Every trigger ends in exactly one outcome, and each is counted: `committed` (a complete, verified
-capture in the store), `quarantined` (kept with its reason), `refused` (disk below its threshold, or
-a camera down and reconnecting by itself: no capture is taken, nothing is stored), `late` (the trigger waited longer than the part stays in view), `dropped`
-(a duplicate or too-soon trigger) or `failed` (not even a quarantine entry could be written).
+capture in the store), `quarantined` (kept with its reason), `refused` (no room on the disk for a
+whole capture, or a camera down and reconnecting by itself; decided before its frames are taken:
+nothing is stored, nothing lost), `late` (the trigger waited longer than the part stays in view),
+`dropped` (a duplicate or too-soon trigger), `held` (the store could take neither the capture nor a
+quarantine entry, e.g. it went read-only mid-write: the frames stay in memory and are written as
+soon as it can; `failed` only if the rig stops first) or `reference` (the belt was empty: a new
+empty-rig reference was taken, see rig.reference).
+
+The empty-rig reference is taken on command (`take_reference`), on schedule (`reference_every_s`,
+while no trigger waits) and whenever a trigger says the belt is empty (payload `belt: "empty"`,
+e.g. a serial pattern with a `(?P<belt>empty)` group). Cameras are armed with seq -1 for it.
 """
 
 from __future__ import annotations
@@ -18,10 +26,12 @@ import numpy as np
 
 from calibration.capture import FrameData
 from rig.camera import CameraDriver, CameraError, CameraSettings, Frame
+from rig.reference import ReferenceError
 from rig.store import CaptureStore, StoreError, is_enospc
 from rig.triggers import TriggerEvent, TriggerFilter, TriggerSource
 
-OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed")
+OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference", "held")
+EMPTY_BELT_SEQ = -1  # what cameras are armed with for an empty-rig reference (the simulated rig renders no part)
 
 
 @dataclass(frozen=True)
@@ -52,6 +62,7 @@ class Outcome:
     capture_id: str = ""
     reason: str = ""
     latency_ns: int = 0
+    state_change: str = ""  # "stopped" on the first refusal for a full disk, "resumed" on the first capture after
 
 
 def brightness(image: np.ndarray) -> tuple[float, float]:
@@ -111,6 +122,18 @@ def agree_photometry(cameras: Sequence[CameraDriver], settings: CameraSettings) 
     return locked
 
 
+@dataclass(frozen=True)
+class _Held:
+    """A capture whose frames the store could not take yet: committed (or quarantined, with `reason`) later."""
+
+    event: TriggerEvent
+    capture_id: str
+    data: list
+    meta: dict
+    backgrounds: dict | None
+    quarantine_reason: str = ""
+
+
 @dataclass
 class Acquisition:
     """Turns triggers into stored captures. `cameras` must be open (see `open_cameras`)."""
@@ -127,8 +150,11 @@ class Acquisition:
     settings: CameraSettings | None = None
     clock: Callable[[], int] = time.monotonic_ns
     counts: dict = field(default_factory=lambda: dict.fromkeys(OUTCOMES, 0))
-    # Empty-rig frames per camera, stored with every capture so masks come from background subtraction.
+    # Empty-rig frames per camera, stored with every capture so masks come from background subtraction;
+    # by default the store's current reference (rig.reference), whose id every capture records.
     backgrounds: dict[str, np.ndarray] = field(default_factory=dict)
+    background_id: str = ""
+    reference_every_s: float | None = None
 
     def __post_init__(self) -> None:
         ids = [c.camera_id for c in self.cameras]
@@ -136,6 +162,41 @@ class Acquisition:
             raise ValueError(f"camera ids must be unique and at least one camera is needed, got {ids}")
         self._pool = ThreadPoolExecutor(max_workers=len(self.cameras), thread_name_prefix="grab")
         self._next_seq = 0
+        self.stopped = ""
+        self.reference_note = ""
+        self.held: list[_Held] = []
+        self._reference_t = time.monotonic()
+        if not self.backgrounds:
+            try:
+                ref = self.store.references.current()
+            except ReferenceError as e:
+                ref, self.reference_note = None, f"{e}; take a new one with the belt empty"
+            if ref is not None:
+                self.backgrounds, self.background_id = dict(ref.frames), ref.reference_id
+
+    def capture_bytes(self) -> int:
+        """Disk a capture needs at most: its PNG frames (and the reference copy), with room for the manifests."""
+        raw = sum(c.camera.width * c.camera.height * 3 for c in self.cameras)
+        return int(1.1 * raw * (2 if self.backgrounds else 1)) + 4096 * (len(self.cameras) + 4)
+
+    # ---- the empty-rig reference ---------------------------------------------------------------
+
+    def take_reference(self, reason: str) -> Outcome:
+        """Grab every camera with the belt empty and store the frames as the next reference version."""
+        event = TriggerEvent(EMPTY_BELT_SEQ, "reference", self.clock(), {"belt": "empty", "why": reason})
+        self._reference_t = time.monotonic()
+        frames, errors = self._grab_all(EMPTY_BELT_SEQ)
+        sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
+        problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
+        problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
+        if problems:
+            return self._count(Outcome("refused", event, reason=f"empty-rig reference not taken: {'; '.join(problems)}"))
+        try:
+            ref = self.store.with_reserve(lambda: self.store.references.commit({cid: f.image for cid, f in frames.items()}, reason))
+        except (OSError, ReferenceError) as e:
+            return self._count(Outcome("refused", event, reason=f"empty-rig reference not stored: {getattr(e, 'strerror', None) or e}"))
+        self.backgrounds, self.background_id, self.reference_note = dict(ref.frames), ref.reference_id, ""
+        return self._count(Outcome("reference", event, ref.reference_id, reason))
 
     # ---- one trigger ---------------------------------------------------------------------------
 
@@ -144,23 +205,40 @@ class Acquisition:
         verdict = self.trigger_filter.check(event)
         if not verdict.accept:
             return self._count(Outcome("dropped", event, reason=verdict.reason))
+        if event.payload.get("belt") == "empty":
+            return self.take_reference("the trigger said the belt is empty")
         age = self.clock() - event.timestamp_ns
         if age > self.thresholds.max_trigger_age_ns:
             return self._count(Outcome("late", event, reason=f"trigger waited {age / 1e9:.2f} s, longer than the part stays in view"))
-        if not self.store.disk_ok():
-            return self._count(Outcome("refused", event, reason=self.store.alarm))
-        return self._count(self.capture(event))
+        if self.camera_alarm:
+            return self._count(Outcome("refused", event, reason=f"{self.camera_alarm}; no capture taken"))
+        # Room for the whole capture (and its id) is made sure of before any frame is taken.
+        capture_id = ""
+        if self.store.room_for(self.capture_bytes()):
+            try:
+                capture_id = self.store.reserve_id()
+            except StoreError:
+                pass
+        if not capture_id:
+            change = "" if self.stopped else "stopped"
+            self.stopped = self.store.alarm
+            return self._count(Outcome("refused", event, reason=self.store.alarm, state_change=change))
+        out = self.capture(event, capture_id)
+        if self.stopped:
+            self.stopped = ""
+            out = replace(out, state_change="resumed")
+        return self._count(out)
 
-    def capture(self, event: TriggerEvent) -> Outcome:
+    def capture(self, event: TriggerEvent, capture_id: str | None = None) -> Outcome:
         seq = event.seq if event.seq is not None else self._next_seq
         self._next_seq = seq + 1
         if self.camera_alarm:
             return Outcome("refused", event, reason=f"{self.camera_alarm}; no capture taken")
+        capture_id = capture_id or self.store.reserve_id()
         frames, errors = self._grab_all(seq)
         if self.camera_alarm:
             # A camera dropped while this capture was in flight: refused whole, none of its frames stored.
-            return Outcome("refused", event, reason=f"{self.camera_alarm}; the capture in flight was refused whole")
-        capture_id = self.store.reserve_id()
+            return Outcome("refused", event, capture_id, f"{self.camera_alarm}; the capture in flight was refused whole")
         cams = {c.camera_id: c for c in self.cameras}
         data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
         spread = int(np.ptp([f.timestamp_ns for f in frames.values()])) if frames else 0
@@ -176,14 +254,20 @@ class Acquisition:
             meta["calibration_uncertainty"] = dict(self.calibration_uncertainty)
         if self.units is not None:
             meta["units"] = self.units
+        if self.backgrounds:
+            meta["background_id"] = self.background_id or "unversioned"
         sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}
         problems = [f"{cid}: {msg}" for cid, msg in sorted(errors.items())]
         problems += validate_frames(frames, [c.camera_id for c in self.cameras if c.camera_id not in errors], sizes, self.thresholds)
         if problems:
             return self._quarantine(event, capture_id, "; ".join(problems), data, meta)
+        backgrounds = {k: v for k, v in self.backgrounds.items() if k in frames} or None
         try:
-            self.store.commit(capture_id, data, meta, backgrounds={k: v for k, v in self.backgrounds.items() if k in frames} or None)
+            self.store.commit(capture_id, data, meta, backgrounds=backgrounds)
         except (OSError, ValueError, StoreError) as e:
+            if isinstance(e, OSError) and not is_enospc(e):
+                # The store cannot be written at all (read-only, I/O error): keep the frames, write them later.
+                return self._hold(_Held(event, capture_id, data, meta, backgrounds), f"the store could not be written ({e.strerror or e})")
             what = "disk full while writing" if is_enospc(e) else "write failed"
             return self._quarantine(event, capture_id, f"{what}: {e}", data, meta)
         return Outcome("committed", event, capture_id, latency_ns=self.clock() - event.timestamp_ns)
@@ -192,8 +276,31 @@ class Acquisition:
         try:
             self.store.quarantine(capture_id, reason, data, meta, {"trigger": event.to_dict()})
         except StoreError as e:
-            return Outcome("failed", event, capture_id, f"{reason}; and {e}")
+            return self._hold(_Held(event, capture_id, data, meta, None, reason), f"{reason}; and {e}")
         return Outcome("quarantined", event, capture_id, reason, self.clock() - event.timestamp_ns)
+
+    def _hold(self, held: _Held, why: str) -> Outcome:
+        self.held.append(held)
+        return Outcome("held", held.event, held.capture_id, f"{why}; its frames are kept in memory and written as soon as the store can take them")
+
+    def flush_held(self) -> list[Outcome]:
+        """Write the held captures the store can now take, oldest first; their outcomes replace "held" in the counts."""
+        out = []
+        while self.held:
+            h = self.held[0]
+            try:
+                if h.quarantine_reason:
+                    self.store.quarantine(h.capture_id, h.quarantine_reason, h.data, h.meta, {"trigger": h.event.to_dict()})
+                else:
+                    self.store.commit(h.capture_id, h.data, h.meta, backgrounds=h.backgrounds)
+            except (OSError, ValueError, StoreError):
+                break
+            self.held.pop(0)
+            self.counts["held"] -= 1
+            status = "quarantined" if h.quarantine_reason else "committed"
+            out.append(self._count(Outcome(status, h.event, h.capture_id, h.quarantine_reason or "written after the store could take it again",
+                                           self.clock() - h.event.timestamp_ns)))
+        return out
 
     def _grab_all(self, seq: int) -> tuple[dict[str, Frame], dict[str, str]]:
         """Arm every camera, then grab from all at once. A camera that failed before is reopened first."""
@@ -242,8 +349,8 @@ class Acquisition:
 
     @property
     def taken(self) -> int:
-        """Captures taken: committed or quarantined."""
-        return self.counts["committed"] + self.counts["quarantined"]
+        """Captures taken: committed, quarantined or held in memory."""
+        return self.counts["committed"] + self.counts["quarantined"] + self.counts["held"]
 
     def run(
         self,
@@ -256,9 +363,18 @@ class Acquisition:
         poll_s: float = 0.1,
     ) -> None:
         """Handle triggers until `stop` is set or `max_captures` are taken. A capture in flight always completes."""
-        while not stop.is_set() and (max_captures is None or self.taken < max_captures):
+        while not stop.is_set() and (max_captures is None or self.taken < max_captures or self.held):
+            for out in self.flush_held() if self.held else ():
+                if on_outcome is not None:
+                    on_outcome(out)
+            if max_captures is not None and self.taken >= max_captures and not self.held:
+                break
             ev = source.get(timeout=poll_s)
             if ev is None:
+                if self.reference_every_s is not None and time.monotonic() - self._reference_t >= self.reference_every_s:
+                    out = self.take_reference(f"scheduled (every {self.reference_every_s:g} s)")
+                    if on_outcome is not None:
+                        on_outcome(out)
                 if on_idle is not None:
                     on_idle()
                 continue
@@ -266,13 +382,20 @@ class Acquisition:
             if on_outcome is not None:
                 on_outcome(out)
 
-    def close(self) -> None:
+    def close(self) -> list[Outcome]:
+        """Close the cameras; returns what became of the held captures (committed now, or failed: the rig stopped first)."""
         self._pool.shutdown(wait=True)
         for cam in self.cameras:
             try:
                 cam.close()
             except CameraError:
                 pass
+        out = self.flush_held()
+        for h in self.held:
+            self.counts["held"] -= 1
+            out.append(self._count(Outcome("failed", h.event, h.capture_id, "the rig stopped before the store could be written; its frames are lost")))
+        self.held.clear()
+        return out
 
 
 def open_cameras(cameras: Sequence[CameraDriver], settings: CameraSettings) -> CameraSettings:

@@ -5,12 +5,20 @@ Layout under the store root:
     captures/<id>/       complete captures (calibration.capture format, sha256 of every file)
     quarantine/<id>/     incomplete or invalid captures, each with `reason.json`
     .incoming/           captures being written; never read by anyone else
+    references/          the empty-rig reference, versioned (rig.reference)
     store.json           the capture counter (ids are never reused, even across crashes)
+    .reserve             disk space held back for the next capture (released when the disk fills)
 
 A capture is assembled under `.incoming/<id>` by `calibration.capture.write_capture` (every file
 fsynced, read back and verified), then renamed into `captures/` and both directories fsynced. A
 crash at any point leaves either nothing under `captures/` or the complete capture; whatever is
 left in `.incoming/` is moved to `quarantine/` with a reason the next time the store opens.
+
+A full disk loses no capture: before a capture's frames are taken, `room_for` makes sure the disk
+is above its threshold and holds `.reserve`, a file as large as the capture. When a write then
+meets ENOSPC (another process filled the disk), the reserve is released and the write retried, so
+the capture in flight is committed whole; the store says "STOPPED: disk full" and refuses further
+captures (before their frames are taken) until space returns and the reserve can be held again.
 """
 
 from __future__ import annotations
@@ -27,9 +35,12 @@ from typing import Callable, Sequence
 
 from calibration.capture import Capture, CaptureError, FrameData, read_capture, write_capture
 from calibration.fileio import atomic_write_json, fsync_dir
+from rig.reference import ReferenceStore
 
 CAPTURES, QUARANTINE, INCOMING, STATE = "captures", "quarantine", ".incoming", "store.json"
+REFERENCES, RESERVE = "references", ".reserve"
 REASON = "reason.json"
+DISK_FULL = "STOPPED: disk full"
 _ID = re.compile(r"^(\d{6,})-\d{8}T\d{6}Z")
 
 
@@ -55,6 +66,23 @@ def is_enospc(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
+def _allocate(path: Path, size: int) -> None:
+    """A file of `size` bytes whose blocks are really allocated (ENOSPC now, not at a later write)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        try:
+            os.posix_fallocate(fd, 0, size)
+        except OSError as e:
+            if e.errno not in (errno.EOPNOTSUPP, errno.EINVAL):
+                raise
+            block = b"\0" * (1 << 20)
+            for off in range(0, size, len(block)):
+                os.write(fd, block[: min(len(block), size - off)])
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 class CaptureStore:
     """A directory of captures that never holds a half-written one and never reuses an id.
 
@@ -75,6 +103,8 @@ class CaptureStore:
         for sub in (CAPTURES, QUARANTINE, INCOMING):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
         self.alarm = ""
+        self.references = ReferenceStore(self.root / REFERENCES)
+        self.references.clean()
         self._next = self._load_counter()
         self.recovered: list[StoredCapture] = self._recover_incoming()
 
@@ -91,9 +121,16 @@ class CaptureStore:
         return max([persisted, *(n + 1 for n in seen)])
 
     def reserve_id(self) -> str:
-        """A new capture id: the counter is persisted (atomically, fsynced) before the id is used."""
+        """A new capture id: the counter is persisted (atomically, fsynced) before the id is used.
+
+        Raises StoreError (the old counter stays on disk) when not even that can be written."""
         n = self._next
-        atomic_write_json(self.root / STATE, {"next_counter": n + 1})
+        try:
+            self.with_reserve(lambda: atomic_write_json(self.root / STATE, {"next_counter": n + 1}))
+        except OSError as e:
+            what = "cannot record the capture counter"
+            self.alarm = self._full_alarm(what) if is_enospc(e) else f"STOPPED: {what} ({e.strerror or e}); captures resume when it can be written"
+            raise StoreError(self.alarm) from e
         self._next = n + 1
         return f"{n:06d}-{dt.datetime.now(dt.timezone.utc):%Y%m%dT%H%M%SZ}"
 
@@ -103,13 +140,66 @@ class CaptureStore:
         return int(self._free_bytes(self.root))
 
     def disk_ok(self) -> bool:
-        """True when there is room for another capture; otherwise sets `alarm` (cleared once space is back)."""
+        """True when the disk is above its threshold; otherwise sets `alarm` (cleared once space is back)."""
+        return self.room_for(0)
+
+    def room_for(self, need_bytes: int) -> bool:
+        """True when a capture of `need_bytes` can be written whole: the disk is above its threshold and
+        the reserve of that size is held. Otherwise sets `alarm` ("STOPPED: disk full ...") and returns False."""
         free = self.disk_free()
         if free < self.min_free_bytes:
-            self.alarm = f"disk nearly full: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; captures stopped"
+            self.alarm = (f"{DISK_FULL}: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; "
+                          "captures resume when space is freed")
+            return False
+        try:
+            held = need_bytes <= 0 or self._hold_reserve(need_bytes)
+        except OSError as e:
+            self.alarm = f"STOPPED: the store cannot be written ({e.strerror or e}); captures resume when it can"
+            return False
+        if not held:
+            self.alarm = self._full_alarm(f"no room to reserve {need_bytes / 1e6:.1f} MB for the next capture")
             return False
         self.alarm = ""
         return True
+
+    def _full_alarm(self, what: str) -> str:
+        return f"{DISK_FULL}: {what}; captures resume when space is freed"
+
+    def _hold_reserve(self, size: int) -> bool:
+        path = self.root / RESERVE
+        try:
+            if path.stat().st_size >= size:
+                return True
+        except FileNotFoundError:
+            pass
+        tmp = self.root / f"{RESERVE}.tmp"
+        try:
+            _allocate(tmp, size)
+            os.replace(tmp, path)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            if is_enospc(e):
+                return False
+            raise
+        return True
+
+    def release_reserve(self) -> bool:
+        """Give the reserve back to the filesystem; False when none was held."""
+        try:
+            (self.root / RESERVE).unlink()
+        except FileNotFoundError:
+            return False
+        return True
+
+    def with_reserve(self, write: Callable[[], object]):
+        """Run `write`; on ENOSPC release the reserve (the disk filled behind our back) and run it once more."""
+        try:
+            return write()
+        except OSError as e:
+            if not is_enospc(e) or not self.release_reserve():
+                raise
+            self.alarm = self._full_alarm("the disk filled up; the capture in flight was written into its reserve")
+            return write()
 
     # ---- writing -----------------------------------------------------------------------------
 
@@ -120,15 +210,22 @@ class CaptureStore:
         final = self.root / CAPTURES / capture_id
         if final.exists():
             raise StoreError(f"capture id {capture_id} is already in the store; ids are never reused")
+
+        def write() -> None:
+            try:
+                write_capture(incoming, frames, backgrounds=backgrounds, meta={**meta, "capture_id": capture_id})
+                os.rename(incoming, final)
+                fsync_dir(final.parent)
+                fsync_dir(incoming.parent)
+            except BaseException:
+                shutil.rmtree(incoming, ignore_errors=True)
+                raise
+
         try:
-            write_capture(incoming, frames, backgrounds=backgrounds, meta={**meta, "capture_id": capture_id})
-            os.rename(incoming, final)
-            fsync_dir(final.parent)
-            fsync_dir(incoming.parent)
-        except BaseException as e:
-            shutil.rmtree(incoming, ignore_errors=True)
+            self.with_reserve(write)
+        except OSError as e:
             if is_enospc(e):
-                self.alarm = f"disk full while writing capture {capture_id}; captures stopped until space is freed"
+                self.alarm = self._full_alarm(f"capture {capture_id} did not fit even into its reserve")
             raise
         return StoredCapture(capture_id, final, "committed")
 
@@ -143,17 +240,28 @@ class CaptureStore:
         record = {"capture_id": capture_id, "reason": reason, "time_utc": _now_utc(), **(detail or {})}
         shutil.rmtree(staging, ignore_errors=True)
         if frames:
+
+            def write_frames() -> None:
+                try:
+                    write_capture(staging, frames, meta={**(meta or {}), "capture_id": capture_id, "quarantined": reason})
+                except BaseException:
+                    shutil.rmtree(staging, ignore_errors=True)
+                    raise
+
             try:
-                write_capture(staging, frames, meta={**(meta or {}), "capture_id": capture_id, "quarantined": reason})
+                self.with_reserve(write_frames)
             except (OSError, CaptureError) as e:
-                shutil.rmtree(staging, ignore_errors=True)
-                record["frames_not_saved"] = f"{len(frames)} frames could not be written: {e}"
-        try:
+                record["frames_not_saved"] = f"{len(frames)} frames could not be written: {getattr(e, 'strerror', None) or e}"
+
+        def write_reason() -> None:
             staging.mkdir(exist_ok=True)
             atomic_write_json(staging / REASON, record)
             os.rename(staging, final)
             fsync_dir(final.parent)
             fsync_dir(staging.parent)
+
+        try:
+            self.with_reserve(write_reason)
         except OSError as e:
             shutil.rmtree(staging, ignore_errors=True)
             raise StoreError(f"could not quarantine capture {capture_id} ({reason}): {e.strerror or e}") from e
@@ -179,7 +287,11 @@ class CaptureStore:
                 "time_utc": _now_utc(),
                 "files": sorted(str(f.relative_to(p)) for f in p.rglob("*") if f.is_file()),
             }
-            atomic_write_json(p / REASON, record)
+            try:
+                atomic_write_json(p / REASON, record)
+            except OSError as e:
+                if not is_enospc(e):
+                    raise  # without a reason.json the entry still moves: quarantine_reason() then says why
             os.rename(p, final)
             out.append(StoredCapture(capture_id, final, "quarantined", record["reason"]))
         for leftover in self.root.glob(f".{STATE}.*.tmp"):
@@ -204,7 +316,10 @@ class CaptureStore:
         return sorted(p.name for p in (self.root / QUARANTINE).iterdir() if p.is_dir())
 
     def quarantine_reason(self, capture_id: str) -> str:
-        return json.loads((self.root / QUARANTINE / capture_id / REASON).read_text())["reason"]
+        try:
+            return json.loads((self.root / QUARANTINE / capture_id / REASON).read_text())["reason"]
+        except (FileNotFoundError, ValueError, KeyError, TypeError):
+            return "left by an interrupted write; its reason.json could not be written (disk full) or is damaged"
 
     def read(self, capture_id: str) -> Capture:
         """A stored capture, every sha256 verified."""

@@ -3,6 +3,7 @@
 - `SyntheticRig` + `SyntheticCamera`: the synthetic rig renderer (rig/synthetic.py) as N drivers.
   Each trigger brings a new part down the conveyor: its placement on the belt is a deterministic
   function of the trigger's seq (`conveyor_placement`), and all views of a trigger come from one render.
+  A negative seq is the belt with no part on it (what the empty-rig reference is taken of).
 - `PatternCamera`: a test-pattern camera (a per-camera gradient with a bar that moves with seq).
   Costs almost nothing to make, so benchmarks measure acquisition and the store, not rendering.
 """
@@ -117,23 +118,31 @@ class SyntheticRig:
         return conveyor_sim3(self.scene.mesh, yaw, offset)
 
     def views(self, seq: int) -> tuple[np.ndarray, int]:
-        """RGB uint8 [V, H, W, 3] of trigger `seq` and the host time it was exposed (rendered once per seq)."""
+        """RGB uint8 [V, H, W, 3] of trigger `seq` (a negative seq: the empty belt) and the host time it was
+        exposed (rendered once per seq)."""
         with self._lock:
             if self._seq != seq:
-                sim3 = self.sim3_rig_to_object(seq)
-                true = [self.true_camera(i) for i in range(len(self.cameras))]
-                cams_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in true]
                 self._t0 = time.monotonic_ns()
-                rgb, _ = self._gl.submit(self.scene.render, cams_obj, noise_std=self.noise_std, seed=self.seed + seq).result()
-                self._images, self._seq = np.asarray(rgb), seq
+                if seq < 0:
+                    self._images = self._render_empty()
+                else:
+                    sim3 = self.sim3_rig_to_object(seq)
+                    true = [self.true_camera(i) for i in range(len(self.cameras))]
+                    cams_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in true]
+                    rgb, _ = self._gl.submit(self.scene.render, cams_obj, noise_std=self.noise_std, seed=self.seed + seq).result()
+                    self._images = np.asarray(rgb)
+                self._seq = seq
             return self._images, self._t0
+
+    def _render_empty(self) -> np.ndarray:
+        cams = [self.true_camera(i) for i in range(len(self.cameras))]
+        rgb, _ = self._gl.submit(self.scene.render, cams, noise_std=self.noise_std, seed=self.seed, object_visible=False).result()
+        return np.asarray(rgb)
 
     def empty_views(self) -> np.ndarray:
         """RGB uint8 [V, H, W, 3] of the rig with no part in it (what background subtraction compares with)."""
         with self._lock:
-            cams = [self.true_camera(i) for i in range(len(self.cameras))]
-            rgb, _ = self._gl.submit(self.scene.render, cams, noise_std=self.noise_std, seed=self.seed, object_visible=False).result()
-        return np.asarray(rgb)
+            return self._render_empty()
 
     def drivers(self, prefix: str = "cam") -> list["SyntheticCamera"]:
         return [SyntheticCamera(f"{prefix}{i:02d}", self, i) for i in range(len(self.cameras))]
@@ -240,8 +249,9 @@ class PatternCamera:
             raise CameraError(f"{self.camera_id}: grab before open and arm")
         img = self._base.copy()
         w = img.shape[1]
-        x = (self._seq * 37) % max(w - 16, 1)
-        img[:, x : x + 16] = 230
+        if self._seq >= 0:  # a negative seq is the empty belt: no bar
+            x = (self._seq * 37) % max(w - 16, 1)
+            img[:, x : x + 16] = 230
         self._frames += 1
         return Frame(self.camera_id, img, self._exposed_ns, _settings_dict(self._settings))
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from calibration.board import BoardSpecError, board_image_at_dpi, detect_board, parse_board, to_gray_u8
-from calibration.calibfile import CalibrationStore, from_rig
+from calibration.calibfile import CalibrationFileError, CalibrationStore, from_rig
 from calibration.capture import read_capture, read_image
 from calibration.drift import CHEAP, THOROUGH
 from calibration.fileio import atomic_write_bytes
@@ -74,7 +74,8 @@ def _image_folder(folder: Path) -> dict[str, Path]:
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version; old ones are kept)")
 @click.option("--dist", "num_dist", type=click.Choice(["0", "4", "5"]), default="5", show_default=True, help="OpenCV distortion coefficients")
 @click.option("--no-cross-validation", is_flag=True, help="skip the split-half uncertainty figures (faster)")
-def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Path, num_dist: str, no_cross_validation: bool) -> None:
+@click.option("--force", is_flag=True, help="store a calibration that fails the quality gate (RMS, intrinsics, coverage), marked as forced")
+def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Path, num_dist: str, no_cross_validation: bool, force: bool) -> None:
     """Calibrate intrinsics and rig extrinsics from board images."""
     spec = _spec(board)
     cam_names = names.split(",") if names else [f.name for f in folders]
@@ -94,8 +95,12 @@ def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Pat
         rig = calibrate_rig(detections, sizes, num_dist=int(num_dist), cross_validate=not no_cross_validation)
     except CalibrationError as e:
         raise click.ClickException(str(e)) from None
-    doc = CalibrationStore(out).commit(from_rig(rig, board=str(spec)))
-    click.echo(f"{out}: version {doc.version} ({len(rig.cameras)} cameras, rig frame = camera '{rig.reference}')")
+    try:
+        doc = CalibrationStore(out).commit(from_rig(rig, board=str(spec)), force=force)
+    except CalibrationFileError as e:
+        raise click.ClickException(str(e)) from None
+    forced = f"; FORCED past the quality gate: {'; '.join(doc.notes['forced'])}" if doc.notes.get("forced") else ""
+    click.echo(f"{out}: version {doc.version} ({len(rig.cameras)} cameras, rig frame = camera '{rig.reference}'){forced}")
     for n in rig.cameras:
         k = rig.cameras[n].K
         cv = rig.intrinsics_cv_px[n]
@@ -115,7 +120,8 @@ def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Pat
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version)")
 @click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None, help="calibration to align to (default: the capture's own poses)")
 @click.option("--max-error-px", type=float, default=1.0, show_default=True)
-def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: float) -> None:
+@click.option("--force", is_flag=True, help="store a calibration that fails the quality gate, marked as forced")
+def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: float, force: bool) -> None:
     """Board-free relative calibration of a capture with SfM (intrinsics held fixed)."""
     from calibration.calibfile import CalibrationDoc, read_calibration
     from calibration.sfm import sfm_calibrate
@@ -129,7 +135,10 @@ def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: floa
     res = sfm_calibrate(images, cams, reference=ref, max_reprojection_px=max_error_px)
     figures = {n: {"rms_px": res.reprojection_px} for n in res.cameras}
     notes = {"registered": f"{res.registered}/{res.total}", "points": res.points, "alignment_rms_m": res.alignment_rms_m, "capture": str(capture)}
-    doc = CalibrationStore(out).commit(CalibrationDoc(res.cameras, figures, source="sfm", notes=notes))
+    try:
+        doc = CalibrationStore(out).commit(CalibrationDoc(res.cameras, figures, source="sfm", notes=notes), force=force)
+    except CalibrationFileError as e:
+        raise click.ClickException(str(e)) from None
     click.echo(
         f"{out}: version {doc.version}; registered {res.registered}/{res.total} images, reprojection {res.reprojection_px:.2f} px, "
         f"{res.points} points, aligned to the reference with {1000 * (res.alignment_rms_m or 0):.1f} mm RMS"

@@ -1,4 +1,10 @@
-"""`cadsplat export TWIN --format FMT --out PATH`: a twin in the formats other tools read."""
+"""`cadsplat export TWIN --format FMT --out PATH`: a twin in the formats other tools read.
+
+Every export is atomic: a file is written beside its name and renamed; a directory format (mjcf,
+colmap) is built in a hidden sibling directory and renamed into place, so a full disk or a kill
+leaves the old output or none, never a partial tree. An existing output is replaced only with
+`--overwrite`, and only when it holds an export of that format.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +12,9 @@ import importlib
 from pathlib import Path
 
 import click
+
+# The file every export of a directory format holds: what makes a directory "an export of that format".
+DIRECTORY_MARKERS = {"mjcf": "model.xml", "colmap": "cameras.txt"}
 
 # format -> ("module:function", help). Each function takes (twin_dir, out) and returns the written path.
 FORMATS: dict[str, tuple[str, str]] = {
@@ -57,6 +66,48 @@ def _physics(density: float | None, material: str | None, rig_toml: Path | None)
     return {"density": density, "material": material, "rig_toml": rig_toml}
 
 
+def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False, **options) -> Path:
+    """Export the twin at `twin_dir` as `fmt` to `out`, atomically; returns what was written.
+    `options` go to the format's exporter (the physics options of `PHYSICS_FORMATS`)."""
+    import os
+    import shutil
+    import tempfile
+
+    from calibration.fileio import fsync_dir
+    from reconstruction.twin import load_twin
+
+    module, attr = FORMATS[fmt][0].split(":")
+    exporter = getattr(importlib.import_module(module), attr)
+    if fmt not in DIRECTORY_MARKERS:
+        if out.exists() and not out.is_dir() and not overwrite:
+            raise click.ClickException(f"{out} already exists; pass --overwrite to replace it")
+        return exporter(twin_dir, out, **options)
+    if out.exists():
+        if not overwrite:
+            raise click.ClickException(f"{out} already exists; pass --overwrite to replace it")
+        if not (out / DIRECTORY_MARKERS[fmt]).is_file():
+            raise click.ClickException(f"{out} holds no {fmt} export (no {DIRECTORY_MARKERS[fmt]}), so it is not replaced; choose another --out")
+    load_twin(twin_dir)  # a damaged twin fails here, before anything is written
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
+    try:
+        exporter(twin_dir, tmp, **options)
+        fsync_dir(tmp)
+        old = None
+        if out.exists():
+            old = out.parent / f".{out.name}.replaced"
+            shutil.rmtree(old, ignore_errors=True)
+            os.rename(out, old)
+        os.rename(tmp, out)
+        fsync_dir(out.parent)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
 @click.command(help="Export the twin at TWIN as " + ", ".join(f"{k} ({v[1]})" for k, v in FORMATS.items()) + ".")
 @click.argument("twin_dir", type=click.Path(path_type=Path))
 @click.option("--format", "fmt", required=True, type=click.Choice(list(FORMATS)), help="Output format.")
@@ -64,9 +115,9 @@ def _physics(density: float | None, material: str | None, rig_toml: Path | None)
 @click.option("--density", type=float, default=None, help="mjcf/usd: density in kg/m^3 (overrides the material).")
 @click.option("--material", default=None, help="mjcf/usd: material name (plastic, steel, aluminium, ...) giving the density.")
 @click.option("--rig", "rig_toml", type=click.Path(dir_okay=False, path_type=Path), default=None, help="mjcf/usd: rig.toml whose [simulation] table gives the density.")
-def export(twin_dir: Path, fmt: str, out: Path, density: float | None, material: str | None, rig_toml: Path | None) -> None:
-    module, attr = FORMATS[fmt][0].split(":")
-    kwargs = _physics(density, material, rig_toml) if fmt in PHYSICS_FORMATS else {}
-    written = getattr(importlib.import_module(module), attr)(twin_dir, out, **kwargs)
+@click.option("--overwrite", is_flag=True, help="Replace an existing export of this format at --out.")
+def export(twin_dir: Path, fmt: str, out: Path, density: float | None, material: str | None, rig_toml: Path | None, overwrite: bool) -> None:
+    options = _physics(density, material, rig_toml) if fmt in PHYSICS_FORMATS else {}
+    written = write_export(fmt, twin_dir, out, overwrite=overwrite, **options)
     click.echo(f"{fmt} written to {written}")
 

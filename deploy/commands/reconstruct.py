@@ -66,6 +66,10 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
         raise click.UsageError("--library is required (or --init sphere to reconstruct without a CAD model)")
     if out_dir.exists() and not overwrite:
         raise click.ClickException(f"{out_dir} already exists; choose another --out or pass --overwrite")
+    from reconstruction.twin import is_twin_dir
+
+    if out_dir.exists() and not is_twin_dir(out_dir):
+        raise click.ClickException(f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out")
     tasks: dict[str, int] = {}
     with Progress(TextColumn("{task.description:<30}"), BarColumn(), MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4f}"),
                   TimeElapsedColumn(), transient=False) as bar:

@@ -45,6 +45,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
     from reconstruction.registration import SCALE_TOLERANCE, known_part_register
+    from reconstruction.quality import check_masks, check_registration
     from reconstruction.registration import register as run
 
     t0 = time.perf_counter()
@@ -64,6 +65,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     metres_per_unit = rig_metres_per_unit(capture.meta, capture.root)
     lib = load_library(lib_dir)
     masks, source = capture_masks(capture)
+    check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
     t_masks = time.perf_counter() - t0
     cameras = [capture.camera(i) for i in range(len(capture))]
     images = np.stack([capture.image(i) for i in range(len(capture))]) if len({(c.width, c.height) for c in cameras}) == 1 else None
@@ -81,6 +83,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     else:
         res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None,
                   rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, images=images)
+    check_registration(res.score, res.alternatives, masks, len(lib.models), res.model_id)
     doc = res.to_dict()
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source

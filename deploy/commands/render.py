@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from pathlib import Path
 
 import click
@@ -44,11 +46,7 @@ def orbit_cameras(twin, n: int):
               help="Test-time pose refinement steps per view against the capture's own images (the twin stays frozen).")
 def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: Path | None, explode: float, hidden: tuple[str, ...],
            list_parts: bool, refine_steps: int) -> None:
-    from rich.progress import track
-
     from calibration.capture import read_capture
-    from calibration.fileio import atomic_write_png
-    from reconstruction.pipeline import render_rgba
     from reconstruction.twin import load_twin
     from simulation.parts import exploded_splats
     from simulation.parts import list_parts as twin_parts
@@ -75,7 +73,38 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
     else:
         capture = None
         jobs = [(name, cam, None) for name, cam in orbit_cameras(twin, orbit)]
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    # Every image is rendered into a hidden sibling first, so a full disk or a kill leaves no partial set.
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".incoming", dir=out_dir.parent))
+    try:
+        _render_all(jobs, twin, splats, capture, refine_steps, tmp)
+        _publish(tmp, out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    click.echo(f"{len(jobs)} RGBA images written to {out_dir}")
+
+
+def _publish(tmp: Path, out_dir: Path) -> None:
+    """Move the rendered set into `out_dir`: one rename when it is new, else one rename per image."""
+    import os
+
+    from calibration.fileio import fsync_dir
+
+    if not out_dir.exists():
+        os.rename(tmp, out_dir)
+    else:
+        for p in sorted(tmp.iterdir()):
+            os.replace(p, out_dir / p.name)
+        fsync_dir(out_dir)
+    fsync_dir(out_dir.parent)
+
+
+def _render_all(jobs, twin, splats, capture, refine_steps: int, folder: Path) -> None:
+    from rich.progress import track
+
+    from calibration.fileio import atomic_write_png
+    from reconstruction.pipeline import render_rgba
+
     for name, cam, i in track(jobs, description="rendering", transient=True):
         if refine_steps and capture is not None:
             from reconstruction.evaluation import FrozenGaussians, refine_camera_pose
@@ -87,5 +116,4 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
             ref = refine_camera_pose(FrozenGaussians.from_twin(twin), cam, capture.image(i), mask, steps=refine_steps)
             cam = cam.with_c2w(ref.c2w)
         rgba = render_rgba(splats["means"], splats["quats"], splats["log_scales"], splats["opacity_logits"], splats["sh"], splats["sh_degree"], cam)
-        atomic_write_png(out_dir / f"{Path(name).stem}.png", rgba)
-    click.echo(f"{len(jobs)} RGBA images written to {out_dir}")
+        atomic_write_png(folder / f"{Path(name).stem}.png", rgba)

@@ -1,8 +1,12 @@
-"""`cadsplat rig list | capture | watch`: the rig's cameras and triggers, from rig.toml or simulated.
+"""`cadsplat rig list | capture | watch | reference`: the rig's cameras and triggers, from rig.toml or simulated.
 
 `watch` prints one line per capture on stdout (`committed <id>`, `quarantined <id>: <reason>`,
 ...) only after the capture is durable, and a live status line on stderr. SIGTERM/SIGINT stop it
-after the capture in flight.
+after the capture in flight. A full disk prints `STOPPED: disk full ...` once (the refused
+triggers are counted on the status line) and `RESUMED ...` when space returns.
+
+`reference` takes the empty-rig reference (the belt must be empty); the simulated rig takes one
+itself on its first start, and `watch --reference-every S` retakes it on schedule.
 """
 
 from __future__ import annotations
@@ -70,6 +74,14 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
     acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, calibration_uncertainty=uncertainty, units=units,
                       thresholds=thresholds, settings=locked)
     try:
+        if acq.reference_note:
+            click.echo(acq.reference_note, err=True)
+        if not acq.backgrounds:
+            if simulate:
+                _report(acq.take_reference("first start of the simulated rig (its belt starts empty)"))
+            else:
+                click.echo("no empty-rig reference yet: captures carry no background, so the service cannot segment them; "
+                           "run `cadsplat rig reference` with the belt empty", err=True)
         yield acq
     finally:
         acq.close()
@@ -78,10 +90,19 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
 
 
 def _report(out) -> None:
+    if out.state_change == "resumed":
+        click.echo("RESUMED: disk space is back; capturing again")
     if out.status == "committed":
         click.echo(f"committed {out.capture_id}  ({out.latency_ns / 1e6:.0f} ms after trigger {out.trigger.seq})")
-    elif out.status in ("quarantined", "failed"):
+    elif out.status in ("quarantined", "failed", "held"):
         click.echo(f"{out.status} {out.capture_id}: {out.reason}")
+    elif out.status == "reference":
+        click.echo(f"reference {out.capture_id}: empty-rig frames taken ({out.reason})")
+    elif out.status == "refused" and out.trigger.seq is not None and out.trigger.seq < 0:
+        click.echo(f"refused {out.reason}")
+    elif out.status == "refused" and out.reason.startswith("STOPPED"):
+        if out.state_change == "stopped":  # once, not once per trigger; the status line counts the refusals
+            click.echo(f"{out.reason} (trigger {out.trigger.seq} and those after it are refused before any frame is taken)")
     elif out.status in ("refused", "late"):
         click.echo(f"{out.status} trigger {out.trigger.seq}: {out.reason}")
     sys.stdout.flush()
@@ -94,7 +115,7 @@ def _status(acq, source) -> str:
         f"triggers {f.received} | captures {c['committed']} | quarantined {c['quarantined']} | dropped {c['dropped']} "
         f"| missed {f.missed} | refused {c['refused']} | disk {free:.1f} GB free"
     )
-    alarm = acq.store.alarm or acq.camera_alarm or source.last_error
+    alarm = acq.stopped or acq.store.alarm or acq.camera_alarm or source.last_error
     return f"{line} | {alarm}" if alarm else line
 
 
@@ -184,13 +205,15 @@ def capture(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None
 @click.option("--trigger", "trigger_kind", type=click.Choice(["can", "serial"]), default="can", show_default=True, help="Simulated trigger line.")
 @click.option("--rate", default=0.5, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
 @click.option("--max-captures", type=click.IntRange(1), help="Stop after this many captures (committed or quarantined).")
-def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_kind, rate, max_captures) -> None:
+@click.option("--reference-every", type=click.FloatRange(1), default=None, help="Retake the empty-rig reference every this many seconds while no trigger waits.")
+def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_kind, rate, max_captures, reference_every) -> None:
     """Capture on every trigger until stopped, with a live status line."""
     from rig.assembly import SimulatedPlc, build_trigger
 
     cfg = _load(config, simulate)
     stop = threading.Event()
     with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+        acq.reference_every_s = reference_every
         if simulate:
             plc = SimulatedPlc(trigger_kind, rate)
             source = plc.source
@@ -210,3 +233,15 @@ def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_k
                 signal.signal(s, h)
             pending = source.events.qsize()
             click.echo(("\n" if tty else "") + _status(acq, source) + (f" | {pending} triggers unhandled at stop" if pending else ""), err=True)
+
+
+@rig.command()
+@_common
+def reference(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None:
+    """Take the empty-rig reference now (the belt must be empty): a new version every capture records."""
+    cfg = _load(config, simulate)
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+        out = acq.take_reference("taken on command")
+        _report(out)
+    if out.status != "reference":
+        raise click.ClickException(out.reason)

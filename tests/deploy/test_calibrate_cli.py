@@ -107,3 +107,37 @@ def test_check_exits_3_on_recalibrate(tmp_path, capsys):
     assert main(["calibrate", "check", str(tmp_path / "bad"), "--calibration", str(calib)]) == 3
     cap = capsys.readouterr()
     assert "RECALIBRATE: alarm: recalibrate cam1" in cap.out and "recalibrate the rig" in cap.err
+
+
+def test_wrong_board_spec_is_refused_and_not_stored(tmp_path, capsys):
+    """Issue 16 (3): a 7x5 spec on the 9x6 photos used to store version 1 with an RMS of pixels."""
+    from tests.conftest import require_shared
+
+    photos = require_shared("calibration", "opencv_chessboard")
+    folder = tmp_path / "left"
+    folder.mkdir()
+    for p in sorted(photos.glob("left*.jpg")):
+        (folder / p.name).write_bytes(p.read_bytes())
+    calib = tmp_path / "calibration.json"
+    args = ["calibrate", "board", "--board", "chessboard:7x5:0.025", "--images", str(folder), "--out", str(calib), "--no-cross-validation"]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("Error: calibration refused and not stored: camera 'left' reprojects with RMS") and len(err.splitlines()) == 1
+    assert not calib.exists() and not (tmp_path / "calibration.versions").exists()
+    assert main(args + ["--force"]) == 0
+    doc = json.loads(calib.read_text())
+    assert doc["version"] == 1 and "reprojects with RMS" in doc["notes"]["forced"][0]
+    assert "FORCED past the quality gate" in capsys.readouterr().out
+
+
+def test_quality_gate_names_each_implausible_figure():
+    from calibration.calibfile import CalibrationDoc, quality_problems
+
+    good = Camera.from_fov(np.radians(60), 640, 480)
+    assert quality_problems(CalibrationDoc({"a": good}, {"a": {"rms_px": 0.3, "coverage": 0.6}})) == []
+    k = good.K.copy()
+    k[1, 2] = 1305.0
+    bad = Camera(k, 640, 480, np.zeros(0), good.c2w)
+    problems = quality_problems(CalibrationDoc({"a": bad}, {"a": {"rms_px": 76.6, "coverage": 0.05}}))
+    assert [p.split(" ")[2] for p in problems] == ["reprojects", "has", "saw"]
+    assert "principal point at (320, 1305) px" in problems[1]

@@ -63,3 +63,21 @@ def test_simulated_appliance_end_to_end_on_screen(tmp_path):
     assert any(g in verdict for g in ("GOOD", "USABLE", "POOR")) and "fit IoU" in verdict
     assert "Camera cam02 moved 1.5° — stop the line and run a calibration" in alarm
     assert alarm.split("---")[1].count("ALARM (") == 0
+
+
+def test_disk_full_is_a_state_on_screen_and_in_the_rig_log(capsys):
+    from deploy.commands.rig import _report
+    from deploy.kiosk import render_rig
+    from rig.acquisition import Outcome
+    from rig.triggers import TriggerEvent
+
+    text = render_rig(ApplianceState(watching=True, disk_full="STOPPED: disk full: 0.00 GB free"))
+    assert text.splitlines()[0] == "RIG STOPPED: disk full"
+    ev = lambda seq: TriggerEvent(seq, "can", 0)  # noqa: E731
+    why = "STOPPED: disk full: no room to reserve 0.1 MB for the next capture; captures resume when space is freed"
+    for out in (Outcome("refused", ev(7), reason=why, state_change="stopped"), Outcome("refused", ev(8), reason=why),
+                Outcome("refused", ev(9), reason=why), Outcome("committed", ev(10), "000004-x", state_change="resumed")):
+        _report(out)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 3 and lines[0].startswith("STOPPED: disk full") and "trigger 7 and those after it" in lines[0]
+    assert lines[1] == "RESUMED: disk space is back; capturing again" and lines[2].startswith("committed 000004-x")

@@ -143,3 +143,20 @@ def test_twin_silhouettes_beat_initial_state_on_heldout_views(before_after):
 def test_twin_colours_beat_initial_state_on_heldout_views(before_after):
     before, after = before_after
     assert after["fgpsnr"] > before["fgpsnr"] + 0.5, (before["fgpsnr"], after["fgpsnr"])
+
+
+def test_all_white_masks_are_refused_not_a_confident_wrong_twin(tmp_path, library, capsys):
+    """Issue 16 (4): all-white masks registered an IMU housing at IoU 1.000 and reconstruct exited 0."""
+    from calibration.capture import FrameData, write_capture
+
+    cap = read_capture(SAMPLE / "train")
+    frames = [FrameData(Path(cap.frames[i].file_path).stem, (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
+                        cap.camera(i, undistorted=False), cap.frames[i].camera_id, None, np.ones((cap.frames[i].camera.height, cap.frames[i].camera.width), bool))
+              for i in (0, 2, 4, 6)]
+    white = write_capture(tmp_path / "white", frames).root
+    for argv in (["reconstruct", str(white), "--library", str(library), "--out", str(tmp_path / "twin"), "--preset", "preview"],
+                 ["register", str(white), "--library", str(library), "--out", str(tmp_path / "reg.json")]):
+        assert main(argv) != 0
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("Error: masks refused: view 0 (") and "covers 100% of the image" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "twin").exists() and not (tmp_path / "reg.json").exists()

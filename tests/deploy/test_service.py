@@ -120,3 +120,98 @@ def test_stopping_mid_step_requeues_without_spending_an_attempt(tmp_path):
     job = svc.jobs.jobs()[0]
     assert job.status == "queued" and job.attempts == 0 and job.error == ""
     assert job.steps["register"]["status"] == "done" and job.steps["reconstruct"]["status"] == "pending"
+
+
+@__import__("pytest").mark.slow
+def test_readme_flow_rig_watch_then_service_run_makes_a_twin_of_every_capture(tmp_path, monkeypatch, capsys):
+    """Issue 16 (1): `rig watch --simulate --trigger can --max-captures 2 --store S` then `service run --store S
+    --work W --library L` used to fail every job with "has neither masks/ nor background/ frames"."""
+    from dataclasses import replace
+
+    import pytest
+
+    from deploy.cli import main
+    from reconstruction import presets
+    from reconstruction.library import build_library
+    from tests.conftest import REPO
+    from tests.rig.conftest import assert_store_sound
+
+    if not (REPO / "sample" / "library_meshes").exists():
+        pytest.skip("the bundled sample's library meshes are absent")
+    store, work, lib = tmp_path / "S", tmp_path / "W", tmp_path / "L"
+    r = subprocess.run([sys.executable, "-c", "import sys; from deploy.cli import main; sys.exit(main())", "rig", "watch", "--simulate",
+                        "--trigger", "can", "--rate", "3", "--max-captures", "2", "--store", str(store), "--views", "4",
+                        "--size", "128", "96", "--min-free-gb", "0"],
+                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=180)
+    assert r.returncode == 0, r.stderr
+    ids = [line.split()[1] for line in r.stdout.splitlines() if line.startswith("committed ")]
+    assert len(ids) == 2 and assert_store_sound(store, ids) == sorted(ids)
+    assert r.stdout.startswith("reference reference-v0001: empty-rig frames taken")
+    build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
+    original = presets.resolve_preset
+    monkeypatch.setattr("reconstruction.pipeline.resolve_preset",
+                        lambda name, stats: (lambda p, c: (replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c))(*original(name, stats)))
+    capsys.readouterr()
+    assert main(["service", "run", "--store", str(store), "--work", str(work), "--library", str(lib), "--preset", "preview",
+                 "--max-jobs", "2", "--poll", "0.1", "--min-free-gb", "0"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("job-done") == 2 and "job-failed" not in out and "job-retry" not in out, out
+    jobs = JobStore(work / "jobs.sqlite").jobs()
+    assert [j.status for j in jobs] == ["done", "done"]
+    for j in jobs:
+        twin = Path(j.steps["reconstruct"]["output"]["twin"])
+        assert (twin / "manifest.json").exists() and (twin / "twin.json").exists()
+        assert json_meta(store, j.capture_id)["background_id"] == "reference-v0001"
+
+
+def json_meta(store: Path, capture_id: str) -> dict:
+    import json
+
+    return json.loads((store / "captures" / capture_id / "transforms.json").read_text())["cadsplat"]
+
+
+def test_read_only_work_dir_is_one_sentence(tmp_path, capsys):
+    """Issue 16 (6): `service run` with a read-only work dir printed a sqlite3 traceback. A tmpfs remounted
+    read-only (file modes do not stop root); skipped where mounting is not allowed."""
+    import pytest
+
+    from deploy.cli import main
+
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root / CAP_SYS_ADMIN)")
+    try:
+        (mnt / "W").mkdir()
+        subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True, capture_output=True)
+        rc = main(["service", "run", "--store", str(tmp_path / "S"), "--work", str(mnt / "W"), "--library", str(tmp_path), "--max-jobs", "1"])
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and err.startswith("Error: cannot open the job store") and len(err.splitlines()) == 1, err
+
+
+def test_garbage_job_store_is_one_sentence(tmp_path, capsys):
+    from deploy.cli import main
+
+    work = tmp_path / "W"
+    work.mkdir()
+    (work / "jobs.sqlite").write_bytes(b"this is not a database" * 100)
+    rc = main(["service", "run", "--store", str(tmp_path / "S"), "--work", str(work), "--library", str(tmp_path), "--max-jobs", "1"])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and err.startswith("Error: cannot open the job store") and "not a database" in err and len(err.splitlines()) == 1
+
+
+def test_full_disk_stops_the_service_without_failing_a_job_and_resumes(tmp_path):
+    make_captures(tmp_path / "store", 2)
+    free = {"b": 10 << 20}
+    events = []
+    svc = PipelineService(tmp_path / "store", tmp_path / "work", CountingRunner(), min_free_bytes=50 << 20, resume_margin_bytes=1 << 20,
+                          free_bytes=lambda _p: free["b"], on_event=events.append)
+    assert not svc.run_once() and not svc.run_once()
+    assert svc.state.startswith("STOPPED: disk full") and [e.kind for e in events] == ["stopped"]
+    free["b"] = 100 << 20
+    while svc.run_once():
+        pass
+    assert svc.state == "" and [j.status for j in svc.jobs.jobs()] == ["done", "done"]
+    assert [e.kind for e in events][:2] == ["stopped", "resumed"]

@@ -129,7 +129,7 @@ def test_low_disk_refuses_new_captures_and_keeps_stored_ones(store_root):
     third = acq.handle(trig.fire())
     acq.close()
     assert (first.status, refused.status, third.status) == ("committed", "refused", "committed")
-    assert "disk nearly full" in refused.reason
+    assert refused.reason.startswith("STOPPED: disk full") and refused.state_change == "stopped" and third.state_change == "resumed"
     assert assert_store_sound(store_root, [first.capture_id, third.capture_id]) == sorted([first.capture_id, third.capture_id])
 
 
@@ -203,7 +203,9 @@ def test_grab_errors_from_driver_bugs_quarantine_instead_of_crashing(store_root)
         assert "disconnected" in str(e)
 
 
-def test_enospc_mid_capture_is_quarantined_and_the_next_capture_commits(store_root, monkeypatch):
+def test_enospc_mid_capture_is_written_into_the_reserve_and_committed(store_root, monkeypatch):
+    """The disk fills behind the rig's back mid-capture: the reserve is released, the capture in
+    flight is committed whole (its frames are not lost to a quarantine entry without them)."""
     import errno
     import os
 
@@ -222,12 +224,9 @@ def test_enospc_mid_capture_is_quarantined_and_the_next_capture_commits(store_ro
     trig = SoftwareTrigger()
     outs = [acq.handle(trig.fire()) for _ in range(3)]
     acq.close()
-    assert [o.status for o in outs] == ["committed", "quarantined", "committed"]
-    assert outs[1].reason.startswith("disk full while writing: [Errno 28]")
-    assert acq.store.quarantine_reason(outs[1].capture_id) == outs[1].reason
-    q = store_root / "quarantine" / outs[1].capture_id
-    assert sorted(p.name for p in (q / "images").iterdir()) == ["cam0.png", "cam1.png", "cam2.png"]  # the frames were kept
-    committed = [outs[0].capture_id, outs[2].capture_id]
+    assert [o.status for o in outs] == ["committed", "committed", "committed"]
+    assert acq.store.quarantined_ids() == []
+    committed = [o.capture_id for o in outs]
     assert assert_store_sound(store_root, committed) == committed
 
 

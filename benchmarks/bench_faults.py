@@ -1,0 +1,221 @@
+"""Fault injection over the appliance, with counts: `python -m benchmarks.bench_faults [--kills N]`.
+
+1. ENOSPC (once; and "another process fills the disk") and EROFS (read-only from that site on, then
+   writable again before one more trigger) at every write site of the capture store (a reference + 3
+   captures on pattern cameras), the calibration keeper and the service (one run per site,
+   tests.faultfs.FaultyDisk wrapping the write sites).
+2. SIGKILL at N random points of `cadsplat rig watch --simulate` (one store, restarted after each kill).
+3. SIGKILL at N random points of `cadsplat service run` (preview preset) on 2 simulated captures, then
+   one uninterrupted run to the end.
+
+After each fault it checks what the acceptance asks: every capture committed and verifying or refused
+and counted, 0 lost, 0 half-written outputs, one sentence per failure. Writes a markdown table to
+benchmarks/results/faults.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import os
+import random
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from tests.deploy.test_faults import _captures, _keeper_flow, _run_rig, _Steps
+from tests.faultfs import FaultyDisk
+from tests.killing import REPO, cadsplat, job_statuses, reported, run_until_killed, store_after_kill, work_after_kill
+
+RESULTS = Path(__file__).resolve().parent / "results"
+TRIGGERS = 3  # captures per write-site run, after the reference
+
+
+def one_sentence(text: str) -> bool:
+    return bool(text) and "\n" not in text and "Traceback" not in text
+
+
+def rig_sweep(tmp: Path, mode: str) -> dict:
+    from deploy.commands.store import verify_store
+    from rig.store import CaptureStore
+
+    count = FaultyDisk(tmp / f"{mode}-count")
+    _run_rig(tmp / f"{mode}-count", count, triggers=TRIGGERS)
+    sites = len(count.calls)
+    tally = {"sites": sites, "triggers": 0, "committed": 0, "of_which_held_then_written": 0, "refused": 0, "quarantined": 0, "failed": 0,
+             "lost": 0, "half_written": 0, "not_one_sentence": 0}
+    for n in range(1, sites + 1):
+        root = tmp / f"{mode}-{n}"
+        disk = {"enospc": lambda: FaultyDisk(root, fail_at=n), "filled": lambda: FaultyDisk(root, fill_at=n),
+                "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True)}[mode]()  # then writable again
+        outs, _ = _run_rig(root, disk, heal=mode == "erofs", triggers=TRIGGERS)
+        for o in outs[1:]:
+            if o.status == "held":
+                continue
+            tally["of_which_held_then_written"] += o.status == "committed" and o.reason.startswith("written after")
+            tally["triggers"] += 1
+            tally[o.status if o.status in tally else "failed"] += 1
+            tally["lost"] += o.status == "failed"
+            tally["not_one_sentence"] += o.status != "committed" and not one_sentence(o.reason)
+        CaptureStore(root, min_free_bytes=0)
+        counts, problems = verify_store(root)
+        committed = {o.capture_id for o in outs if o.status == "committed"}
+        tally["lost"] += len(committed - set(p.name for p in (root / "captures").iterdir()))
+        tally["half_written"] += len(problems)
+    return tally
+
+
+def keeper_sweep(tmp: Path) -> dict:
+    from calibration.calibfile import CalibrationStore
+
+    (tmp / "k-count").mkdir()
+    count = FaultyDisk(tmp / "k-count")
+    with count.active():
+        _keeper_flow(tmp / "k-count")
+    tally = {"sites": len(count.calls), "unreadable_calibration": 0, "half_written": 0, "not_one_sentence": 0}
+    for n in range(1, len(count.calls) + 1):
+        root = tmp / f"k{n}"
+        root.mkdir()
+        with FaultyDisk(root, fail_at=n).active():
+            try:
+                _keeper_flow(root)
+            except OSError as e:
+                tally["not_one_sentence"] += not one_sentence(str(e))
+        tally["half_written"] += sum(1 for p in root.rglob("*") if p.name.endswith(".tmp"))
+        store = CalibrationStore(root / "calibration.json")
+        try:
+            if (root / "calibration.json").exists():
+                store.load()
+            for v in store.versions():
+                store.load(v)
+        except ValueError:
+            tally["unreadable_calibration"] += 1
+    return tally
+
+
+def service_sweep(tmp: Path) -> dict:
+    from deploy.service import PipelineService
+
+    _captures(tmp / "svc-store")
+    count = FaultyDisk(tmp / "svc-count")
+    with count.active():
+        svc = PipelineService(tmp / "svc-store", tmp / "svc-count", _Steps(), min_free_bytes=0)
+        while svc.run_once():
+            pass
+    tally = {"sites": len(count.calls), "stopped_said": 0, "refused_at_start": 0, "jobs_failed": 0, "jobs_done_after_space_returned": 0,
+             "attempts_spent_on_full_disk": 0, "half_written": 0}
+    for n in range(1, len(count.calls) + 1):
+        work, free = tmp / f"svc-{n}", {"b": 10 << 30}
+        disk = FaultyDisk(work, fail_at=n, persistent=True)
+        with disk.active():
+            try:
+                svc = PipelineService(tmp / "svc-store", work, _Steps(), min_free_bytes=1 << 20, resume_margin_bytes=1 << 20,
+                                      free_bytes=lambda _p: free["b"])
+            except (RuntimeError, OSError):
+                tally["refused_at_start"] += 1
+                continue
+            for _ in range(10):
+                svc.run_once()
+            tally["stopped_said"] += svc.state.startswith("STOPPED: disk full")
+        disk.fail_at, free["b"] = None, free["b"] + (100 << 20)
+        with disk.active():
+            for _ in range(10):
+                svc.run_once()
+        jobs = svc.jobs.jobs()
+        tally["jobs_failed"] += sum(j.status == "failed" for j in jobs)
+        tally["jobs_done_after_space_returned"] += sum(j.status == "done" for j in jobs)
+        tally["attempts_spent_on_full_disk"] += sum(max(0, j.attempts - 1) for j in jobs)
+        tally["half_written"] += len(list(work.rglob("*.tmp")))
+    return tally
+
+
+def kill_rig(tmp: Path, kills: int, rng: random.Random) -> dict:
+    store = tmp / "kill-rig"
+    committed: list[str] = []
+    tally = {"kills": 0, "reported_committed": 0, "missing": 0, "verify_problems": 0, "recovered_to_quarantine": 0}
+    argv = cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "8", "--store", str(store),
+                    "--views", "3", "--size", "96", "72", "--min-free-gb", "0")
+    for _ in range(kills):
+        out, killed = run_until_killed(argv, rng.uniform(0.0, 1.5), ready=("reference", "committed"))
+        tally["kills"] += killed
+        committed += reported(out)
+        try:
+            counts = store_after_kill(store, committed)
+            tally["recovered_to_quarantine"] += counts["recovered"]
+        except AssertionError as e:
+            tally["missing" if "reported committed" in str(e) else "verify_problems"] += 1
+    tally["reported_committed"] = len(committed)
+    return tally
+
+
+def kill_service(tmp: Path, kills: int, rng: random.Random) -> dict:
+    from reconstruction.library import build_library
+
+    store, work, lib = tmp / "kill-svc-S", tmp / "kill-svc-W", tmp / "kill-svc-L"
+    out, _ = run_until_killed(cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "4", "--max-captures", "2",
+                                       "--store", str(store), "--views", "4", "--size", "128", "96", "--min-free-gb", "0"), 300)
+    build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
+    argv = cadsplat("service", "run", "--store", str(store), "--work", str(work), "--library", str(lib), "--preset", "preview",
+                    "--poll", "0.2", "--min-free-gb", "0", "--max-jobs", "2")
+    tally = {"captures": len(reported(out)), "kills": 0, "half_written_published": 0}
+    for _ in range(kills):
+        _, killed = run_until_killed(argv, rng.uniform(0.5, 8.0), ready=("resumed", "enqueued", "step-"))
+        tally["kills"] += killed
+        try:
+            work_after_kill(work)
+        except Exception:  # noqa: BLE001 - any unreadable published output counts
+            tally["half_written_published"] += 1
+    final, killed = run_until_killed(argv, 1200)
+    statuses = job_statuses(work)
+    after = work_after_kill(work)
+    tally.update({"jobs_done": statuses.count("done"), "jobs_failed": statuses.count("failed"), "twins_verifying": after["twins"],
+                  "exports": after["exports"], "leftovers_after_final_run": after["leftovers"]})
+    return tally
+
+
+def table(title: str, tally: dict) -> str:
+    return f"### {title}\n\n| " + " | ".join(tally) + " |\n|" + "---|" * len(tally) + "\n| " + " | ".join(str(v) for v in tally.values()) + " |\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
+    ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
+    ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
+    ap.add_argument("--seed", type=int, default=16)
+    args = ap.parse_args()
+    rng = random.Random(args.seed)
+    tmp = Path(tempfile.mkdtemp(prefix="bench-faults-"))
+    sections, t0 = [], time.perf_counter()
+    parts = set(args.parts.split(","))
+    service_kills = args.kills if args.service_kills is None else args.service_kills
+    try:
+        if "sites" in parts:
+            for mode in ("enospc", "filled", "erofs"):
+                sections.append(table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode)))
+                print(sections[-1], flush=True)
+            sections.append(table("Calibration keeper, ENOSPC at each write site", keeper_sweep(tmp)))
+            print(sections[-1], flush=True)
+            sections.append(table("Service, ENOSPC from each write site on, then space returns", service_sweep(tmp)))
+            print(sections[-1], flush=True)
+        if "kills" in parts and args.kills:
+            sections.append(table(f"SIGKILL of `rig watch --simulate` at {args.kills} random points", kill_rig(tmp, args.kills, rng)))
+            print(sections[-1], flush=True)
+        if "kills" in parts and service_kills:
+            sections.append(table(f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
+                                  kill_service(tmp, service_kills, rng)))
+            print(sections[-1], flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --parts {args.parts} --kills {args.kills} --service-kills {service_kills}`, "
+            f"{time.perf_counter() - t0:.0f} s, "
+            f"load average {os.getloadavg()[0]:.1f} at the end.\n\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(head + "\n".join(sections))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

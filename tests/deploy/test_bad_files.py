@@ -1,0 +1,145 @@
+"""No traceback from any command on a truncated, empty or garbage file of every kind it reads (issue 16, 6),
+and the twin-directory safety: a sha256 manifest every reader verifies, `--overwrite` only over a twin,
+atomic directory exports."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.camera import Camera
+from calibration.capture import FrameData, write_capture
+from deploy.cli import main
+from tests.simulation.twins import make_twin, skateboard
+
+DAMAGE = {
+    "truncated": lambda data: data[: len(data) // 2],
+    "empty": lambda data: b"",
+    "garbage": lambda data: bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8)),
+}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A small twin, a capture with masks (its held-out views), a library folder and a calibration."""
+    root = tmp_path_factory.mktemp("world")
+    twin = make_twin(root / "twin", "skateboard", *skateboard(), n=500)
+    rng = np.random.default_rng(1)
+    cam = Camera.from_fov(1.0, 48, 36)
+    mask = np.zeros((36, 48), bool)
+    mask[10:26, 12:36] = True
+    frames = [FrameData(f"v{i}", rng.integers(0, 255, (36, 48, 3), dtype=np.uint8), cam, f"cam{i}", mask=mask) for i in range(2)]
+    capture = write_capture(root / "capture", frames).root
+    lib = root / "lib"
+    lib.mkdir()
+    (lib / "library.json").write_text(json.dumps({"format": "cadsplat-library", "models": []}))
+    from calibration.calibfile import CalibrationDoc, CalibrationStore
+
+    CalibrationStore(root / "calibration.json").commit(CalibrationDoc({"cam0": cam, "cam1": cam}))
+    return {"twin": Path(twin), "capture": capture, "lib": lib, "calibration": root / "calibration.json"}
+
+
+# command (with {twin} {capture} {lib} {calibration} {out} placeholders) -> the files of each kind it reads
+CASES = {
+    "render": (["render", "{twin}", "--orbit", "2", "--out", "{out}"], ["twin/twin.json", "twin/splats.ply", "twin/splats_canonical.npz", "twin/manifest.json"]),
+    "export-ply": (["export", "{twin}", "--format", "ply", "--out", "{out}.ply"], ["twin/twin.json", "twin/splats.ply", "twin/manifest.json"]),
+    "export-mjcf": (["export", "{twin}", "--format", "mjcf", "--out", "{out}"], ["twin/twin.json", "twin/mesh_cad.glb", "twin/splats.ply"]),
+    "evaluate": (["evaluate", "{twin}", "--views", "{capture}", "--out", "{out}.json", "--refine-steps", "0"],
+                 ["twin/splats.ply", "capture/transforms.json", "capture/images/v0.png", "capture/masks/v1.png"]),
+    "reconstruct": (["reconstruct", "{capture}", "--library", "{lib}", "--out", "{out}"], ["capture/transforms.json", "capture/images/v1.png", "lib/library.json"]),
+    "register": (["register", "{capture}", "--library", "{lib}", "--out", "{out}.json"], ["capture/transforms.json", "lib/library.json"]),
+    "calibrate-check": (["calibrate", "check", "{capture}", "--calibration", "{calibration}"], ["calibration.json", "capture/transforms.json"]),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGE))
+@pytest.mark.parametrize("command", list(CASES))
+def test_no_traceback_on_a_damaged_file_of_every_kind(world, tmp_path, capsys, command, damage):
+    args, files = CASES[command]
+    for rel in files:
+        kind, _, name = rel.partition("/")
+        local = {}
+        for key in ("twin", "capture", "lib"):
+            local[key] = tmp_path / f"{key}-{rel.replace('/', '_')}"
+            shutil.copytree(world[key], local[key])
+        local["calibration"] = tmp_path / f"calibration-{rel.replace('/', '_')}.json"
+        shutil.copy(world["calibration"], local["calibration"])
+        target = local["calibration"] if rel == "calibration.json" else local[kind] / name
+        target.write_bytes(DAMAGE[damage](target.read_bytes()))
+        out = tmp_path / f"out-{rel.replace('/', '_')}"
+        argv = [a.format(out=out, **local) for a in args]
+        rc = main(argv)
+        captured = capsys.readouterr()
+        err = captured.err.strip()
+        assert rc != 0, f"{command} exited 0 on a {damage} {rel}"
+        assert "Traceback" not in captured.err + captured.out
+        assert err and len(err.splitlines()) == 1, f"{command} on a {damage} {rel}: {err!r}"
+        assert not out.exists() and not Path(f"{out}.json").exists() and not Path(f"{out}.ply").exists()
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out-")], "a half-written output was left"
+
+
+def test_a_damaged_twin_is_found_by_its_manifest(world, tmp_path, capsys):
+    twin = tmp_path / "twin"
+    shutil.copytree(world["twin"], twin)
+    doc = json.loads((twin / "manifest.json").read_text())
+    assert set(doc["sha256"]) >= {"twin.json", "splats.ply", "splats_canonical.npz"}
+    data = bytearray((twin / "splats.ply").read_bytes())
+    data[-5] ^= 0xFF  # one flipped bit: still a readable PLY, but not the twin that was written
+    (twin / "splats.ply").write_bytes(bytes(data))
+    assert main(["export", str(twin), "--format", "ply", "--out", str(tmp_path / "s.ply")]) != 0
+    assert "splats.ply: sha256 does not match manifest.json" in capsys.readouterr().err
+
+
+def test_overwrite_replaces_only_a_twin(world, tmp_path, capsys):
+    """Issue 16 (5): `reconstruct --overwrite` onto a directory that is not a twin deleted its files."""
+    precious = tmp_path / "thesis"
+    precious.mkdir()
+    (precious / "chapter1.tex").write_text("years of work")
+    rc = main(["reconstruct", str(world["capture"]), "--library", str(world["lib"]), "--out", str(precious), "--overwrite"])
+    assert rc != 0 and "is not a twin directory" in capsys.readouterr().err
+    assert (precious / "chapter1.tex").read_text() == "years of work"
+    from reconstruction.twin import TwinError, load_twin, save_twin
+
+    twin = load_twin(world["twin"])
+    with pytest.raises(TwinError, match="is not a twin directory"):
+        save_twin(twin, precious, overwrite=True)
+    assert (precious / "chapter1.tex").exists()
+    copy = tmp_path / "copy"
+    shutil.copytree(world["twin"], copy)
+    save_twin(twin, copy, overwrite=True)  # a twin is replaced
+    assert load_twin(copy).num_splats == twin.num_splats
+
+
+def test_directory_exports_are_atomic_and_replace_only_their_format(world, tmp_path, capsys, monkeypatch):
+    """Issue 16 (6): mjcf/colmap exports on a full disk left partial trees."""
+    import errno
+    import os
+
+    import calibration.fileio as fio
+
+    out = tmp_path / "colmap"
+    real, calls = fio._durable_temp, {"n": 0}
+
+    def full_after_one(path, data):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(fio, "_durable_temp", full_after_one)
+    assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(out)]) != 0
+    assert "No space left on device" in capsys.readouterr().err
+    assert not out.exists() and not [p.name for p in tmp_path.iterdir()]  # nothing partial, no temp sibling
+    monkeypatch.setattr(fio, "_durable_temp", real)
+    assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(out)]) == 0
+    assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(out)]) != 0  # exists: needs --overwrite
+    assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(out), "--overwrite"]) == 0
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "a.txt").write_text("keep")
+    assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(other), "--overwrite"]) != 0
+    assert "holds no colmap export" in capsys.readouterr().err and (other / "a.txt").exists()
