@@ -189,7 +189,9 @@ def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOption
     """Convex pieces [M_i, 3] of the mesh by one CoACD run at `threshold` (default opts.threshold),
     in a child process so the timeout can stop it; None when it ran out of time."""
     v, f = decimated(vertices, faces)
-    ctx = mp.get_context("spawn" if "fork" not in mp.get_all_start_methods() else "fork")
+    # Spawn, never fork: a service that reconstructed in-process holds torch/OpenMP threads, and a forked
+    # child deadlocks on a mutex one of them held (seen: the export step hung for its whole time budget).
+    ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue), daemon=True)
     proc.start()
