@@ -123,7 +123,7 @@ class RegistrationResult:
     scale_observable: bool = True
     objective: float | None = None
     rig_metres_per_unit: float | None = None
-    scale_band: tuple[float, float] = (0.0, float("inf"))
+    scale_band: tuple[float, float] = SCALE_SEARCH
     model_ties: list[dict] = field(default_factory=list)
     camera_poses: list[dict] = field(default_factory=list)
 
