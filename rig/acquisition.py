@@ -237,8 +237,9 @@ class Acquisition:
         capture_id = capture_id or self.store.reserve_id()
         frames, errors = self._grab_all(seq)
         if self.camera_alarm:
-            # A camera dropped while this capture was in flight: refused whole, none of its frames stored.
-            return Outcome("refused", event, capture_id, f"{self.camera_alarm}; the capture in flight was refused whole")
+            # A camera dropped while this capture was in flight: refused whole, none of its frames stored, so
+            # the outcome names no capture (its reserved number stays a gap in the store's counter).
+            return Outcome("refused", event, "", f"{self.camera_alarm}; the capture in flight was refused whole")
         cams = {c.camera_id: c for c in self.cameras}
         data = [FrameData(cid, f.image, cams[cid].camera, cid, f.timestamp_ns) for cid, f in sorted(frames.items())]
         spread = int(np.ptp([f.timestamp_ns for f in frames.values()])) if frames else 0
