@@ -111,3 +111,19 @@ def encode_png(image: np.ndarray) -> bytes:
 def atomic_write_png(path: str | os.PathLike, image: np.ndarray) -> str:
     """Write an image (see `encode_png`) atomically; returns its sha256."""
     return atomic_write_bytes(path, encode_png(image))
+
+
+def publish_dir(tmp: Path, out: Path) -> None:
+    """Move the finished directory `tmp` to `out` (a sibling), replacing what `out` held: the old one
+    steps aside first and is removed only once the new one is in place, so a crash leaves one whole."""
+    import shutil
+
+    old = None
+    if out.exists():
+        old = out.parent / f".{out.name}.replaced"
+        shutil.rmtree(old, ignore_errors=True)
+        os.rename(out, old)
+    os.rename(tmp, out)
+    fsync_dir(out.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

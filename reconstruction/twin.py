@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
-from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir
+from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir
 from calibration.sim3 import Sim3
 
 TWIN_JSON = "twin.json"
@@ -409,15 +409,7 @@ def save_twin(
         digests[TWIN_JSON] = atomic_write_json(tmp / TWIN_JSON, _twin_document(twin))
         atomic_write_json(tmp / MANIFEST_JSON, {"format": "cadsplat-twin-manifest", "sha256": digests})
         fsync_dir(tmp)
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.replaced"
-            shutil.rmtree(old, ignore_errors=True)
-            os.rename(out, old)
-        os.rename(tmp, out)
-        fsync_dir(out.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

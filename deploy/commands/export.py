@@ -69,11 +69,10 @@ def _physics(density: float | None, material: str | None, rig_toml: Path | None)
 def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False, **options) -> Path:
     """Export the twin at `twin_dir` as `fmt` to `out`, atomically; returns what was written.
     `options` go to the format's exporter (the physics options of `PHYSICS_FORMATS`)."""
-    import os
     import shutil
     import tempfile
 
-    from calibration.fileio import fsync_dir
+    from calibration.fileio import fsync_dir, publish_dir
     from reconstruction.twin import load_twin
 
     module, attr = FORMATS[fmt][0].split(":")
@@ -93,15 +92,7 @@ def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False
     try:
         exporter(twin_dir, tmp, **options)
         fsync_dir(tmp)
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.replaced"
-            shutil.rmtree(old, ignore_errors=True)
-            os.rename(out, old)
-        os.rename(tmp, out)
-        fsync_dir(out.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import re
 import shutil
 import tempfile
@@ -118,7 +117,7 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
     Returns the inspection document (what inspection.json holds). Raises TwinError/ValueError with one
     sentence when the twin cannot be inspected or `out_dir` is something else than an earlier inspection.
     """
-    from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_bytes
+    from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir, sha256_bytes
     from deploy.commands.render import orbit_cameras
     from reconstruction.inspect import deviation_colors, inspect_meshes, part_reports, render_colored_mesh, verdict
     from reconstruction.twin import load_twin
@@ -180,15 +179,7 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
         atomic_write_json(tmp / INSPECTION_JSON, doc)
         atomic_write_bytes(tmp / "verdict.txt", (result.line + "\n").encode())
         fsync_dir(tmp)
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.replaced"
-            shutil.rmtree(old, ignore_errors=True)
-            os.rename(out, old)
-        os.rename(tmp, out)
-        fsync_dir(out.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
