@@ -20,6 +20,7 @@ import argparse
 import os
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -170,14 +171,14 @@ def plot_contacts(twin: list, true: list, path: Path) -> None:
 def exploded_counter() -> float:
     t0 = time.perf_counter()
     asset = load_mesh_asset(SHARED / "cad" / "parts" / "counter.unitsmm.STL", name="counter")
-    s = splats_from_mesh(asset.vertices, asset.faces, np.tile([0.55, 0.6, 0.7], (len(asset.faces), 1)), asset.face_part, 60000)
     # Colour each part so the explosion reads at a glance.
     palette = np.array([[0.85, 0.2, 0.2], [0.2, 0.6, 0.25], [0.2, 0.35, 0.85], [0.9, 0.7, 0.1], [0.6, 0.3, 0.7], [0.2, 0.7, 0.75]])
-    s["sh"] = ((palette[s["part_label"] % len(palette)] - 0.5) / 0.28209479177387814).astype(np.float32)[:, None, :]
+    s = splats_from_mesh(asset.vertices, asset.faces, palette[asset.face_part % len(palette)], asset.face_part, 60000)
+    g = s.gaussians
     centre = asset.vertices.mean(0)
     cam = Camera.from_fov(np.deg2rad(50), 320, 240, look_at_c2w(centre + np.array([0.25, -0.35, 0.35]), centre))
-    assembled, _ = render_bodies([s], [np.eye(4)], cam)
-    exploded = dict(s, means=explode(s["means"], s["part_label"], len(asset.part_names), 0.8))
+    assembled, _ = render_bodies([g], [np.eye(4)], cam)
+    exploded = replace(g, means=explode(g.means, s.part_label, len(asset.part_names), 0.8))
     exp_rgb, _ = render_bodies([exploded], [np.eye(4)], cam)
     atomic_write_png(OUT / "exploded.png", np.concatenate([assembled, exp_rgb], 1))
     return time.perf_counter() - t0

@@ -86,9 +86,9 @@ def batching_sweep(n_splats: int, reps: int) -> list[dict]:
     K = torch.tensor([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
     vms = torch.tensor(np.stack([np.linalg.inv(look_at_c2w(c + 0.35 * np.array([np.cos(a), np.sin(a), 0.4]), c))
                                  for a in np.linspace(0, 2 * np.pi, 9, endpoint=False)]), dtype=torch.float32)
-    means, quats = torch.tensor(s.means), torch.tensor(s.quats)
-    ls = torch.tensor(s.log_scales, requires_grad=True)
-    sh = torch.tensor(s.sh, requires_grad=True)
+    means, quats = torch.tensor(s.means), torch.tensor(s.gaussians.quats)
+    ls = torch.tensor(s.gaussians.log_scales, requires_grad=True)
+    sh = torch.tensor(s.gaussians.sh, requires_grad=True)
     op = torch.zeros(len(s.means), requires_grad=True)
     rows = []
     for views in (1, 3, 9):

@@ -29,6 +29,7 @@ from torch import nn
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
 from reconstruction.losses import composite, photometric_loss
+from reconstruction.gaussians import Gaussians
 from reconstruction.render import num_sh_bases, rasterize
 from reconstruction.splats import SH_C0
 from reconstruction.twin import Twin, TwinCamera
@@ -287,12 +288,7 @@ def reset_opacity(params: GaussianParams, opt: torch.optim.Adam, value: float = 
 class VanillaResult:
     """Trained Gaussians (numpy, float32) in the cameras' frame plus what the schedule did."""
 
-    means: np.ndarray
-    quats: np.ndarray
-    log_scales: np.ndarray
-    opacity_logits: np.ndarray
-    sh: np.ndarray
-    sh_degree: int
+    gaussians: Gaussians
     config: VanillaConfig
     num_gaussians: list[tuple[int, int]]  # (iteration, count) after init and after each refinement
     events: dict[str, int]  # totals cloned / split / pruned / opacity resets
@@ -371,18 +367,15 @@ def train_vanilla_3dgs(
         if progress:
             progress(it, cfg.iterations, losses[-1], len(params))
     history.append((cfg.iterations, len(params)))
-    sh = torch.cat([params.sh0, params.shN], 1).detach().numpy()
-    return VanillaResult(
-        params.means.detach().numpy().copy(), params.quats.detach().numpy().copy(),
-        params.log_scales.detach().numpy().copy(), params.opacity_logits.detach().numpy().copy(), sh.copy(),
-        cfg.max_sh_degree, cfg, history, events, losses, time.perf_counter() - t0,
-    )
+    sh = torch.cat([params.sh0, params.shN], 1)
+    gaussians = Gaussians.from_arrays(params.means, params.quats, params.log_scales, params.opacity_logits, sh)
+    return VanillaResult(gaussians, cfg, history, events, losses, time.perf_counter() - t0)
 
 
 def vanilla_twin(result: VanillaResult, cameras: Sequence[Camera], names: Sequence[str]) -> Twin:
     """The baseline as a twin (so `cadsplat evaluate` scores it like the method): identity
     registration (it lives in the capture's frame), no CAD anchoring (face index -1, one part)."""
-    n = len(result.means)
+    n = len(result.gaussians)
     cams = [TwinCamera(f"images/{name}.png", name, c.K, c.width, c.height, c.c2w) for name, c in zip(names, cameras)]
     return Twin(
         model_id="vanilla-3dgs", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(),
@@ -390,8 +383,7 @@ def vanilla_twin(result: VanillaResult, cameras: Sequence[Camera], names: Sequen
         timings_s={"train": result.wall_s, "total": result.wall_s},
         losses={"photo": {"rgb": float(np.mean(result.losses[-20:]))}, "events": result.events,
                 "num_gaussians": [list(x) for x in result.num_gaussians]},
-        means=result.means, quats=result.quats, log_scales=result.log_scales, opacity_logits=result.opacity_logits,
-        sh=result.sh, sh_degree=result.sh_degree, means_canonical=result.means, face_index=np.full(n, -1),
+        gaussians=result.gaussians, means_canonical=result.gaussians.means, face_index=np.full(n, -1),
         barycentrics=np.zeros((n, 3), np.float32), part_label=np.zeros(n, np.int64), part_names=["object"],
         pose_mode="none",
     )

@@ -21,67 +21,25 @@ import torch
 
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
+from reconstruction.gaussians import WHITE, Gaussians, camera_batch, render
 from reconstruction.losses import composite, mask_l1, photometric_loss
 from reconstruction.metrics import image_metrics
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.pose_metrics import registration_errors, rotation_error_deg
-from reconstruction.render import rasterize
 from reconstruction.symmetry import NearSymmetry, near_symmetries
 
 PAPER_REFINE_STEPS = 400
 REFINE_LR = 5e-4  # the paper's pose-correction learning rate (Table "Hyperparameters")
 LAMBDA_DSSIM = 0.2
 LAMBDA_MASK = 1.0
-WHITE = (1.0, 1.0, 1.0)
 METRIC_KEYS = ("psnr", "ssim", "lpips", "flip", "mpsnr", "mssim", "mlpips", "mflip", "fgpsnr", "iou")
 
 
-@dataclass(frozen=True)
-class FrozenGaussians:
-    """Render-ready splats (float32, no gradients): means [N, 3], quats [N, 4] wxyz, scales [N, 3]
-    linear, opacities [N] in (0, 1), sh [N, K, 3]."""
-
-    means: torch.Tensor
-    quats: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor
-    sh_degree: int
-
-    @staticmethod
-    def from_arrays(
-        means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, opacity_logits: np.ndarray, sh: np.ndarray, sh_degree: int
-    ) -> "FrozenGaussians":
-        """From the twin's stored parameterisation; every tensor is a fresh copy, so nothing written
-        through it can reach the caller's arrays."""
-
-        def t(a: np.ndarray) -> torch.Tensor:
-            return torch.tensor(np.asarray(a, np.float32))
-
-        return FrozenGaussians(
-            t(means), t(quats), torch.exp(t(log_scales)), torch.sigmoid(t(opacity_logits)), t(sh), int(sh_degree)
-        )
-
-    @staticmethod
-    def from_twin(twin) -> "FrozenGaussians":
-        """From a `reconstruction.twin.Twin`."""
-        return FrozenGaussians.from_arrays(
-            twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, twin.sh_degree
-        )
-
-
-def render_rgba(
-    g: FrozenGaussians, viewmat: torch.Tensor, K: np.ndarray, width: int, height: int, background: Sequence[float] = WHITE
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """One view of `g`: rgb [H, W, 3] composited over `background` and alpha [H, W].
-
-    viewmat: [4, 4] world-to-camera (may carry gradients); K: [3, 3].
-    """
-    colors, alphas, _ = rasterize(
-        g.means, g.quats, g.scales, g.opacities, g.sh, viewmat[None], torch.as_tensor(K, dtype=torch.float32)[None],
-        width, height, sh_degree=g.sh_degree, backgrounds=torch.tensor([background], dtype=torch.float32),
-    )
-    return colors[0], alphas[0, ..., 0]
+def _render_view(g: Gaussians, viewmat: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """rgb [H, W, 3] over white and alpha [H, W] of `g` seen by `camera`'s intrinsics at viewmat [4, 4] (may carry gradients)."""
+    _, Ks, width, height = camera_batch(camera)
+    rgb, alpha = render(g, viewmat[None], Ks, width, height, WHITE)
+    return rgb[0], alpha[0]
 
 
 def view_loss(
@@ -114,7 +72,7 @@ class Refinement:
 
 
 def refine_camera_pose(
-    g: FrozenGaussians,
+    g: Gaussians,
     camera: Camera,
     gt_rgb: np.ndarray,
     gt_mask: np.ndarray,
@@ -139,7 +97,7 @@ def refine_camera_pose(
     best_loss, best_c2w = math.inf, camera.c2w.copy()
     for step in range(steps):
         c2w = correction(c2w0)
-        rgb, alpha = render_rgba(g, viewmats_from_c2w(c2w)[0], camera.K, camera.width, camera.height)
+        rgb, alpha = _render_view(g, viewmats_from_c2w(c2w)[0], camera)
         loss = view_loss(rgb, alpha, target, mask, background)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -151,7 +109,7 @@ def refine_camera_pose(
     if steps:
         with torch.no_grad():
             c2w = correction(c2w0)
-            rgb, alpha = render_rgba(g, viewmats_from_c2w(c2w)[0], camera.K, camera.width, camera.height)
+            rgb, alpha = _render_view(g, viewmats_from_c2w(c2w)[0], camera)
             final = float(view_loss(rgb, alpha, target, mask, background))
         if final < best_loss:
             best_c2w = c2w[0].numpy().copy()
@@ -179,7 +137,7 @@ def average_metrics(per_view: Sequence[dict[str, float | None]]) -> dict[str, fl
 
 
 def evaluate_views(
-    g: FrozenGaussians,
+    g: Gaussians,
     cameras: Sequence[Camera],
     images: np.ndarray,
     masks: np.ndarray,
@@ -213,7 +171,7 @@ def evaluate_views(
         entry: dict = {"name": names[i]}
         t0 = time.perf_counter()
         with torch.no_grad():
-            rgb, alpha = render_rgba(g, torch.as_tensor(cam.viewmat), cam.K, cam.width, cam.height)
+            rgb, alpha = _render_view(g, torch.as_tensor(cam.viewmat), cam)
         t1 = time.perf_counter()
         entry["metrics"] = {k: _finite(v) for k, v in image_metrics(rgb, alpha, img, msk).items()}
         t2 = time.perf_counter()
@@ -223,7 +181,7 @@ def evaluate_views(
             ref = refine_camera_pose(g, cam, img, msk, steps=refine_steps, lr=refine_lr)
             t3 = time.perf_counter()
             with torch.no_grad():
-                rgb, alpha = render_rgba(g, torch.as_tensor(np.linalg.inv(ref.c2w)), cam.K, cam.width, cam.height)
+                rgb, alpha = _render_view(g, torch.as_tensor(np.linalg.inv(ref.c2w)), cam)
             entry["metrics_refined"] = {k: _finite(v) for k, v in image_metrics(rgb, alpha, img, msk).items()}
             t4 = time.perf_counter()
             entry["refine"] = {
@@ -337,7 +295,7 @@ def evaluate_twin(
     Returns `evaluate_views`' report plus "registration" when `gt` is given and "num_splats".
     """
     t0 = time.perf_counter()
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     cams = cameras_to_object(cameras_rig, twin.sim3_rig_to_object)
     report = evaluate_views(g, cams, images, masks, names=names, refine_steps=refine_steps, refine_lr=refine_lr, progress=progress)
     report["num_splats"] = int(twin.num_splats)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
+import trimesh
 
 from calibration.camera import Camera
 from reconstruction.silhouette import project_vertices
@@ -130,76 +130,10 @@ def normal_deviation(cad_vertices: np.ndarray, cad_normals: np.ndarray, moved_ve
     return np.einsum("ij,ij->i", np.asarray(moved_vertices, np.float64) - cad_vertices, cad_normals)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dot(ax, ay, az, bx, by, bz):
-    return ax * bx + ay * by + az * bz
-
-
-@numba.njit(cache=True, nogil=True)
-def _point_triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Squared distance from a point to a triangle (Ericson, Real-Time Collision Detection 5.1.5)."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1, d2 = _dot(abx, aby, abz, apx, apy, apz), _dot(acx, acy, acz, apx, apy, apz)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return _dot(apx, apy, apz, apx, apy, apz)
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3, d4 = _dot(abx, aby, abz, bpx, bpy, bpz), _dot(acx, acy, acz, bpx, bpy, bpz)
-    if d3 >= 0.0 and d4 <= d3:
-        return _dot(bpx, bpy, bpz, bpx, bpy, bpz)
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
-        qx, qy, qz = apx - v * abx, apy - v * aby, apz - v * abz
-        return _dot(qx, qy, qz, qx, qy, qz)
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5, d6 = _dot(abx, aby, abz, cpx, cpy, cpz), _dot(acx, acy, acz, cpx, cpy, cpz)
-    if d6 >= 0.0 and d5 <= d6:
-        return _dot(cpx, cpy, cpz, cpx, cpy, cpz)
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
-        qx, qy, qz = apx - w * acx, apy - w * acy, apz - w * acz
-        return _dot(qx, qy, qz, qx, qy, qz)
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        qx, qy, qz = bpx - w * (cx - bx), bpy - w * (cy - by), bpz - w * (cz - bz)
-        return _dot(qx, qy, qz, qx, qy, qz)
-    den = 1.0 / (va + vb + vc)
-    v, w = vb * den, vc * den
-    qx, qy, qz = apx - v * abx - w * acx, apy - v * aby - w * acy, apz - v * abz - w * acz
-    return _dot(qx, qy, qz, qx, qy, qz)
-
-
-@numba.njit(cache=True, nogil=True)
-def _nearest_of(points, verts, faces, candidates, out):
-    for i in range(points.shape[0]):
-        best = np.inf
-        for j in range(candidates.shape[1]):
-            f = candidates[i, j]
-            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-            d = _point_triangle_sq(points[i, 0], points[i, 1], points[i, 2], verts[a, 0], verts[a, 1], verts[a, 2],
-                                   verts[b, 0], verts[b, 1], verts[b, 2], verts[c, 0], verts[c, 1], verts[c, 2])
-            if d < best:
-                best = d
-        out[i] = np.sqrt(best)
-
-
-def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *, candidates: int = 32) -> np.ndarray:
-    """Distance [P] from each of `points` [P, 3] to the closest point of the mesh (`vertices` [V, 3], `faces` [F, 3]).
-
-    Exact point-to-triangle distances over the `candidates` faces whose centroids lie nearest the
-    point (a face farther than that many centroids is never the closest on a mesh of even-sized faces).
-    """
-    v = np.ascontiguousarray(vertices, np.float64)
-    f = np.ascontiguousarray(faces, np.int64)
-    k = min(candidates, len(f))
-    _, idx = cKDTree(v[f].mean(1)).query(np.asarray(points, np.float64), k=k)
-    out = np.empty(len(points))
-    _nearest_of(np.ascontiguousarray(points, np.float64), v, f, np.ascontiguousarray(idx.reshape(len(points), k), np.int64), out)
-    return out
+def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance [P] from each of `points` [P, 3] to the closest point of the mesh (`vertices` [V, 3], `faces` [F, 3])."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    return trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))[1]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -22,10 +22,10 @@ from calibration.capture import Capture, load_views, read_capture, rig_metres_pe
 from calibration.sim3 import Sim3
 from reconstruction.library import UNIT_TO_M
 from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
+from reconstruction.gaussians import Gaussians, camera_batch, render, straight_rgba
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult
-from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import MeshParts, Twin, TwinCamera, check_replaceable, read_mesh_parts, save_twin, software_versions
@@ -49,26 +49,6 @@ def model_parts(library, model_id: str) -> MeshParts:
     if len(parts.part_names) == 1:
         parts.part_names = [model_id]
     return parts
-
-
-def render_rgba(means, quats, log_scales, opacity_logits, sh, sh_degree: int, camera: Camera) -> np.ndarray:
-    """Straight-alpha RGBA [H, W, 4] float32 of splat arrays (object frame) seen by a pinhole `camera`."""
-    with torch.no_grad():
-        t = lambda a: torch.as_tensor(np.asarray(a, np.float32))  # noqa: E731
-        rgb, alpha, _ = rasterize(
-            t(means), t(quats), torch.exp(t(log_scales)), torch.sigmoid(t(opacity_logits)), t(sh),
-            torch.tensor(camera.viewmat, dtype=torch.float32)[None], torch.tensor(camera.K, dtype=torch.float32)[None],
-            camera.width, camera.height, sh_degree=sh_degree,
-        )
-    a = alpha[0].numpy()
-    # Over a black background the render is premultiplied; PNG alpha is straight.
-    straight = np.where(a > 1e-4, rgb[0].numpy() / np.maximum(a, 1e-4), 0.0)
-    return np.concatenate([np.clip(straight, 0, 1), a], -1).astype(np.float32)
-
-
-def twin_rgba(twin: Twin, camera: Camera) -> np.ndarray:
-    """RGBA [H, W, 4] of a twin from an object-frame camera."""
-    return render_rgba(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, twin.sh_degree, camera)
 
 
 def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -> tuple[np.ndarray, str]:
@@ -254,12 +234,7 @@ def reconstruct(
         choices=choices,
         timings_s=timings,
         losses=losses,
-        means=means,
-        quats=splats.quats,
-        log_scales=model.log_scales.detach().numpy(),
-        opacity_logits=model.opacity_logits.detach().numpy(),
-        sh=sh,
-        sh_degree=cfg.sh_degree,
+        gaussians=Gaussians.from_arrays(means, splats.gaussians.quats, model.log_scales, model.opacity_logits, sh),
         means_canonical=splats.means,
         face_index=splats.face_index,
         barycentrics=splats.barycentrics,
@@ -268,7 +243,8 @@ def reconstruct(
         pose_mode=mode,
         versions=software_versions(),
     )
-    renders = {Path(c.file_path).name: twin_rgba(twin, c.camera) for c in twin_cams}
+    renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
+               for c in twin_cams}
     deformed = MeshParts(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, parts.face_part, parts.part_names)
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all

@@ -12,34 +12,31 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from reconstruction.gaussians import Gaussians
+
 SH_C0 = 0.28209479177387814  # Y_0^0; 3DGS stores colour = 0.5 + SH_C0 * dc
 DISK_FLATTENING = 0.1  # normal-axis scale / tangent scale: thin disks that still rasterize stably
 
 
 @dataclass
 class CanonicalSplats:
-    """Splats in the CAD model's canonical frame (float32 arrays, N rows).
-
-    means [N, 3], normals [N, 3] unit, quats [N, 4] wxyz (local z -> normal), log_scales [N, 3],
-    opacity_logits [N], sh [N, K, 3], face_index [N] int64, barycentrics [N, 3], part_label [N] int64.
+    """Gaussians on the CAD surface in the model's canonical frame and where each sits on it (N rows):
+    `gaussians` (quats turn local z onto the normal), normals [N, 3] unit, face_index [N] int64,
+    barycentrics [N, 3] float32, part_label [N] int64.
     """
 
-    means: np.ndarray
+    gaussians: Gaussians
     normals: np.ndarray
-    quats: np.ndarray
-    log_scales: np.ndarray
-    opacity_logits: np.ndarray
-    sh: np.ndarray
     face_index: np.ndarray
     barycentrics: np.ndarray
     part_label: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.means)
+        return len(self.gaussians)
 
     @property
-    def sh_degree(self) -> int:
-        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+    def means(self) -> np.ndarray:
+        return self.gaussians.means
 
 
 def face_areas_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -231,13 +228,16 @@ def init_splats(
     if rgb is not None:
         sh[:, 0] = rgb_to_sh_dc(rgb)
     part = np.zeros(len(faces), np.int64) if face_part is None else np.asarray(face_part, np.int64)
-    return CanonicalSplats(
+    gaussians = Gaussians(
         means=means.astype(np.float32),
-        normals=normals.astype(np.float32),
         quats=normals_to_quats(normals).astype(np.float32),
         log_scales=disk_log_scales(means).astype(np.float32),
         opacity_logits=np.full(n, np.log(opacity / (1.0 - opacity)), np.float32),
         sh=sh,
+    )
+    return CanonicalSplats(
+        gaussians=gaussians,
+        normals=normals.astype(np.float32),
         face_index=face_index.astype(np.int64),
         barycentrics=bary.astype(np.float32),
         part_label=part[face_index],

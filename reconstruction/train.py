@@ -36,6 +36,7 @@ from reconstruction.losses import composite, dropout_active, dropout_fraction, f
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
+from reconstruction.gaussians import Gaussians, render
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, knn_indices, point_visibility, project_colors, rgb_to_sh_dc
 
@@ -79,17 +80,18 @@ class SplatModel(nn.Module):
 
     def __init__(self, splats: CanonicalSplats, preset: Preset, num_cameras: int, pose_mode: str, seed: int = 0):
         super().__init__()
-        self.register_buffer("means_canonical", torch.tensor(splats.means, dtype=torch.float32))
-        self.register_buffer("quats", torch.tensor(splats.quats, dtype=torch.float32))
+        g = splats.gaussians
+        self.register_buffer("means_canonical", torch.tensor(g.means, dtype=torch.float32))
+        self.register_buffer("quats", torch.tensor(g.quats, dtype=torch.float32))
         self.field = DeformationField(splats.means, preset.field, seed=seed)
         self.pose = PoseCorrection(num_cameras, pose_mode, pivot=self.field.center.double().numpy(),
                                    unit=float(self.field.radius))
-        self.log_scales = nn.Parameter(torch.tensor(splats.log_scales, dtype=torch.float32))
-        self.opacity_logits = nn.Parameter(torch.tensor(splats.opacity_logits, dtype=torch.float32))
-        sh = torch.tensor(splats.sh, dtype=torch.float32)
+        self.log_scales = nn.Parameter(torch.tensor(g.log_scales, dtype=torch.float32))
+        self.opacity_logits = nn.Parameter(torch.tensor(g.opacity_logits, dtype=torch.float32))
+        sh = torch.tensor(g.sh, dtype=torch.float32)
         self.sh0 = nn.Parameter(sh[:, :1].clone())
         self.shN = nn.Parameter(sh[:, 1:].clone())
-        self.sh_degree = splats.sh_degree
+        self.sh_degree = g.sh_degree
         # Scale bounds relative to the object: no splat collapses to nothing or swallows the object.
         radius = float(self.field.radius)
         self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
@@ -100,6 +102,10 @@ class SplatModel(nn.Module):
 
     def sh(self) -> torch.Tensor:
         return torch.cat([self.sh0, self.shN], 1)
+
+    def gaussians(self) -> Gaussians:
+        """The current Gaussians (object frame) as tensors that carry the training graph."""
+        return Gaussians(self.means(), self.quats, self.log_scales, self.opacity_logits, self.sh())
 
     def viewmats(self, c2w_init: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """World-to-camera [C, 4, 4] float32 of cameras `index` after the pose correction."""
@@ -221,8 +227,7 @@ def _stage2_objective(model: SplatModel, splats: CanonicalSplats, views: Views, 
     imgs, cov, ks, w, h = data
     idx = torch.arange(len(views.images))
     bg = torch.full((len(idx), 3), 0.5)
-    rgb, alpha, _ = rasterize(model.means(), model.quats, torch.exp(model.log_scales), torch.sigmoid(model.opacity_logits),
-                              model.sh(), model.viewmats(c2w_init, idx), ks, w, h, sh_degree=model.sh_degree, backgrounds=bg)
+    rgb, alpha = render(model.gaussians(), model.viewmats(c2w_init, idx), ks, w, h, bg)
     return float(photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim) + preset.lambda_mask * mask_l1(alpha, cov))
 
 
@@ -325,12 +330,10 @@ def train(
             for group, lr0 in pose_groups:
                 group["lr"] = lr0 * preset.pose_lr_final ** (it / max(cap, 1))
             idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
-            means = model.means()
-            scales = torch.exp(model.log_scales)
-            opac = torch.sigmoid(model.opacity_logits)
+            means, quats, scales, opac, sh = model.gaussians().activated()
             viewmats = model.viewmats(c2w_init, idx)
             if stage != "photo":
-                _, alpha, _ = rasterize(means, model.quats, scales, opac, zeros, viewmats, ks[idx], w, h)
+                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
                 l_mask = mask_l1(alpha, cov[idx])
                 loss = l_mask
                 last = {"mask": l_mask}
@@ -342,14 +345,14 @@ def train(
                 bg = torch.rand(len(idx), 3, generator=gen)
                 p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
                 active = dropout_active(n, p, gen)
-                rgb, alpha, _ = rasterize(means, model.quats, scales, opac, model.sh(), viewmats, ks[idx], w, h,
+                rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[idx], w, h,
                                           sh_degree=model.sh_degree, backgrounds=bg, active=active)
                 if active is not None:
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
-                    _, alpha, _ = rasterize(means, model.quats, scales, opac, zeros, viewmats, ks[idx], w, h)
+                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
                 l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim)
                 l_mask = mask_l1(alpha, cov[idx])
-                l_sh = sh_neighbour_loss(model.sh(), neighbours)
+                l_sh = sh_neighbour_loss(sh, neighbours)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
                 if preset.lambda_fill:

@@ -33,6 +33,7 @@ import numpy as np
 from calibration.camera import Camera
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir
 from calibration.sim3 import Sim3
+from reconstruction.gaussians import Gaussians
 
 TWIN_JSON = "twin.json"
 SPLATS_PLY = "splats.ply"
@@ -93,11 +94,9 @@ class MeshParts:
 
 @dataclass
 class Twin:
-    """A reconstructed, CAD-registered twin. Splat arrays are float32 in the object frame (metres).
-
-    means [N, 3] (deformed), quats [N, 4] wxyz, log_scales [N, 3], opacity_logits [N], sh [N, K, 3]
-    (K = (sh_degree + 1)^2, DC in the 3DGS convention: colour = 0.5 + C0 * sh[:, 0]),
-    means_canonical [N, 3], face_index [N] int, barycentrics [N, 3], part_label [N] int.
+    """A reconstructed, CAD-registered twin: its `gaussians` (deformed, object frame, metres) and
+    where each sits on the CAD surface: means_canonical [N, 3] float32, face_index [N] int (-1 when
+    not anchored), barycentrics [N, 3] float32, part_label [N] int indexing part_names.
     """
 
     model_id: str
@@ -108,12 +107,7 @@ class Twin:
     choices: dict
     timings_s: dict
     losses: dict
-    means: np.ndarray
-    quats: np.ndarray
-    log_scales: np.ndarray
-    opacity_logits: np.ndarray
-    sh: np.ndarray
-    sh_degree: int
+    gaussians: Gaussians
     means_canonical: np.ndarray
     face_index: np.ndarray
     barycentrics: np.ndarray
@@ -124,22 +118,23 @@ class Twin:
     root: Path | None = None
 
     def __post_init__(self) -> None:
-        n = len(self.means)
-        k = (int(self.sh_degree) + 1) ** 2
+        g = self.gaussians
+        self.gaussians = Gaussians.from_arrays(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)
+        n = len(self.gaussians)
         shapes = {
-            "means": (self.means, (n, 3)), "quats": (self.quats, (n, 4)), "log_scales": (self.log_scales, (n, 3)),
-            "opacity_logits": (self.opacity_logits, (n,)), "sh": (self.sh, (n, k, 3)),
             "means_canonical": (self.means_canonical, (n, 3)), "face_index": (self.face_index, (n,)),
             "barycentrics": (self.barycentrics, (n, 3)), "part_label": (self.part_label, (n,)),
         }
         for name, (arr, shape) in shapes.items():
             if np.shape(arr) != shape:
                 raise TwinError(f"twin {name} has shape {np.shape(arr)}, expected {shape}")
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "means_canonical", "barycentrics"):
-            arr = np.asarray(getattr(self, name), np.float32)
+        arrays = {name: getattr(self.gaussians, name) for name in ("means", "quats", "log_scales", "opacity_logits", "sh")}
+        for name in ("means_canonical", "barycentrics"):
+            arrays[name] = np.asarray(getattr(self, name), np.float32)
+            setattr(self, name, arrays[name])
+        for name, arr in arrays.items():
             if not np.all(np.isfinite(arr)):
                 raise TwinError(f"twin {name} contains NaN or inf")
-            setattr(self, name, arr)
         for name in ("face_index", "part_label"):
             setattr(self, name, np.asarray(getattr(self, name), np.int64))
         if n and (self.part_label.min() < 0 or self.part_label.max() >= len(self.part_names)):
@@ -147,7 +142,7 @@ class Twin:
 
     @property
     def num_splats(self) -> int:
-        return len(self.means)
+        return len(self.gaussians)
 
     @property
     def mesh_deformed_path(self) -> Path | None:
@@ -193,24 +188,22 @@ PLY_SH_DEGREE = 3
 PLY_DEGREE_COMMENT = "sh_degree"
 
 
-def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=None) -> bytes:
-    """Binary little-endian PLY in the Inria 3DGS layout, SH zero-padded to PLY_SH_DEGREE.
+def splats_to_ply_bytes(gaussians: Gaussians) -> bytes:
+    """Binary little-endian PLY in the Inria 3DGS layout, SH zero-padded to PLY_SH_DEGREE, normals the
+    splats' disk normals.
 
     f_rest is channel-major as Inria writes it: all R coefficients of degrees >= 1, then G, then B.
     """
     from plyfile import PlyData, PlyElement
 
-    n, k, _ = sh.shape
-    degree = int(round(np.sqrt(k))) - 1
-    if (degree + 1) ** 2 != k:
-        raise ValueError(f"SH coefficient count {k} is not a square")
+    g = gaussians
+    n, degree = len(g), g.sh_degree
     written = max(degree, PLY_SH_DEGREE)
-    padded = np.zeros((n, (written + 1) ** 2, 3), np.float32)
-    padded[:, :k] = sh
-    normals = np.zeros((n, 3), np.float32) if normals is None else normals
+    padded = np.asarray(g.with_sh_degree(written).sh, np.float32)
     rest = padded[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
     cols = np.concatenate(
-        [means, normals, padded[:, 0, :], rest, np.asarray(opacity_logits).reshape(n, 1), log_scales, quats], 1
+        [g.means, splat_normals(np.asarray(g.quats)), padded[:, 0, :], rest, np.asarray(g.opacity_logits).reshape(n, 1),
+         g.log_scales, g.quats], 1
     ).astype(np.float32)
     names = ply_columns(written)
     rec = np.empty(n, dtype=[(c, "f4") for c in names])
@@ -221,8 +214,8 @@ def splats_to_ply_bytes(means, quats, log_scales, opacity_logits, sh, normals=No
     return buf.getvalue()
 
 
-def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """An Inria-layout 3DGS PLY -> means, normals, quats, log_scales, opacity_logits, sh [N, K, 3], sh_degree.
+def read_splats_ply(path: str | os.PathLike) -> Gaussians:
+    """The Gaussians of an Inria-layout 3DGS PLY (its normal columns are not read: they follow from the quats).
 
     The degree is the file's `sh_degree` comment when it has one and the bands above it are zero
     (padding), else the one its f_rest columns make.
@@ -256,15 +249,13 @@ def read_splats_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     if declared and declared[0] < degree and not sh[:, (declared[0] + 1) ** 2 :].any():  # only padding is dropped
         degree = declared[0]
         sh = np.ascontiguousarray(sh[:, : (degree + 1) ** 2])
-    return {
-        "means": cols("x", "y", "z"),
-        "normals": cols("nx", "ny", "nz"),
-        "sh": sh,
-        "sh_degree": degree,
-        "opacity_logits": np.asarray(v["opacity"], np.float32),
-        "log_scales": cols("scale_0", "scale_1", "scale_2"),
-        "quats": cols("rot_0", "rot_1", "rot_2", "rot_3"),
-    }
+    return Gaussians(
+        means=cols("x", "y", "z"),
+        quats=cols("rot_0", "rot_1", "rot_2", "rot_3"),
+        log_scales=cols("scale_0", "scale_1", "scale_2"),
+        opacity_logits=np.asarray(v["opacity"], np.float32),
+        sh=sh,
+    )
 
 
 # ---------------------------------------------------------------------------------------- GLB
@@ -341,7 +332,7 @@ def _twin_document(twin: Twin) -> dict:
         "pose_mode": twin.pose_mode,
         "cameras": [c.to_dict() for c in twin.cameras],
         "num_splats": twin.num_splats,
-        "sh_degree": int(twin.sh_degree),
+        "sh_degree": twin.gaussians.sh_degree,
         "part_names": list(twin.part_names),
         "preset": twin.preset,
         "choices": twin.choices,
@@ -382,7 +373,7 @@ def save_twin(
         digests = {}
         digests[SPLATS_PLY] = atomic_write_bytes(
             tmp / SPLATS_PLY,
-            splats_to_ply_bytes(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, splat_normals(twin.quats)),
+            splats_to_ply_bytes(twin.gaussians),
         )
         buf = io.BytesIO()
         np.savez_compressed(
@@ -484,7 +475,7 @@ def load_twin(path: str | os.PathLike, *, verify: bool = True) -> Twin:
         raise TwinError(f"{doc_path}: a field is missing or malformed ({e})") from None
 
 
-def _twin_from(doc: dict, ply: dict, canon: dict, root: Path) -> Twin:
+def _twin_from(doc: dict, ply: Gaussians, canon: dict, root: Path) -> Twin:
     return Twin(
         model_id=doc["model_id"],
         sim3_rig_to_object_init=Sim3.from_dict(doc["sim3_rig_to_object_init"]),
@@ -494,12 +485,7 @@ def _twin_from(doc: dict, ply: dict, canon: dict, root: Path) -> Twin:
         choices=doc.get("choices", {}),
         timings_s=doc.get("timings_s", {}),
         losses=doc.get("losses", {}),
-        means=ply["means"],
-        quats=ply["quats"],
-        log_scales=ply["log_scales"],
-        opacity_logits=ply["opacity_logits"],
-        sh=ply["sh"],
-        sh_degree=ply["sh_degree"],
+        gaussians=ply,
         means_canonical=canon["means_canonical"],
         face_index=canon["face_index"],
         barycentrics=canon["barycentrics"],

@@ -446,8 +446,9 @@ def asset_from_twin(twin: Twin, name: str | None = None, *, density: Density | N
     """The twin's deformed CAD mesh as a rigid body, faces coloured from the nearby splats."""
     parts = twin.load_mesh_deformed()
     centres = parts.vertices[parts.faces].mean(1)
-    opacity = 1.0 / (1.0 + np.exp(-twin.opacity_logits.astype(np.float64)))
-    rgb = bake_face_colors(centres, twin.means, sh_dc_rgb(twin.sh[:, 0]), opacity)
+    g = twin.gaussians
+    opacity = g.activated()[3].numpy().astype(np.float64)
+    rgb = bake_face_colors(centres, g.means, sh_dc_rgb(g.sh[:, 0]), opacity)
     return build_asset(name or twin.model_id, parts, face_rgb=rgb, density=density)
 
 

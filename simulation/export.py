@@ -15,10 +15,11 @@ import numpy as np
 
 from calibration.fileio import atomic_write_bytes, fsync_dir
 from calibration.so3 import matrix_to_quat
+from reconstruction.gaussians import Gaussians
 from reconstruction.twin import MESH_CAD_GLB, TWIN_JSON, load_twin
 from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
 from simulation.collision import DEFAULT_TOLERANCE, DecompositionOptions, collision_geometry
-from simulation.follow import splats_from_mesh, splats_from_twin
+from simulation.follow import splats_from_mesh
 from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
 from simulation.parts import material_names
 from simulation.scene import Placement, resting_position
@@ -37,8 +38,8 @@ def body_density(placement: Placement, rig: dict | None = None) -> Density:
 
 def load_body(
     placement: Placement, decomposition: DecompositionOptions | None = DecompositionOptions(), rig: dict | None = None
-) -> tuple[BodySpec, dict]:
-    """A scene entry -> (BodySpec placed as the scene says, its splats in the object frame).
+) -> tuple[BodySpec, Gaussians]:
+    """A scene entry -> (BodySpec placed as the scene says, its Gaussians in the object frame).
 
     A twin directory gives its deformed mesh and its Gaussians; a mesh file gives the mesh and
     `placement.splats` opaque splats sampled on it. `rig`: rig.toml's [simulation] table.
@@ -50,10 +51,10 @@ def load_body(
             raise ValueError(f"{src}: a directory but not a twin (no {TWIN_JSON})")
         twin = load_twin(src)
         asset = asset_from_twin(twin, placement.name, density=density)
-        splats = splats_from_twin(twin)
+        splats = twin.gaussians
     else:
         asset = load_mesh_asset(src, placement.unit, placement.name, density=density)
-        splats = splats_from_mesh(asset.vertices, asset.faces, asset.face_rgb, asset.face_part, placement.splats)
+        splats = splats_from_mesh(asset.vertices, asset.faces, asset.face_rgb, asset.face_part, placement.splats).gaussians
     col = collision_geometry(
         asset.vertices, asset.faces, asset.mass.volume, face_part=asset.face_part, tolerance=placement.collision_tolerance, decomposition=decomposition
     )
@@ -133,7 +134,7 @@ def export_colmap(twin_dir: str | os.PathLike, out_dir: str | os.PathLike) -> Pa
         raise ValueError(f"{twin_dir}: the twin records no cameras to export")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for name, text in colmap_text(twin.cameras, twin.means, sh_dc_rgb(twin.sh[:, 0])).items():
+    for name, text in colmap_text(twin.cameras, twin.gaussians.means, sh_dc_rgb(twin.gaussians.sh[:, 0])).items():
         atomic_write_bytes(out / name, text.encode())
     fsync_dir(out)
     return out

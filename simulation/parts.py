@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from reconstruction.gaussians import Gaussians
 from reconstruction.twin import MeshParts, Twin, object_frame_from_file
-
-SPLAT_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh", "part_label")
-
 
 def component_labels(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     """Connected-component label [F] of each face (faces sharing a vertex are connected), numbered
@@ -173,11 +172,9 @@ def list_parts(twin: Twin) -> list[tuple[int, str, int]]:
     return [(i, name, int(counts[i])) for i, name in enumerate(twin.part_names)]
 
 
-def exploded_splats(twin: Twin, factor: float, hidden: Iterable[str | int] = (), moving: Iterable[str | int] | None = None) -> dict[str, np.ndarray]:
-    """The twin's splat arrays with its parts exploded by `factor` and the `hidden` parts removed.
-
-    Returns means, quats, log_scales, opacity_logits, sh, part_label (rows of the kept splats) and
-    sh_degree. `moving` limits the explosion to those parts (default: all). Names or indices.
+def exploded_splats(twin: Twin, factor: float, hidden: Iterable[str | int] = (), moving: Iterable[str | int] | None = None) -> tuple[Gaussians, np.ndarray]:
+    """The twin's Gaussians with its parts exploded by `factor` and the `hidden` parts removed, and the
+    part label [M] of each kept one. `moving` limits the explosion to those parts (default: all). Names or indices.
     """
     if not np.isfinite(factor) or factor < 0:
         raise ValueError(f"explode factor must be a finite number >= 0, got {factor}")
@@ -186,9 +183,7 @@ def exploded_splats(twin: Twin, factor: float, hidden: Iterable[str | int] = (),
     if moving is not None:
         move_mask = np.zeros(p, bool)
         move_mask[part_indices(moving, twin.part_names)] = True
-    means = explode(twin.means, twin.part_label, p, factor, move_mask)
+    g = twin.gaussians
+    exploded = replace(g, means=explode(g.means, twin.part_label, p, factor, move_mask))
     keep = ~np.isin(twin.part_label, part_indices(hidden, twin.part_names))
-    out = {name: np.asarray(getattr(twin, name))[keep] for name in SPLAT_FIELDS}
-    out["means"] = means[keep]
-    out["sh_degree"] = int(twin.sh_degree)
-    return out
+    return exploded.subset(keep), twin.part_label[keep]

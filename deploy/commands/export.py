@@ -39,10 +39,10 @@ def _write_atomic(data: bytes, out: Path, name: str) -> Path:
 def export_ply(twin_dir: Path, out: Path) -> Path:
     """The splats re-encoded as the current PLY layout (SH padded to degree 3, so Inria's loader
     reads it without --sh_degree), also for twins saved before the padding."""
-    from reconstruction.twin import SPLATS_PLY, load_twin, splat_normals, splats_to_ply_bytes
+    from reconstruction.twin import SPLATS_PLY, load_twin, splats_to_ply_bytes
 
     twin = load_twin(twin_dir)  # validates the twin before anything is written
-    data = splats_to_ply_bytes(twin.means, twin.quats, twin.log_scales, twin.opacity_logits, twin.sh, splat_normals(twin.quats))
+    data = splats_to_ply_bytes(twin.gaussians)
     return _write_atomic(data, out, SPLATS_PLY)
 
 

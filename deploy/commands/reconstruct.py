@@ -36,7 +36,7 @@ def verdict(twin, registration) -> str:
     warn = f" {skipped} training steps were skipped for non-finite values." if skipped else ""
     return (
         f"Twin of '{twin.model_id}' (registration IoU {registration.score:.3f}) with {twin.num_splats} splats, "
-        f"SH degree {twin.sh_degree}, preset {twin.preset}: {fit}; the pose correction turned the registration by "
+        f"SH degree {twin.gaussians.sh_degree}, preset {twin.preset}: {fit}; the pose correction turned the registration by "
         f"{rot:.2f} deg and rescaled it by {delta.scale:.4f}. Took {twin.timings_s.get('total', 0):.0f} s.{warn}"
     )
 

@@ -15,7 +15,8 @@ def orbit_cameras(twin, n: int):
     elevation, looking at the splats' centre, with the first training camera's intrinsics."""
     from calibration.camera import look_at_c2w
 
-    centre = 0.5 * (twin.means.min(0) + twin.means.max(0))
+    means = twin.gaussians.means
+    centre = 0.5 * (means.min(0) + means.max(0))
     cams = [c.camera for c in twin.cameras]
     offsets = np.stack([c.center for c in cams]) - centre
     radius = float(np.median(np.linalg.norm(offsets, axis=1)))
@@ -62,10 +63,7 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
     if orbit is not None and refine_steps:
         raise click.ClickException("--refine-steps needs --views: an orbit has no photographs to refine against")
     twin = load_twin(twin_dir)
-    if explode or hidden:
-        splats = exploded_splats(twin, explode, hidden)
-    else:
-        splats = {k: getattr(twin, k) for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "sh_degree")}
+    gaussians = exploded_splats(twin, explode, hidden)[0] if explode or hidden else twin.gaussians
     if views_dir is not None:
         capture = read_capture(views_dir)
         jobs = [(Path(f.file_path).name, capture.camera(i).with_c2w(twin.sim3_rig_to_object.apply_to_c2w(f.camera.c2w)), i)
@@ -77,7 +75,7 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
     # Every image is rendered into a hidden sibling first, so a full disk or a kill leaves no partial set.
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".incoming", dir=out_dir.parent))
     try:
-        _render_all(jobs, twin, splats, capture, refine_steps, tmp)
+        _render_all(jobs, twin, gaussians, capture, refine_steps, tmp)
         _publish(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -99,21 +97,21 @@ def _publish(tmp: Path, out_dir: Path) -> None:
     fsync_dir(out_dir.parent)
 
 
-def _render_all(jobs, twin, splats, capture, refine_steps: int, folder: Path) -> None:
+def _render_all(jobs, twin, gaussians, capture, refine_steps: int, folder: Path) -> None:
     from rich.progress import track
 
     from calibration.fileio import atomic_write_png
-    from reconstruction.pipeline import render_rgba
+    from reconstruction.gaussians import camera_batch, render, straight_rgba
 
     for name, cam, i in track(jobs, description="rendering", transient=True):
         if refine_steps and capture is not None:
-            from reconstruction.evaluation import FrozenGaussians, refine_camera_pose
+            from reconstruction.evaluation import refine_camera_pose
             from reconstruction.masks import capture_masks
 
             mask = capture.mask(i)
             if mask is None:
                 mask = capture_masks(capture)[0][i]
-            ref = refine_camera_pose(FrozenGaussians.from_twin(twin), cam, capture.image(i), mask, steps=refine_steps)
+            ref = refine_camera_pose(twin.gaussians, cam, capture.image(i), mask, steps=refine_steps)
             cam = cam.with_c2w(ref.c2w)
-        rgba = render_rgba(splats["means"], splats["quats"], splats["log_scales"], splats["opacity_logits"], splats["sh"], splats["sh_degree"], cam)
+        rgba = straight_rgba(*render(gaussians, *camera_batch(cam), background=None))[0]
         atomic_write_png(folder / f"{Path(name).stem}.png", rgba)

@@ -13,7 +13,7 @@ from calibration.capture import FrameData, write_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from deploy.cli import main
-from reconstruction.evaluation import METRIC_KEYS, FrozenGaussians
+from reconstruction.evaluation import METRIC_KEYS
 from reconstruction.symmetry import rotation_about
 from reconstruction.twin import MeshParts, save_twin
 from tests.reconstruction.test_evaluation import make_twin, orbit_camera, photograph, shifted
@@ -28,7 +28,7 @@ def scene(tmp_path_factory):
     twin = make_twin(n=1200)
     twin.sim3_rig_to_object = RIG_TO_OBJECT
     save_twin(twin, root / "twin")
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     frames = []
     for i, az in enumerate((10.0, 130.0, 250.0)):
         cam = orbit_camera(az)

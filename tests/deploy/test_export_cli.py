@@ -43,10 +43,10 @@ def test_ply_reads_in_inrias_loader_without_flags(twin_dir, tmp_path):
     max_sh_degree = 3
     assert len(extra) == 3 * (max_sh_degree + 1) ** 2 - 3
     rest = np.stack([np.asarray(v[n]) for n in extra], 1).reshape(len(v["x"]), 3, (max_sh_degree + 1) ** 2 - 1)
-    np.testing.assert_allclose(rest[:, :, :3], twin.sh[:, 1:4].transpose(0, 2, 1), atol=1e-6)  # the fitted degree-1 band
+    np.testing.assert_allclose(rest[:, :, :3], twin.gaussians.sh[:, 1:4].transpose(0, 2, 1), atol=1e-6)  # the fitted degree-1 band
     assert not rest[:, :, 3:].any()  # degrees 2 and 3: zero padding, renders identically
-    np.testing.assert_allclose(np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1), twin.sh[:, 0], atol=1e-6)
-    assert read_splats_ply(tmp_path / "s.ply")["sh_degree"] == 1  # our reader drops the padding again
+    np.testing.assert_allclose(np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1), twin.gaussians.sh[:, 0], atol=1e-6)
+    assert read_splats_ply(tmp_path / "s.ply").sh_degree == 1  # our reader drops the padding again
 
 
 def gltf_validator() -> tuple[str, Path] | None:

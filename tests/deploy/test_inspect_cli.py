@@ -46,8 +46,7 @@ def make_twin(root, name, deformed: MeshParts | None, elevations=(-35.0, 35.0)):
             eye = centre + 0.4 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
             cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 160, 120, look_at_c2w(eye, centre)))
     twin = Twin(model_id="ball_and_peg", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=cams,
-                preset="test", choices={}, timings_s={}, losses={}, means=s.means, quats=s.quats, log_scales=s.log_scales,
-                opacity_logits=s.opacity_logits, sh=s.sh, sh_degree=0, means_canonical=s.means, face_index=s.face_index,
+                preset="test", choices={}, timings_s={}, losses={}, gaussians=s.gaussians, means_canonical=s.means, face_index=s.face_index,
                 barycentrics=s.barycentrics, part_label=s.part_label, part_names=parts.part_names)
     return save_twin(twin, root / name, mesh_cad=parts, mesh_deformed=deformed)
 

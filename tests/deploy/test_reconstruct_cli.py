@@ -82,7 +82,7 @@ def test_reconstruct_render_export(tmp_path, library, short_preview, capsys):
     # Exports.
     assert main(["export", str(twin_dir), "--format", "ply", "--out", str(tmp_path / "s.ply")]) == 0
     ply = read_splats_ply(tmp_path / "s.ply")
-    np.testing.assert_allclose(ply["means"], twin.means)
+    np.testing.assert_allclose(ply.means, twin.gaussians.means)
     assert main(["export", str(twin_dir), "--format", "glb", "--out", str(tmp_path / "m.glb")]) == 0
     assert (tmp_path / "m.glb").stat().st_size > 1000
 
@@ -123,8 +123,7 @@ def before_after(tmp_path_factory, library):
 
     rec = reconstruct(SAMPLE / "train", library, tmp_path_factory.mktemp("e2e") / "twin", preset="preview")
     twin, s0 = rec.twin, rec.splats
-    init = replace(twin, means=s0.means, sim3_rig_to_object=twin.sim3_rig_to_object_init, log_scales=s0.log_scales,
-                   opacity_logits=s0.opacity_logits, sh=s0.sh)
+    init = replace(twin, gaussians=s0.gaussians, sim3_rig_to_object=twin.sim3_rig_to_object_init)
     held = read_capture(SAMPLE / "heldout")
     images, masks, cams = load_views(held, select_views(len(held), 8))
     before = evaluate_twin(init, cams, images, masks, refine_steps=0)["mean"]

@@ -20,7 +20,6 @@ from reconstruction.baselines import (
     vanilla_twin,
     visual_hull_points,
 )
-from reconstruction.evaluation import FrozenGaussians
 from reconstruction.twin import load_twin, save_twin
 from tests.reconstruction.test_evaluation import make_twin, photograph
 
@@ -129,7 +128,7 @@ def test_densify_clones_splits_and_prunes_exactly_as_the_recipe_says():
 
 def test_vanilla_3dgs_schedule_densifies_resets_and_prunes(tmp_path):
     twin = make_twin(n=1500)
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     cams = []
     for i in range(4):
         az, el = 2 * np.pi * i / 4 + 0.3, np.radians(25.0)
@@ -150,8 +149,8 @@ def test_vanilla_3dgs_schedule_densifies_resets_and_prunes(tmp_path):
     assert len(result.losses) == 40 and np.all(np.isfinite(result.losses))
     out = save_twin(vanilla_twin(result, cams, [f"cam{i:02d}" for i in range(4)]), tmp_path / "vanilla")
     back = load_twin(out)
-    assert back.model_id == "vanilla-3dgs" and back.num_splats == len(result.means) and back.sh_degree == 3
-    assert np.array_equal(back.means, result.means)
+    assert back.model_id == "vanilla-3dgs" and back.num_splats == len(result.gaussians) and back.gaussians.sh_degree == 3
+    assert np.array_equal(back.gaussians.means, result.gaussians.means)
 
 
 def test_scaled_config_keeps_the_schedule_shape():

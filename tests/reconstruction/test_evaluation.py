@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,7 +14,6 @@ from calibration.camera import Camera, look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from reconstruction.evaluation import (
-    FrozenGaussians,
     average_metrics,
     cameras_to_object,
     evaluate_twin,
@@ -21,9 +21,9 @@ from reconstruction.evaluation import (
     gt_train_poses,
     half_turn,
     refine_camera_pose,
-    render_rgba,
     select_views,
 )
+from reconstruction.gaussians import Gaussians, camera_batch, render
 from reconstruction.splats import init_splats
 from reconstruction.twin import Twin, TwinCamera
 
@@ -36,13 +36,14 @@ def make_twin(n: int = 2500, seed: int = 0) -> Twin:
     pts = mesh.triangles_center
     rgb_face = 0.5 + 0.45 * pts / 0.05 * np.array([1.0, -1.0, 0.6])
     s = init_splats(mesh.vertices, mesh.faces, n, sh_degree=1, seed=seed)
-    s.sh[:, 0] = (np.clip(rgb_face[s.face_index], 0, 1) - 0.5) / 0.28209479177387814
-    s.log_scales[:, :2] += np.log(1.6)  # overlap the disks so the silhouette has no holes
+    g = s.gaussians
+    g.sh[:, 0] = (np.clip(rgb_face[s.face_index], 0, 1) - 0.5) / 0.28209479177387814
+    g.log_scales[:, :2] += np.log(1.6)  # overlap the disks so the silhouette has no holes
     cam = TwinCamera("images/cam00.png", "cam00", orbit_camera(0.0).K, W, H, orbit_camera(0.0).c2w)
     return Twin(
         model_id="sphere", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=[cam],
-        preset="test", choices={}, timings_s={}, losses={}, means=s.means, quats=s.quats, log_scales=s.log_scales,
-        opacity_logits=np.full(n, 4.0, np.float32), sh=s.sh, sh_degree=1, means_canonical=s.means,
+        preset="test", choices={}, timings_s={}, losses={},
+        gaussians=replace(g, opacity_logits=np.full(n, 4.0, np.float32)), means_canonical=s.means,
         face_index=s.face_index, barycentrics=s.barycentrics, part_label=s.part_label, part_names=["body"],
     )
 
@@ -53,11 +54,10 @@ def orbit_camera(azimuth_deg: float, elevation_deg: float = 20.0, distance: floa
     return Camera.from_fov(np.radians(40.0), W, H, look_at_c2w(eye, np.zeros(3)))
 
 
-def photograph(g: FrozenGaussians, cam: Camera, background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def photograph(g: Gaussians, cam: Camera, background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """A 'photo' of the twin: by default over black (a background the metrics must ignore), mask alpha > 0.5."""
-    with torch.no_grad():
-        rgb, alpha = render_rgba(g, torch.as_tensor(cam.viewmat), cam.K, cam.width, cam.height, background=background)
-    return rgb.numpy(), alpha.numpy() > 0.5
+    rgb, alpha = render(g, *camera_batch(cam), background=background)
+    return rgb[0].numpy(), alpha[0].numpy() > 0.5
 
 
 def shifted(cam: Camera, deg: float, metres: float) -> Camera:
@@ -74,7 +74,7 @@ def twin() -> Twin:
 
 
 def test_perfect_view_scores_perfectly(twin):
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     cams = [orbit_camera(a) for a in (0.0, 120.0)]
     # Over white, as the prediction is rendered: the semi-transparent rim then matches pixel for pixel.
     shots = [photograph(g, c, background=(1.0, 1.0, 1.0)) for c in cams]
@@ -90,8 +90,8 @@ def test_perfect_view_scores_perfectly(twin):
 
 
 def test_refinement_recovers_a_shifted_camera_and_leaves_the_twin_bit_identical(twin):
-    before = {k: getattr(twin, k).copy() for k in ("means", "quats", "log_scales", "opacity_logits", "sh")}
-    g = FrozenGaussians.from_twin(twin)
+    before = {k: getattr(twin.gaussians, k).copy() for k in ("means", "quats", "log_scales", "opacity_logits", "sh")}
+    g = twin.gaussians
     true_cam = orbit_camera(40.0)
     img, mask = photograph(g, true_cam)
     nominal = shifted(true_cam, 1.5, 0.003)  # ~4 px of misalignment at this focal length
@@ -109,14 +109,14 @@ def test_refinement_recovers_a_shifted_camera_and_leaves_the_twin_bit_identical(
     assert np.abs(px(nominal) - px(true_cam)).max() > 4.0
     assert np.abs(px(refined_cam) - px(true_cam)).max() < 1.0
     for k, v in before.items():
-        assert np.array_equal(getattr(twin, k), v), k  # bit-identical: refinement never touched the twin
+        assert np.array_equal(getattr(twin.gaussians, k), v), k  # bit-identical: refinement never touched the twin
 
 
 def test_refinement_only_optimises_the_pose():
     """The refined pose is what the loss improved; the frozen splats never require grad."""
     twin = make_twin(n=800, seed=1)
-    g = FrozenGaussians.from_twin(twin)
-    assert not any(t.requires_grad for t in (g.means, g.quats, g.scales, g.opacities, g.sh))
+    g = twin.gaussians
+    assert not any(t.requires_grad for t in g.activated())
     cam = orbit_camera(200.0)
     img, mask = photograph(g, cam)
     ref = refine_camera_pose(g, shifted(cam, 1.5, 0.0), img, mask, steps=40, lr=1e-3)
@@ -126,7 +126,7 @@ def test_refinement_only_optimises_the_pose():
 
 def test_heldout_cameras_go_through_the_refined_registration(twin):
     """A capture in a rig frame (scaled, turned, moved) evaluates exactly like the object-frame one."""
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     cam_obj = orbit_camera(75.0)
     img, mask = photograph(g, cam_obj)
     rig_to_obj = Sim3(0.5, axis_angle_to_matrix(np.array([0.1, -0.4, 0.9])), np.array([0.3, -0.1, 0.05]))
@@ -150,7 +150,7 @@ def test_registration_against_gt_matches_cameras_by_name(twin):
     assert names == ["cam02", "cam00"] and np.array_equal(ref[0], truth[2])
     twin2 = make_twin(n=500)
     twin2.cameras = cams
-    g = FrozenGaussians.from_twin(twin2)
+    g = twin2.gaussians
     img, mask = photograph(g, orbit_camera(10.0))
     rep = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0,
                         gt={"train_c2w_object": [c.tolist() for c in truth]})["registration"]
@@ -181,7 +181,7 @@ def test_select_views_and_bad_input(twin):
     assert select_views(36, None) == list(range(36))
     assert select_views(36, 4) == [0, 12, 23, 35]
     assert select_views(3, 10) == [0, 1, 2]
-    g = FrozenGaussians.from_twin(twin)
+    g = twin.gaussians
     cam = orbit_camera(0.0)
     img = np.zeros((1, H, W, 3), np.float32)
     with pytest.raises(ValueError, match="empty mask"):

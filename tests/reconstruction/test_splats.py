@@ -84,14 +84,14 @@ def test_init_box_with_12_faces_and_parts():
     assert len(f) == 12
     part = (np.arange(12) >= 6).astype(int)
     s = init_splats(v, f, 2000, sh_degree=2, face_part=part, seed=0)
-    assert s.means.dtype == np.float32 and s.sh.shape == (2000, 9, 3) and s.sh_degree == 2
+    assert s.means.dtype == np.float32 and s.gaussians.sh.shape == (2000, 9, 3) and s.gaussians.sh_degree == 2
     np.testing.assert_array_equal(s.part_label, part[s.face_index])
-    np.testing.assert_allclose(s.opacity_logits, 0)  # opacity 0.5
-    np.testing.assert_allclose(s.sh, 0)  # neutral grey without images
+    np.testing.assert_allclose(s.gaussians.opacity_logits, 0)  # opacity 0.5
+    np.testing.assert_allclose(s.gaussians.sh, 0)  # neutral grey without images
     # Box normals point outwards from the centre.
     centre = v.mean(0)
     assert np.all(np.einsum("nd,nd->n", s.normals, s.means - centre) > 0)
-    for arr in (s.means, s.quats, s.log_scales, s.sh):
+    for arr in (s.means, s.gaussians.quats, s.gaussians.log_scales, s.gaussians.sh):
         assert np.all(np.isfinite(arr))
 
 
@@ -114,19 +114,19 @@ def test_millimetre_mesh_scales_with_units():
     s_m = init_splats(v, f, 3000, sh_degree=0, seed=3)
     s_mm = init_splats(v * 1000, f, 3000, sh_degree=0, seed=3)
     np.testing.assert_allclose(s_mm.means, s_m.means * 1000, rtol=1e-5, atol=1e-3)
-    np.testing.assert_allclose(s_mm.log_scales - s_m.log_scales, np.log(1000), atol=1e-4)
-    np.testing.assert_allclose(s_mm.quats, s_m.quats, atol=1e-6)
+    np.testing.assert_allclose(s_mm.gaussians.log_scales - s_m.gaussians.log_scales, np.log(1000), atol=1e-4)
+    np.testing.assert_allclose(s_mm.gaussians.quats, s_m.gaussians.quats, atol=1e-6)
 
 
 def test_thin_object_scissors():
     path = require_shared("objects", "ycb", "037_scissors", "textured.obj")
     mesh = trimesh.load(path, force="mesh", process=False)
     s = init_splats(mesh.vertices, mesh.faces, 20_000, sh_degree=1, seed=0)
-    for arr in (s.means, s.quats, s.log_scales, s.normals):
+    for arr in (s.means, s.gaussians.quats, s.gaussians.log_scales, s.normals):
         assert np.all(np.isfinite(arr))
     # Splats are disks far smaller than the object (a few millimetres on a ~0.2 m object).
-    assert np.exp(s.log_scales[:, 0]).max() < 0.01
-    r = quat_to_matrix(s.quats)
+    assert np.exp(s.gaussians.log_scales[:, 0]).max() < 0.01
+    r = quat_to_matrix(s.gaussians.quats)
     np.testing.assert_allclose(r[:, :, 2], s.normals, atol=1e-5)
 
 
@@ -161,7 +161,7 @@ def test_knn_excludes_self():
 def test_initial_opacity_is_stored_as_a_logit():
     v, f = box()
     s = init_splats(v, f, 500, sh_degree=0, opacity=0.9, seed=0)
-    np.testing.assert_allclose(1 / (1 + np.exp(-s.opacity_logits)), 0.9, rtol=1e-6)
+    np.testing.assert_allclose(1 / (1 + np.exp(-s.gaussians.opacity_logits)), 0.9, rtol=1e-6)
     for bad in (0.0, 1.0, 1.5):
         with pytest.raises(ValueError, match="opacity"):
             init_splats(v, f, 10, sh_degree=0, opacity=bad)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from plyfile import PlyData
@@ -9,6 +11,7 @@ from plyfile import PlyData
 from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
+from reconstruction.gaussians import Gaussians
 from reconstruction.twin import (
     MeshParts,
     Twin,
@@ -38,12 +41,8 @@ def make_twin(n: int = 50, degree: int = 2, seed: int = 0) -> Twin:
         choices={"num_splats": {"value": n, "why": "test"}},
         timings_s={"stage1": 1.5},
         losses={"mask": 0.01},
-        means=rng.normal(size=(n, 3)),
-        quats=q,
-        log_scales=rng.normal(size=(n, 3)) - 5,
-        opacity_logits=rng.normal(size=n),
-        sh=rng.normal(size=(n, k, 3)),
-        sh_degree=degree,
+        gaussians=Gaussians.from_arrays(rng.normal(size=(n, 3)), q, rng.normal(size=(n, 3)) - 5, rng.normal(size=n),
+                                        rng.normal(size=(n, k, 3))),
         means_canonical=rng.normal(size=(n, 3)),
         face_index=rng.integers(0, 12, n),
         barycentrics=rng.dirichlet([1, 1, 1], n),
@@ -59,11 +58,13 @@ def test_round_trip_and_every_ply_column(tmp_path):
     out = save_twin(twin, tmp_path / "twin", deformation_state={"w": np.ones(3)}, mesh_cad=mesh, mesh_deformed=mesh,
                     renders={"a.png": np.ones((4, 5, 4), np.float32)})
     back = load_twin(out)
-    for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "means_canonical", "barycentrics"):
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_allclose(getattr(back.gaussians, name), getattr(twin.gaussians, name), rtol=1e-6, atol=1e-6)
+    for name in ("means_canonical", "barycentrics"):
         np.testing.assert_allclose(getattr(back, name), getattr(twin, name), rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(back.face_index, twin.face_index)
     np.testing.assert_array_equal(back.part_label, twin.part_label)
-    assert back.part_names == ["body", "lid"] and back.sh_degree == 2 and back.model_id == "m1"
+    assert back.part_names == ["body", "lid"] and back.gaussians.sh_degree == 2 and back.model_id == "m1"
     np.testing.assert_allclose(back.sim3_rig_to_object_init.matrix(), twin.sim3_rig_to_object_init.matrix(), atol=1e-12)
     np.testing.assert_allclose(back.cameras[0].c2w_object_opencv, twin.cameras[0].c2w_object_opencv)
     assert back.cameras[0].camera.width == 64
@@ -77,18 +78,18 @@ def test_round_trip_and_every_ply_column(tmp_path):
     assert names == ply_columns(3) and "sh_degree 2" in ply.comments
     assert len(names) == 3 + 3 + 3 + 45 + 1 + 3 + 4
     assert all(p.val_dtype in ("f4", "float32") for p in v.properties)
-    n = twin.num_splats
-    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), twin.means, atol=1e-6)
-    np.testing.assert_allclose(np.stack([v["nx"], v["ny"], v["nz"]], 1), splat_normals(twin.quats), atol=1e-6)
-    np.testing.assert_allclose(np.stack([v[f"f_dc_{c}"] for c in range(3)], 1), twin.sh[:, 0], atol=1e-6)
+    n, g = twin.num_splats, twin.gaussians
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), g.means, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v["nx"], v["ny"], v["nz"]], 1), splat_normals(g.quats), atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"f_dc_{c}"] for c in range(3)], 1), g.sh[:, 0], atol=1e-6)
     # Channel-major f_rest: index c * 15 + (j - 1) holds coefficient j of channel c; degree 3 is zero.
     for c in range(3):
         for j in range(1, 16):
-            want = twin.sh[:, j, c] if j < 9 else 0.0
+            want = g.sh[:, j, c] if j < 9 else 0.0
             np.testing.assert_allclose(v[f"f_rest_{c * 15 + j - 1}"], want, atol=1e-6)
-    np.testing.assert_allclose(v["opacity"], twin.opacity_logits, atol=1e-6)
-    np.testing.assert_allclose(np.stack([v[f"scale_{i}"] for i in range(3)], 1), twin.log_scales, atol=1e-6)
-    np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), twin.quats, atol=1e-6)
+    np.testing.assert_allclose(v["opacity"], g.opacity_logits, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"scale_{i}"] for i in range(3)], 1), g.log_scales, atol=1e-6)
+    np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), g.quats, atol=1e-6)
     assert len(v["x"]) == n
 
     parts = read_mesh_parts(out / "mesh_deformed.glb")
@@ -102,10 +103,10 @@ def test_existing_twin_is_kept_unless_overwrite(tmp_path):
     save_twin(twin, tmp_path / "t")
     with pytest.raises(TwinError, match="already exists"):
         save_twin(make_twin(seed=1), tmp_path / "t")
-    np.testing.assert_allclose(load_twin(tmp_path / "t").means, twin.means, atol=1e-6)
+    np.testing.assert_allclose(load_twin(tmp_path / "t").gaussians.means, twin.gaussians.means, atol=1e-6)
     other = make_twin(seed=1)
     save_twin(other, tmp_path / "t", overwrite=True)
-    np.testing.assert_allclose(load_twin(tmp_path / "t").means, other.means, atol=1e-6)
+    np.testing.assert_allclose(load_twin(tmp_path / "t").gaussians.means, other.gaussians.means, atol=1e-6)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]
 
 
@@ -114,6 +115,6 @@ def test_bad_inputs_are_one_sentence(tmp_path):
         load_twin(tmp_path)
     t = make_twin()
     with pytest.raises(TwinError, match="NaN"):
-        Twin(**{**t.__dict__, "means": np.full((50, 3), np.nan)})
+        Twin(**{**t.__dict__, "gaussians": replace(t.gaussians, means=np.full((50, 3), np.nan, np.float32))})
     with pytest.raises(TwinError, match="shape"):
-        Twin(**{**t.__dict__, "sh": np.zeros((50, 4, 3))})
+        Twin(**{**t.__dict__, "barycentrics": np.zeros((49, 3))})

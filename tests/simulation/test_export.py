@@ -41,7 +41,7 @@ def test_export_colmap_round_trips_through_pycolmap(twin_dir, tmp_path):
         cam = rec.cameras[image.camera_id]
         assert cam.model.name == "PINHOLE" and cam.calibration_matrix() == pytest.approx(tc.K)
     xyz = np.array([p.xyz for p in rec.points3D.values()])
-    assert np.sort(xyz[:, 0]) == pytest.approx(np.sort(twin.means[:, 0]), abs=1e-6)
+    assert np.sort(xyz[:, 0]) == pytest.approx(np.sort(twin.gaussians.means[:, 0]), abs=1e-6)
 
 
 def test_scene_parse_errors_are_plain(tmp_path):

@@ -3,13 +3,15 @@ same image (positions, orientations and view-dependent colour all follow)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from calibration.camera import Camera, invert_rigid, look_at_c2w
-from calibration.so3 import axis_angle_to_matrix, quat_to_matrix
+from calibration.so3 import axis_angle_to_matrix
 from reconstruction.twin import load_twin, splat_normals
-from simulation.follow import camera_path, quat_multiply, render_bodies, splats_from_mesh, splats_from_twin, transform_splats
+from simulation.follow import camera_path, render_bodies, splats_from_mesh
 from simulation.scene import CameraSpec
 from tests.simulation.twins import hammer, make_twin
 
@@ -21,26 +23,20 @@ def pose(rotvec, t) -> np.ndarray:
     return p
 
 
-def test_quat_multiply_is_matrix_product():
-    rng = np.random.default_rng(0)
-    a, b = rng.normal(size=(5, 4)), rng.normal(size=(5, 4))
-    assert quat_to_matrix(quat_multiply(a, b)) == pytest.approx(quat_to_matrix(a) @ quat_to_matrix(b), abs=1e-12)
-
-
 def test_transform_moves_means_and_turns_disk_normals():
     parts, rgb = hammer()
-    s = splats_from_mesh(parts.vertices, parts.faces, rgb, parts.face_part, 500)
+    g = splats_from_mesh(parts.vertices, parts.faces, rgb, parts.face_part, 500).gaussians
     p = pose([0.3, -1.2, 0.7], [0.1, 0.2, 0.3])
-    m, q = transform_splats(s["means"], s["quats"], p)
-    assert m == pytest.approx(s["means"] @ p[:3, :3].T + p[:3, 3], abs=1e-6)
-    assert splat_normals(q.astype(np.float32)) == pytest.approx(splat_normals(s["quats"]) @ p[:3, :3].T, abs=1e-5)
+    moved = g.transformed(p)
+    assert moved.means == pytest.approx(g.means @ p[:3, :3].T + p[:3, 3], abs=1e-6)
+    assert splat_normals(moved.quats) == pytest.approx(splat_normals(g.quats) @ p[:3, :3].T, abs=1e-5)
 
 
 def test_moving_the_body_equals_moving_the_camera_back(tmp_path):
     twin = load_twin(make_twin(tmp_path, "hammer", *hammer(), n=2000))
-    s = splats_from_twin(twin)
-    s["sh"] = s["sh"].copy()
-    s["sh"][:, 1:] = np.random.default_rng(1).normal(scale=0.3, size=s["sh"][:, 1:].shape)  # strong view dependence
+    sh = twin.gaussians.sh.copy()
+    sh[:, 1:] = np.random.default_rng(1).normal(scale=0.3, size=sh[:, 1:].shape)  # strong view dependence
+    s = replace(twin.gaussians, sh=sh)
     cam = Camera.from_fov(np.deg2rad(50), 96, 72, look_at_c2w(np.array([0.35, -0.3, 0.25]), np.zeros(3)))
     body = pose([0.4, 0.2, 1.1], [0.02, -0.01, 0.03])
     moved, alpha = render_bodies([s], [body], cam)

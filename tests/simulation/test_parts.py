@@ -62,9 +62,9 @@ def test_list_and_hide_parts(board):
     listed = list_parts(board)
     assert [name for _, name, _ in listed] == ["deck", "wheel_0", "wheel_1", "wheel_2", "wheel_3"]
     assert sum(n for _, _, n in listed) == board.num_splats
-    out = exploded_splats(board, 0.0, hidden=["wheel_1", 4])  # by name (index 2) and by index
-    assert set(np.unique(out["part_label"]).tolist()) == {0, 1, 3}
-    assert out["means"] == pytest.approx(board.means[~np.isin(board.part_label, [2, 4])])
+    out, labels = exploded_splats(board, 0.0, hidden=["wheel_1", 4])  # by name (index 2) and by index
+    assert set(np.unique(labels).tolist()) == {0, 1, 3}
+    assert out.means == pytest.approx(board.gaussians.means[~np.isin(board.part_label, [2, 4])])
     with pytest.raises(ValueError, match="no part named 'axle'"):
         exploded_splats(board, 0.5, hidden=["axle"])
     with pytest.raises(ValueError, match="factor"):
@@ -73,15 +73,16 @@ def test_list_and_hide_parts(board):
 
 def test_explode_moves_wheels_and_keeps_the_deck(board):
     p = len(board.part_names)
-    before = part_centroids(board.means, board.part_label, p)
-    out = exploded_splats(board, 0.5, moving=["wheel_0", "wheel_1", "wheel_2", "wheel_3"])
-    after = part_centroids(out["means"], out["part_label"], p)
+    means = board.gaussians.means
+    before = part_centroids(means, board.part_label, p)
+    out, labels = exploded_splats(board, 0.5, moving=["wheel_0", "wheel_1", "wheel_2", "wheel_3"])
+    after = part_centroids(out.means, labels, p)
     centre = before.mean(0)
-    assert np.array_equal(out["means"][board.part_label == 0], board.means[board.part_label == 0])  # deck fixed
+    assert np.array_equal(out.means[board.part_label == 0], means[board.part_label == 0])  # deck fixed
     for w in range(1, 5):
         assert after[w] - centre == pytest.approx(1.5 * (before[w] - centre), abs=1e-6)
     # Every splat of a part moves by the same vector: parts move rigidly.
-    shift = out["means"] - board.means
+    shift = out.means - means
     for w in range(1, 5):
         assert np.ptp(shift[board.part_label == w], 0).max() < 1e-6
 
@@ -97,9 +98,8 @@ def green_pixels(rgb):
 def test_exploded_view_render(board, tmp_path):
     # Seen from below the side so the wheels are in view; the exploded view is written as a PNG.
     cam = Camera.from_fov(np.deg2rad(55), 160, 120, look_at_c2w(np.array([0.05, -0.42, -0.12]), np.array([0, 0, 0.02])))
-    full = {k: getattr(board, k) for k in ("means", "quats", "log_scales", "opacity_logits", "sh", "part_label")} | {"sh_degree": board.sh_degree}
-    assembled, _ = render_bodies([full], [np.eye(4)], cam)
-    exploded, _ = render_bodies([exploded_splats(board, 0.8, moving=[f"wheel_{i}" for i in range(4)])], [np.eye(4)], cam)
+    assembled, _ = render_bodies([board.gaussians], [np.eye(4)], cam)
+    exploded, _ = render_bodies([exploded_splats(board, 0.8, moving=[f"wheel_{i}" for i in range(4)])[0]], [np.eye(4)], cam)
     atomic_write_png(tmp_path / "exploded.png", np.concatenate([assembled, exploded], 1))
     r0, r1 = red_pixels(assembled), red_pixels(exploded)
     g0, g1 = green_pixels(assembled), green_pixels(exploded)

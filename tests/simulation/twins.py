@@ -9,6 +9,7 @@ import trimesh
 
 from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
+from reconstruction.gaussians import Gaussians
 from reconstruction.splats import init_splats, rgb_to_sh_dc
 from reconstruction.twin import MeshParts, Twin, TwinCamera, save_twin
 
@@ -56,7 +57,7 @@ def hammer() -> tuple[MeshParts, np.ndarray]:
 def make_twin(root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray, n: int = 3000, seed: int = 0) -> Path:
     """Save a twin of `parts` with `n` coloured splats (SH degree 1, a small view-dependent term)."""
     s = init_splats(parts.vertices, parts.faces, n, sh_degree=1, face_part=parts.face_part, seed=seed)
-    sh = s.sh.copy()
+    sh = s.gaussians.sh.copy()
     sh[:, 0] = rgb_to_sh_dc(face_rgb[s.face_index])
     sh[:, 1:] = 0.02
     cams = []
@@ -67,8 +68,8 @@ def make_twin(root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray,
         cams.append(TwinCamera(f"images/view_{i}.png", f"cam{i}", k, 160, 120, look_at_c2w(eye, centre)))
     twin = Twin(
         model_id=model_id, sim3_rig_to_object_init=Sim3(1.0, np.eye(3), np.zeros(3)), sim3_rig_to_object=Sim3(1.0, np.eye(3), np.zeros(3)),
-        cameras=cams, preset="test", choices={}, timings_s={}, losses={}, means=s.means, quats=s.quats,
-        log_scales=s.log_scales, opacity_logits=np.full(n, 4.0, np.float32), sh=sh, sh_degree=1,
+        cameras=cams, preset="test", choices={}, timings_s={}, losses={},
+        gaussians=Gaussians(s.means, s.gaussians.quats, s.gaussians.log_scales, np.full(n, 4.0, np.float32), sh),
         means_canonical=s.means, face_index=s.face_index, barycentrics=s.barycentrics, part_label=s.part_label,
         part_names=parts.part_names,
     )
