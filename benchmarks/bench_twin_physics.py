@@ -31,7 +31,7 @@ import numpy as np
 import trimesh
 from pxr import Usd, UsdPhysics
 
-from deploy.commands.export import export_glb
+from simulation.export import export_glb
 from simulation.asset import repair_mesh
 from simulation.collision import DecompositionOptions
 from simulation.export import twin_body

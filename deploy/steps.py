@@ -123,7 +123,7 @@ def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str
 
 
 def export_step(work: Path, cfg: PipelineConfig) -> dict:
-    from deploy.commands.export import write_export
+    from simulation.export import write_export
 
     twin_dir = work / "twin"
     outputs = {}

@@ -1,5 +1,8 @@
 """From a validated rig.toml to live objects: camera drivers, the trigger source, the store.
 
+`DRIVERS` maps each rig.toml `driver` name to the driver it builds (the protocol is in
+`rig.camera`; the drivers import only the protocol, never this table).
+
 Also the simulated rig (`--simulate`): synthetic cameras rendering a part on the conveyor, and a
 simulated PLC that sends triggers over a virtual CAN bus or a loop serial port, so the appliance
 runs end to end without hardware through the same trigger code as in the field.
@@ -12,14 +15,17 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import serial
 
 from calibration.camera import Camera
-from rig.camera import CameraDriver, make_driver
+from rig.camera import CameraDriver, CameraError
 from rig.config import CameraConfig, RigConfig, TriggerConfig
+from rig.oak import OakCamera
+from rig.replay import ReplayCamera
 from rig.store import CaptureStore
+from rig.synthetic_driver import PatternCamera, SyntheticRig, procedural_part
 from rig.triggers import CanTrigger, SerialTrigger, SoftwareTrigger, TriggerSource, encode_can_trigger, format_trigger_line
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,12 +48,21 @@ def load_rig_calibration(path: Path | None) -> RigCalibrationRef:
     return RigCalibrationRef(f"{Path(path).stem}-{version}", dict(doc.cameras), extrinsics_uncertainty(doc))
 
 
+# (camera's config, its calibrated model or None, its index, number of cameras) -> driver.
+DriverFactory = Callable[[CameraConfig, Camera | None, int, int], CameraDriver]
+
+DRIVERS: dict[str, DriverFactory] = {
+    "oak": lambda cfg, calibrated, index, n: OakCamera(cfg.id, cfg.device, socket=cfg.socket, camera=calibrated, fsin_discard=cfg.fsin_discard),
+    "replay": lambda cfg, calibrated, index, n: ReplayCamera(cfg.id, cfg.path),
+    "pattern": lambda cfg, calibrated, index, n: PatternCamera(cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height),
+}
+
+
 def build_camera(cfg: CameraConfig, calibrated: Camera | None, index: int, n: int) -> CameraDriver:
-    if cfg.driver == "oak":
-        return make_driver("oak", camera_id=cfg.id, device_id=cfg.device, socket=cfg.socket, camera=calibrated, fsin_discard=cfg.fsin_discard)
-    if cfg.driver == "replay":
-        return make_driver("replay", camera_id=cfg.id, path=cfg.path)
-    return make_driver("pattern", camera_id=cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height)
+    """The driver of camera `index` of `n` as rig.toml configures it."""
+    if cfg.driver not in DRIVERS:
+        raise CameraError(f"unknown camera driver '{cfg.driver}' (known: {', '.join(sorted(DRIVERS))})")
+    return DRIVERS[cfg.driver](cfg, calibrated, index, n)
 
 
 def build_cameras(cfg: RigConfig, calibration: dict[str, Camera]) -> list[CameraDriver]:
@@ -126,8 +141,6 @@ class SimulatedPlc:
 
 def simulated_cameras(views: int, width: int, height: int, mesh: Path | None = None):
     """(drivers, rig) of the synthetic rig rendering `mesh` (default: the sample's, else a procedural part)."""
-    from rig.synthetic_driver import SyntheticRig, procedural_part
-
     part = mesh or sample_mesh() or procedural_part()
     rig = SyntheticRig.from_mesh(part, views, width=width, height=height)
     return rig.drivers(), rig

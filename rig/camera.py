@@ -1,15 +1,15 @@
-"""The camera driver protocol: open, configure, arm, grab, close, health; and the registry of drivers.
+"""The camera driver protocol: open, configure, arm, grab, close, health.
 
 A driver owns one physical (or simulated) camera of the rig. Acquisition talks to every camera
 through this protocol only, so OAK devices, the synthetic rig and recorded captures are
 interchangeable. A camera that fails raises `CameraError`; acquisition turns that into a
-quarantined capture, never into a crash.
+quarantined capture, never into a crash. rig.assembly chooses the driver a rig.toml names.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -84,37 +84,3 @@ class CameraDriver(Protocol):
     def close(self) -> None: ...
 
     def health(self) -> Health: ...
-
-
-DriverFactory = Callable[..., CameraDriver]
-_DRIVERS: dict[str, DriverFactory] = {}
-
-
-def register_driver(name: str) -> Callable[[DriverFactory], DriverFactory]:
-    """Class decorator: make a driver constructible by name from rig.toml (`driver = "name"`)."""
-
-    def deco(factory: DriverFactory) -> DriverFactory:
-        _DRIVERS[name] = factory
-        return factory
-
-    return deco
-
-
-def driver_names() -> list[str]:
-    _load_builtin()
-    return sorted(_DRIVERS)
-
-
-def make_driver(name: str, **kwargs) -> CameraDriver:
-    _load_builtin()
-    if name not in _DRIVERS:
-        raise CameraError(f"unknown camera driver '{name}' (known: {', '.join(sorted(_DRIVERS))})")
-    return _DRIVERS[name](**kwargs)
-
-
-def _load_builtin() -> None:
-    # Importing registers them; depthai itself is imported only when an OAK camera opens.
-    import rig.oak  # noqa: F401
-    import rig.replay  # noqa: F401
-    import rig.synthetic_driver  # noqa: F401
-

@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from calibration.camera import Camera
-from rig.camera import CameraError, CameraSettings, Frame, Health, register_driver
+from rig.camera import CameraError, CameraSettings, Frame, Health
 from rig.oak_devices import Control, OakDevice, SocketSpec, device_for, release, sync_modes
 
 log = logging.getLogger(__name__)
@@ -133,7 +133,6 @@ def _ns(td: dt.timedelta) -> int:
     return (td.days * 86_400 + td.seconds) * 1_000_000_000 + td.microseconds * 1_000
 
 
-@register_driver("oak")
 class OakCamera:
     """Camera `socket` ("CAM_A", ...) of the OAK device `device_id`.
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.capture import Capture, CaptureError, read_capture
-from rig.camera import CameraError, CameraSettings, Frame, Health, register_driver
+from rig.camera import CameraError, CameraSettings, Frame, Health
 
 
 @functools.lru_cache(maxsize=8)
@@ -34,7 +34,6 @@ def load_recordings(path: str) -> tuple[Capture, ...]:
         raise CameraError(f"cannot replay {root}: {e}") from None
 
 
-@register_driver("replay")
 class ReplayCamera:
     """Camera `camera_id` of the recordings under `path`."""
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera, look_at_c2w
-from rig.camera import CameraError, CameraSettings, Frame, Health, register_driver
+from rig.camera import CameraError, CameraSettings, Frame, Health
 
 GOLDEN_ANGLE_DEG = 137.50776405
 _FILL = 0.8  # fraction of the shorter image side the part's bounding sphere spans
@@ -152,7 +152,6 @@ class SyntheticRig:
         self._gl.shutdown()
 
 
-@register_driver("synthetic")
 class SyntheticCamera:
     """View `index` of a `SyntheticRig`."""
 
@@ -198,7 +197,6 @@ class SyntheticCamera:
         return Health(self.camera_id, self._open, "synthetic view" if self._open else "closed", self._frames)
 
 
-@register_driver("pattern")
 class PatternCamera:
     """A test-pattern camera: a per-camera colour gradient with a bar at a seq-dependent column.
 

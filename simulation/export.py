@@ -1,22 +1,25 @@
-"""Twin exports for other tools: an MJCF package (MuJoCo), a USD file (Isaac Sim) and a COLMAP text model.
+"""Twin exports for other tools: the splats as a PLY, the deformed mesh as a GLB, an MJCF package
+(MuJoCo), a USD file (Isaac Sim) and a COLMAP text model.
 
-`cadsplat export TWIN --format mjcf|usd|colmap --out PATH` calls `export_mjcf` / `export_usd` /
-`export_colmap`; the simulator reads bodies through `load_body`, which takes a twin directory or a
-bare mesh file. MJCF and USD carry the same body: the same repaired mesh, mass properties and
-collision shapes.
+`FORMATS` is the export table (format -> exporter, help) that `cadsplat export` and the service's
+export step both go through `write_export`, which writes atomically. The simulator reads bodies
+through `load_body`, which takes a twin directory or a bare mesh file. MJCF and USD carry the same
+body: the same repaired mesh, mass properties and collision shapes.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from calibration.fileio import atomic_write_bytes, fsync_dir
-from calibration.so3 import matrix_to_quat
+from calibration.fileio import atomic_write_bytes, fsync_dir, publish_dir
 from reconstruction.gaussians import Gaussians
-from reconstruction.twin import MESH_CAD_GLB, TWIN_JSON, load_twin
+from reconstruction.twin import MESH_CAD_GLB, SPLATS_PLY, TWIN_JSON, TwinError, load_twin, parts_glb_bytes, splats_to_ply_bytes
 from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
 from simulation.collision import DEFAULT_TOLERANCE, DecompositionOptions, collision_geometry
 from simulation.follow import splats_from_mesh
@@ -39,7 +42,7 @@ def body_density(placement: Placement, rig: dict | None = None) -> Density:
 def load_body(
     placement: Placement, decomposition: DecompositionOptions | None = DecompositionOptions(), rig: dict | None = None
 ) -> tuple[BodySpec, Gaussians]:
-    """A scene entry -> (BodySpec placed as the scene says, its Gaussians in the object frame).
+    """A scene entry -> (BodySpec placed as the scene says, its splats in the object frame).
 
     A twin directory gives its deformed mesh and its Gaussians; a mesh file gives the mesh and
     `placement.splats` opaque splats sampled on it. `rig`: rig.toml's [simulation] table.
@@ -102,28 +105,25 @@ def _body_name(path: Path) -> str:
     return name or "twin"
 
 
-def colmap_text(cameras, means: np.ndarray, rgb: np.ndarray) -> dict[str, str]:
-    """COLMAP text model (cameras.txt, images.txt, points3D.txt) of OpenCV pinhole cameras in the
-    object frame and coloured points [N, 3] with rgb [N, 3] in [0, 1].
+def colmap_reconstruction(cameras, means: np.ndarray, rgb: np.ndarray):
+    """pycolmap Reconstruction of OpenCV pinhole cameras in the object frame (image and camera ids
+    1..n in order) and coloured points [N, 3] with rgb [N, 3] in [0, 1], without 2D tracks.
 
-    COLMAP stores world-to-camera rotations as qw qx qy qz and its pixel (0, 0) centre is at
-    (0.5, 0.5), as ours, so intrinsics carry over unchanged. Points have no 2D tracks.
+    COLMAP's pixel (0, 0) centre is at (0.5, 0.5), as ours, so intrinsics carry over unchanged.
     """
-    cam_lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
-    img_lines = ["# Image list with two lines of data per image:", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(cameras)}"]
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
     for i, c in enumerate(cameras, start=1):
         cam = c.camera
         k = cam.K
-        cam_lines.append(f"{i} PINHOLE {cam.width} {cam.height} {k[0, 0]:.10g} {k[1, 1]:.10g} {k[0, 2]:.10g} {k[1, 2]:.10g}")
-        w2c = cam.viewmat
-        q = matrix_to_quat(w2c[:3, :3])
-        t = w2c[:3, 3]
-        img_lines.append(f"{i} {q[0]:.12g} {q[1]:.12g} {q[2]:.12g} {q[3]:.12g} {t[0]:.12g} {t[1]:.12g} {t[2]:.12g} {i} {Path(c.file_path).name}")
-        img_lines.append("")
-    col = np.clip(np.asarray(rgb) * 255.0 + 0.5, 0, 255).astype(int)
-    pts = ["# 3D point list with one line of data per point:", "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)", f"# Number of points: {len(means)}"]
-    pts += [f"{j} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} 0" for j, ((x, y, z), (r, g, b)) in enumerate(zip(np.asarray(means, np.float64), col), start=1)]
-    return {"cameras.txt": "\n".join(cam_lines) + "\n", "images.txt": "\n".join(img_lines) + "\n", "points3D.txt": "\n".join(pts) + "\n"}
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[k[0, 0], k[1, 1], k[0, 2], k[1, 2]], camera_id=i))
+        image = pycolmap.Image(name=Path(c.file_path).name, camera_id=i, image_id=i)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(cam.viewmat[:3, :4]))
+    col = np.clip(np.asarray(rgb) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    for xyz, c in zip(np.asarray(means, np.float64), col):
+        rec.add_point3D(xyz, pycolmap.Track(), c)
+    return rec
 
 
 def export_colmap(twin_dir: str | os.PathLike, out_dir: str | os.PathLike) -> Path:
@@ -134,8 +134,85 @@ def export_colmap(twin_dir: str | os.PathLike, out_dir: str | os.PathLike) -> Pa
         raise ValueError(f"{twin_dir}: the twin records no cameras to export")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for name, text in colmap_text(twin.cameras, twin.gaussians.means, sh_dc_rgb(twin.gaussians.sh[:, 0])).items():
-        atomic_write_bytes(out / name, text.encode())
+    with tempfile.TemporaryDirectory() as tmp:
+        colmap_reconstruction(twin.cameras, twin.gaussians.means, sh_dc_rgb(twin.gaussians.sh[:, 0])).write_text(tmp)
+        for f in sorted(Path(tmp).iterdir()):
+            atomic_write_bytes(out / f.name, f.read_bytes())  # durable, as every other export file
     fsync_dir(out)
     return out
 
+
+def _write_atomic(data: bytes, out: Path, name: str) -> Path:
+    if out.is_dir():
+        out = out / name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, data)
+    return out
+
+
+def export_ply(twin_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """The splats re-encoded as the current PLY layout (SH padded to degree 3, so Inria's loader
+    reads it without --sh_degree), also for twins saved before the padding."""
+    twin = load_twin(twin_dir)  # validates the twin before anything is written
+    data = splats_to_ply_bytes(twin.gaussians)
+    return _write_atomic(data, Path(out), SPLATS_PLY)
+
+
+def export_glb(twin_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """The deformed mesh re-encoded +Y up (parts under the object-frame root node), also for twins
+    whose GLB was saved z up."""
+    twin = load_twin(twin_dir)
+    if not twin.mesh_deformed_path.exists():
+        raise TwinError(f"{twin.mesh_deformed_path}: the twin has no deformed mesh to export")
+    return _write_atomic(parts_glb_bytes(twin.load_mesh_deformed()), Path(out), twin.mesh_deformed_path.name)
+
+
+# format -> (exporter, help). Each exporter takes (twin_dir, out, **options) and returns the written path.
+FORMATS: dict[str, tuple[Callable[..., Path], str]] = {
+    "ply": (export_ply, "the splats as an Inria 3DGS PLY (opens in 3DGS viewers)"),
+    "glb": (export_glb, "the deformed CAD mesh, one node per part, +Y up"),
+    "mjcf": (export_mjcf, "a MuJoCo model package"),
+    "usd": (export_usd, "a USD rigid body with mass and collision (Isaac Sim)"),
+    "colmap": (export_colmap, "a COLMAP sparse model of the twin's cameras"),
+}
+
+# The file every export of a directory format holds: what makes a directory "an export of that format".
+DIRECTORY_MARKERS = {"mjcf": "model.xml", "colmap": "cameras.txt"}
+
+# Formats that carry a rigid body take the physics options (density, material, rig_toml); the others take none.
+PHYSICS_FORMATS = ("mjcf", "usd")
+
+
+class ExportError(ValueError):
+    """An export refused before anything is written (the output exists). One plain sentence."""
+
+
+def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False, **options) -> Path:
+    """Export the twin at `twin_dir` as `fmt` to `out`, atomically; returns what was written.
+
+    A file is written beside its name and renamed; a directory format is built in a hidden sibling
+    directory and renamed into place, so a full disk or a kill leaves the old output or none. An
+    existing output is replaced only with `overwrite`, and only when it holds an export of `fmt`.
+    `options` go to the format's exporter (the physics options of `PHYSICS_FORMATS`).
+    """
+    exporter = FORMATS[fmt][0]
+    if fmt not in DIRECTORY_MARKERS:
+        if out.exists() and not out.is_dir() and not overwrite:
+            raise ExportError(f"{out} already exists; pass --overwrite to replace it")
+        return exporter(twin_dir, out, **options)
+    if out.exists():
+        if not overwrite:
+            raise ExportError(f"{out} already exists; pass --overwrite to replace it")
+        if not (out / DIRECTORY_MARKERS[fmt]).is_file():
+            raise ExportError(f"{out} holds no {fmt} export (no {DIRECTORY_MARKERS[fmt]}), so it is not replaced; choose another --out")
+    load_twin(twin_dir)  # a damaged twin fails here, before anything is written
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
+    try:
+        exporter(twin_dir, tmp, **options)
+        fsync_dir(tmp)
+        publish_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -144,7 +144,8 @@ def rig() -> None:
 @click.option("--config", "config", type=click.Path(dir_okay=False), help="rig.toml whose cameras to list.")
 def list_cmd(config: str | None) -> None:
     """Cameras: configured ones, OAK devices depthai can see (sockets, sensors, sync modes), and the synthetic rig."""
-    from rig.camera import CameraError, driver_names
+    from rig.assembly import DRIVERS
+    from rig.camera import CameraError
     from rig.oak import describe_oak_device, import_depthai, list_oak_devices
 
     if config:
@@ -183,7 +184,7 @@ def list_cmd(config: str | None) -> None:
                 click.echo(f"camera {c.id}: OAK {c.device} is not connected.")
             elif sockets[c.device] is not None and c.socket not in sockets[c.device]:
                 click.echo(f"camera {c.id}: OAK {c.device} has no camera on {c.socket}.")
-    click.echo(f"drivers: {', '.join(driver_names())} (synthetic: `--simulate`)")
+    click.echo(f"drivers: {', '.join(sorted(DRIVERS))} (synthetic: `--simulate`)")
 
 
 @rig.command()

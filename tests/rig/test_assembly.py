@@ -1,9 +1,16 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from calibration.calibfile import CalibrationDoc, CalibrationStore
 from calibration.camera import Camera, look_at_c2w
-from rig.assembly import load_rig_calibration
+from rig.assembly import DRIVERS, build_camera, load_rig_calibration
+from rig.camera import CameraError
+from rig.config import CAMERA_DRIVERS, parse_config
+from rig.oak import OakCamera
+from rig.replay import ReplayCamera
+from rig.synthetic_driver import PatternCamera
 
 
 def test_rig_reads_the_keepers_calibration_and_names_its_version(tmp_path):
@@ -33,3 +40,24 @@ def test_rig_passes_the_calibrations_stated_uncertainty_to_its_captures(tmp_path
 def test_missing_calibration_is_one_sentence(tmp_path):
     with pytest.raises(ValueError, match="calibration"):
         load_rig_calibration(tmp_path / "nope.json")
+
+
+def test_every_driver_rig_toml_accepts_is_built_by_name(tmp_path):
+    assert set(DRIVERS) == set(CAMERA_DRIVERS)
+    cfg = parse_config({"cameras": [
+        {"id": "a", "driver": "oak", "device": "18443010D1C2A41200", "socket": "CAM_B"},
+        {"id": "b", "driver": "replay", "path": str(tmp_path)},
+        {"id": "c", "driver": "pattern", "width": 320, "height": 240},
+    ]})
+    drivers = [build_camera(c, None, i, len(cfg.cameras)) for i, c in enumerate(cfg.cameras)]
+    assert [type(d) for d in drivers] == [OakCamera, ReplayCamera, PatternCamera]
+    assert [d.camera_id for d in drivers] == ["a", "b", "c"]
+    assert (drivers[0].device_id, drivers[0].socket) == ("18443010D1C2A41200", "CAM_B")
+    assert (drivers[2].camera.width, drivers[2].camera.height) == (320, 240)
+
+
+def test_an_unknown_driver_is_one_sentence_naming_the_known_ones():
+    cam = replace(parse_config({"cameras": [{"id": "a", "driver": "pattern"}]}).cameras[0], driver="gige")
+    with pytest.raises(CameraError) as e:
+        build_camera(cam, None, 0, 1)
+    assert str(e.value) == "unknown camera driver 'gige' (known: oak, pattern, replay)"

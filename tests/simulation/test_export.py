@@ -1,12 +1,15 @@
-"""Twin exports: the MJCF package of one twin and the COLMAP text model (read back by pycolmap)."""
+"""Twin exports: the MJCF package of one twin, the COLMAP text model (read back by pycolmap), the export table."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from reconstruction.twin import load_twin
-from simulation.export import export_colmap, export_mjcf
+from simulation.asset import sh_dc_rgb
+from simulation.export import DIRECTORY_MARKERS, FORMATS, PHYSICS_FORMATS, export_colmap, export_mjcf
 from simulation.run import load_model, simulate
 from simulation.scene import SceneError, parse_scene
 from tests.simulation.twins import hammer, make_twin
@@ -40,8 +43,18 @@ def test_export_colmap_round_trips_through_pycolmap(twin_dir, tmp_path):
         assert w2c == pytest.approx(tc.camera.viewmat, abs=1e-9)
         cam = rec.cameras[image.camera_id]
         assert cam.model.name == "PINHOLE" and cam.calibration_matrix() == pytest.approx(tc.K)
-    xyz = np.array([p.xyz for p in rec.points3D.values()])
-    assert np.sort(xyz[:, 0]) == pytest.approx(np.sort(twin.gaussians.means[:, 0]), abs=1e-6)
+        assert (cam.width, cam.height) == (tc.camera.width, tc.camera.height) and image.name == Path(tc.file_path).name
+    ids = sorted(rec.points3D)
+    xyz = np.array([rec.points3D[i].xyz for i in ids])
+    rgb = np.array([rec.points3D[i].color for i in ids])
+    assert xyz == pytest.approx(twin.gaussians.means, abs=1e-6)
+    assert np.abs(rgb.astype(int) - np.round(sh_dc_rgb(twin.gaussians.sh[:, 0]) * 255)).max() <= 1
+
+
+def test_the_export_table_names_callable_exporters_with_help():
+    assert list(FORMATS) == ["ply", "glb", "mjcf", "usd", "colmap"]
+    assert all(callable(fn) and help_text for fn, help_text in FORMATS.values())
+    assert set(DIRECTORY_MARKERS) | set(PHYSICS_FORMATS) <= set(FORMATS)
 
 
 def test_scene_parse_errors_are_plain(tmp_path):
