@@ -232,7 +232,7 @@ def write_known(rows: list[dict], path: Path) -> None:
         "normal and shifted by up to a third of the object's size on the conveyor). Metric rig.",
         "",
         "Wall seconds per capture, and CPU seconds of the process (the wall time on an idle core; the machine is shared: "
-        f"median 1-minute load during these runs {np.median([r.get('load', np.nan) for r in rows]):.1f} on 2 cores, this process at nice 15).",
+        f"median 1-minute load during these runs {np.median([r.get('load', np.nan) for r in rows]):.1f} on 2 cores, this process at nice {os.nice(0)}).",
         "",
         "| scene | captures | median s | max s | median CPU s | median ADD-S % | max ADD-S % | pass (< 3 %) |",
         "|---|---|---|---|---|---|---|---|",
