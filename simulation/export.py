@@ -15,12 +15,12 @@ import numpy as np
 
 from calibration.fileio import atomic_write_bytes, fsync_dir
 from calibration.so3 import matrix_to_quat
+from reconstruction.mesh_io import material_names
 from reconstruction.twin import MESH_CAD_GLB, TWIN_JSON, load_twin
 from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
 from simulation.collision import DEFAULT_TOLERANCE, DecompositionOptions, collision_geometry
 from simulation.follow import splats_from_mesh, splats_from_twin
 from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
-from simulation.parts import material_names
 from simulation.scene import Placement, resting_position
 
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])

@@ -49,7 +49,8 @@ def export_ply(twin_dir: Path, out: Path) -> Path:
 def export_glb(twin_dir: Path, out: Path) -> Path:
     """The deformed mesh re-encoded +Y up (parts under the object-frame root node), also for twins
     whose GLB was saved z up."""
-    from reconstruction.twin import TwinError, load_twin, parts_glb_bytes
+    from reconstruction.mesh_io import parts_glb_bytes
+    from reconstruction.twin import TwinError, load_twin
 
     twin = load_twin(twin_dir)
     if not twin.mesh_deformed_path.exists():
