@@ -13,27 +13,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from calibration.camera import Camera, look_at_c2w
-from calibration.so3 import matrix_to_quat
+from calibration.so3 import matrix_to_quat, quat_multiply
 from reconstruction.splats import init_splats, rgb_to_sh_dc
 from reconstruction.twin import Twin
 from simulation.scene import CameraSpec
 
 OPAQUE_LOGIT = 4.0  # sigmoid(4) = 0.98: splats made from a bare mesh cover it like a surface
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a (x) b of wxyz quaternions, broadcasting [..., 4]."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
 
 
 def transform_splats(means: np.ndarray, quats: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

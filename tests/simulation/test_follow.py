@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera, invert_rigid, look_at_c2w
-from calibration.so3 import axis_angle_to_matrix, quat_to_matrix
+from calibration.so3 import axis_angle_to_matrix
 from reconstruction.twin import load_twin, splat_normals
-from simulation.follow import camera_path, quat_multiply, render_bodies, splats_from_mesh, splats_from_twin, transform_splats
+from simulation.follow import camera_path, render_bodies, splats_from_mesh, splats_from_twin, transform_splats
 from simulation.scene import CameraSpec
 from tests.simulation.twins import hammer, make_twin
 
@@ -19,12 +19,6 @@ def pose(rotvec, t) -> np.ndarray:
     p[:3, :3] = axis_angle_to_matrix(np.asarray(rotvec, np.float64))
     p[:3, 3] = t
     return p
-
-
-def test_quat_multiply_is_matrix_product():
-    rng = np.random.default_rng(0)
-    a, b = rng.normal(size=(5, 4)), rng.normal(size=(5, 4))
-    assert quat_to_matrix(quat_multiply(a, b)) == pytest.approx(quat_to_matrix(a) @ quat_to_matrix(b), abs=1e-12)
 
 
 def test_transform_moves_means_and_turns_disk_normals():
