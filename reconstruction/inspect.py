@@ -28,8 +28,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calibration.camera import Camera
-from reconstruction.silhouette import project_vertices
+from calibration.camera import Camera, project_points
 from reconstruction.splats import face_areas_normals, sample_surface
 
 MM_PER_M = 1000.0
@@ -244,7 +243,7 @@ def rasterize_mesh(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> t
     Returns depth [H, W] (camera z, inf where empty), face index [H, W] (-1 where empty) and
     perspective-correct barycentrics [H, W, 3].
     """
-    uv, z = project_vertices(np.asarray(vertices, np.float64), camera.K, camera.viewmat)
+    uv, z = project_points(vertices, camera.K, camera.viewmat, near=_NEAR)
     depth = np.full((camera.height, camera.width), np.inf)
     face_id = np.full((camera.height, camera.width), -1, np.int64)
     bary = np.zeros((camera.height, camera.width, 3))
@@ -279,7 +278,7 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
     cos_best = np.full(len(p), -1.0)
     for i, cam in enumerate(cameras):
         depth, _, _ = rasterize_mesh(vertices, faces, cam)
-        uv, z = project_vertices(p, cam.K, cam.viewmat)
+        uv, z = project_points(p, cam.K, cam.viewmat, near=_NEAR)
         to_cam = cam.center - p
         cos = np.einsum("ij,ij->i", normals, to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-300)
         px = np.floor(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
