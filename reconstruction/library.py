@@ -8,7 +8,9 @@ Layout of LIB:
 
 A model's id is its path under MESH_DIR without the extension. Units: the `--unit` default, or a
 `.units<u>` tag in the file name (`counter.unitsmm.stl`), or a `units.json` beside the file mapping
-file names to units. Meshes are never re-centred or re-oriented: the twin lives in the CAD frame.
+file names to units (`reconstruction.mesh_io.unit_of`). Files are read, welded, by
+`reconstruction.mesh_io.read_mesh_parts`. Meshes are never re-centred or re-oriented: the twin
+lives in the CAD frame.
 """
 
 from __future__ import annotations
