@@ -85,10 +85,10 @@ def sim3_add_s_pct(sim3_est, sim3_true, points: np.ndarray, diameter: float) -> 
 
 
 def pose_scores(c2w_est: np.ndarray, c2w_true: np.ndarray, points: np.ndarray, diameter: float) -> dict:
-    from reconstruction.pose_metrics import rotation_error_deg
+    from calibration.so3 import geodesic_angle_deg
 
     adds = add_s_pct(c2w_est, c2w_true, points, diameter)
-    rot = rotation_error_deg(c2w_true[:, :3, :3], c2w_est[:, :3, :3])
+    rot = geodesic_angle_deg(c2w_true[:, :3, :3], c2w_est[:, :3, :3])
     ctr = 100.0 * np.linalg.norm(c2w_est[:, :3, 3] - c2w_true[:, :3, 3], axis=1) / diameter
     return {"adds_pct_median": float(np.median(adds)), "rotation_deg_median": float(np.median(rot)),
             "center_pct_diameter_median": float(np.median(ctr)), "adds_pct": adds.tolist()}

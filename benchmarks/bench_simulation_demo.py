@@ -170,7 +170,7 @@ def plot_contacts(twin: list, true: list, path: Path) -> None:
 
 def exploded_counter() -> float:
     t0 = time.perf_counter()
-    asset = load_mesh_asset(SHARED / "cad" / "parts" / "counter.unitsmm.STL", name="counter")
+    asset = load_mesh_asset(SHARED / "cad" / "parts" / "counter.unitsmm.STL", name="counter", split_components=True)
     # Colour each part so the explosion reads at a glance.
     palette = np.array([[0.85, 0.2, 0.2], [0.2, 0.6, 0.25], [0.2, 0.35, 0.85], [0.9, 0.7, 0.1], [0.6, 0.3, 0.7], [0.2, 0.7, 0.75]])
     s = splats_from_mesh(asset.vertices, asset.faces, palette[asset.face_part % len(palette)], asset.face_part, 60000)

@@ -31,6 +31,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file  # noqa: E402
+from calibration.units import UNIT_TO_M  # noqa: E402
+from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 from rig.synthetic import synth_dataset  # noqa: E402
 
 OBJECT = "050_medium_clamp"
@@ -44,13 +46,12 @@ DISTRACTORS = [
     ("imu_adis16480", "cad/parts/ADIS16480.STL", "m", 2500),
     ("idler_riser", "cad/parts/idler_riser.STL", "in", 2500),
 ]
-UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 
 
 def welded(path: Path, unit: str) -> trimesh.Trimesh:
     """Geometry only, seams welded (UV seams split vertices), in metres, frame untouched."""
-    m = trimesh.load(path, force="mesh", process=False)
-    out = trimesh.Trimesh(np.asarray(m.vertices) * UNIT_TO_M[unit], np.asarray(m.faces), process=True)
+    parts = read_mesh_parts(path)
+    out = trimesh.Trimesh(parts.vertices * UNIT_TO_M[unit], parts.faces, process=True)
     out.merge_vertices()
     return out
 

@@ -34,7 +34,7 @@ from calibration.camera import look_at_c2w  # noqa: E402
 from reconstruction.deformation import DeformationField, FieldConfig  # noqa: E402
 from reconstruction.render import rasterize  # noqa: E402
 from reconstruction.splats import init_splats  # noqa: E402
-from reconstruction.twin import read_mesh_parts  # noqa: E402
+from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 SAMPLE_CAD = REPO / "sample" / "library_meshes" / "medium_clamp_cad.ply"

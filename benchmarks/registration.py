@@ -33,6 +33,7 @@ import trimesh
 
 from calibration.capture import read_capture, rig_metres_per_unit
 from calibration.so3 import geodesic_angle_deg
+from calibration.units import UNIT_TO_M
 from reconstruction.library import build_library
 from reconstruction.pose_metrics import registration_errors
 from reconstruction.registration import hypothesis, independent_poses, observe, register
@@ -53,7 +54,6 @@ PART_UNITS = {
     "idler_riser.STL": "in", "large_block.STL": "mm", "octagonal_pocket.stl": "m", "plate_holes.STL": "mm",
     "round.stl": "cm", "torus.STL": "in", "busted.STL": "mm",
 }
-TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 
 
 def cube_group() -> list[np.ndarray]:
@@ -114,7 +114,7 @@ def make_meshes(work: Path, distractors_per_object: int) -> dict[str, list[str]]
     derived["parts"] = []
     for name, unit in PART_UNITS.items():
         mesh = trimesh.load(PARTS / name, force="mesh")
-        mesh.apply_scale(TO_M[unit])
+        mesh.apply_scale(UNIT_TO_M[unit])
         if max(mesh.extents) > 0.5:  # room-sized parts would be a different kind of rig
             mesh.apply_scale(0.3 / max(mesh.extents))
         for k in range(2):

@@ -56,24 +56,37 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], 1)
 
 
-def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iters: int = 20) -> np.ndarray:
-    """Invert `distort_normalized` for [N, 2] points by Newton's method with a numeric 2x2 Jacobian."""
-    xy = np.array(xy_d, dtype=np.float64, copy=True)
-    if not np.any(dist):
-        return xy
-    h = 1e-7
-    for _ in range(iters):
-        f = distort_normalized(xy, dist) - xy_d
-        if np.abs(f).max() < 1e-14:
-            break
-        jx = (distort_normalized(xy + [h, 0], dist) - distort_normalized(xy - [h, 0], dist)) / (2 * h)
-        jy = (distort_normalized(xy + [0, h], dist) - distort_normalized(xy - [0, h], dist)) / (2 * h)
-        a, b, c, d = jx[:, 0], jy[:, 0], jx[:, 1], jy[:, 1]
-        det = a * d - b * c
-        det = np.where(np.abs(det) < 1e-12, 1e-12, det)
-        step = np.stack([(d * f[:, 0] - b * f[:, 1]) / det, (-c * f[:, 0] + a * f[:, 1]) / det], 1)
-        xy -= step
-    return xy
+# OpenCV's undistortion iterates until the point, distorted again, lies within 1e-15 (normalised
+# units) of the input: a few dozen iterations for real lenses, as exact as float64 allows.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+
+
+def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Invert `distort_normalized` for [N, 2] normalised points (cv2.undistortPoints with identity K)."""
+    xy_d = np.asarray(xy_d, dtype=np.float64).reshape(-1, 2)
+    if not np.any(dist) or len(xy_d) == 0:
+        return xy_d.copy()
+    xy = cv2.undistortPoints(xy_d[:, None, :], np.eye(3), np.asarray(dist, np.float64), None, None, None, _UNDISTORT_CRITERIA)
+    return xy[:, 0, :]
+
+
+def project_points(
+    points: np.ndarray, K: np.ndarray, viewmat: np.ndarray | None = None, dist: np.ndarray | None = None, *, near: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The one pinhole projection: `points` [N, 3] -> pixel coordinates [N, 2] (pixel centres at +0.5)
+    and camera depths z [N].
+
+    `K` [3, 3]; `viewmat` [4, 4] world-to-camera (None: the points are in the camera frame); `dist`
+    OpenCV coefficients, applied when any is non-zero. Points at depth <= `near` get uv = NaN.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cam = p if viewmat is None else p @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = cam[:, :2] / np.where(z > near, z, np.nan)[:, None]
+    if dist is not None and np.any(dist):
+        xy = distort_normalized(xy, dist)
+    return xy @ K[:2, :2].T + K[:2, 2], z
 
 
 @dataclass(frozen=True)
@@ -142,14 +155,7 @@ class Camera:
 
         Points at or behind the camera plane get uv = NaN; check `depth > 0`.
         """
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        cam = p @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = cam[:, :2] / np.where(z > 0, z, np.nan)[:, None]
-        xy = distort_normalized(xy, self.dist)
-        uv = xy @ self.K[:2, :2].T + self.K[:2, 2]
-        return uv, z
+        return project_points(points, self.K, self.viewmat, self.dist)
 
     def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Pixel coordinates [N, 2] and depths (camera z) [N] -> world points [N, 3]."""

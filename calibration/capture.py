@@ -26,6 +26,7 @@ import numpy as np
 from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_file
 from calibration.so3 import project_to_so3
+from calibration.units import UNIT_TO_M
 
 TRANSFORMS = "transforms.json"
 
@@ -362,19 +363,15 @@ def write_capture(
     return read_capture(root)
 
 
-# Lengths a capture's `units` may name, in metres.
-UNITS_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
-
-
 def rig_metres_per_unit(meta: dict, where: str | os.PathLike = "capture") -> float | None:
     """Metres per rig-frame unit from a capture's `cadsplat` block (`"units": "m"`: metric rig);
     None when it states no units (another tool's capture, an SfM calibration: scale unknown)."""
     units = meta.get("units")
     if units is None:
         return None
-    if units not in UNITS_TO_M:
-        raise CaptureError(f"{where}: units {units!r} is not one of {', '.join(UNITS_TO_M)}")
-    return UNITS_TO_M[units]
+    if units not in UNIT_TO_M:
+        raise CaptureError(f"{where}: units {units!r} is not one of {', '.join(UNIT_TO_M)}")
+    return UNIT_TO_M[units]
 
 
 def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:

@@ -1,8 +1,11 @@
-"""Rotations: quaternions (wxyz), projection onto SO(3), geodesic distance. Float64 throughout."""
+"""Rotations, the one home of quaternion and angle maths: quaternions (wxyz) <-> matrices, their
+product, rotation vectors, projection onto SO(3), geodesic distance. Float64 numpy throughout;
+scipy's Rotation does the conversions."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def project_to_so3(m: np.ndarray) -> np.ndarray:
@@ -25,54 +28,36 @@ def is_rotation(r: np.ndarray, tol: float = 1e-6) -> bool:
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Quaternion(s) wxyz [..., 4] (normalised here) -> rotation matrices [..., 3, 3]."""
     q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    return Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] -> unit quaternions wxyz [..., 4] with w >= 0 (Shepperd's method)."""
+    """Rotation matrices [..., 3, 3] -> unit quaternions wxyz [..., 4] with w >= 0."""
     r = np.asarray(r, dtype=np.float64)
-    m = r.reshape(-1, 3, 3)
-    tr = np.trace(m, axis1=1, axis2=2)
-    diag = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], 1)
-    k = diag.argmax(1)
-    q = np.empty((m.shape[0], 4))
-    for i in range(m.shape[0]):
-        a = m[i]
-        if k[i] == 0:
-            s = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = [s / 4, (a[2, 1] - a[1, 2]) / s, (a[0, 2] - a[2, 0]) / s, (a[1, 0] - a[0, 1]) / s]
-        elif k[i] == 1:
-            s = 2.0 * np.sqrt(1.0 + a[0, 0] - a[1, 1] - a[2, 2])
-            q[i] = [(a[2, 1] - a[1, 2]) / s, s / 4, (a[0, 1] + a[1, 0]) / s, (a[0, 2] + a[2, 0]) / s]
-        elif k[i] == 2:
-            s = 2.0 * np.sqrt(1.0 + a[1, 1] - a[0, 0] - a[2, 2])
-            q[i] = [(a[0, 2] - a[2, 0]) / s, (a[0, 1] + a[1, 0]) / s, s / 4, (a[1, 2] + a[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(1.0 + a[2, 2] - a[0, 0] - a[1, 1])
-            q[i] = [(a[1, 0] - a[0, 1]) / s, (a[0, 2] + a[2, 0]) / s, (a[1, 2] + a[2, 1]) / s, s / 4]
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat(canonical=True, scalar_first=True)
     return q.reshape(r.shape[:-2] + (4,))
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a (x) b of wxyz quaternions, broadcasting [..., 4]. Written out rather than
+    scipy's composition, which normalises: a splat's quaternion keeps its norm when it is turned."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def axis_angle_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vector(s) [..., 3] (radians) -> rotation matrices [..., 3, 3]."""
     v = np.asarray(rotvec, dtype=np.float64)
-    theta = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * theta
-    # sin(x/2)/x written so it stays exact at 0.
-    scale = np.where(theta > 1e-12, np.sin(half) / np.where(theta > 1e-12, theta, 1.0), 0.5)
-    q = np.concatenate([np.cos(half), v * scale], -1)
-    return quat_to_matrix(q)
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(v.shape[:-1] + (3, 3))
 
 
 def geodesic_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from torch import nn
 
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
+from calibration.so3 import quat_to_matrix
 from reconstruction.losses import composite, photometric_loss
 from reconstruction.gaussians import Gaussians
 from reconstruction.render import num_sh_bases, rasterize
@@ -218,16 +219,6 @@ def _update_params(params: GaussianParams, opt: torch.optim.Adam, keep: torch.Te
         setattr(params, name, p)
 
 
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(*q.shape[:-1], 3, 3)
-
-
 @torch.no_grad()
 def densify_and_prune(
     params: GaussianParams, opt: torch.optim.Adam, grad2d_mean: torch.Tensor, cfg: VanillaConfig, scene_scale: float,
@@ -250,7 +241,7 @@ def densify_and_prune(
     # Split: two samples from each large Gaussian, scales / 1.6; the original goes.
     sel = torch.nonzero(split)[:, 0]
     scales = torch.exp(params.log_scales[sel])
-    rot = _quat_to_rotmat(params.quats[sel])
+    rot = torch.from_numpy(quat_to_matrix(params.quats[sel].numpy())).to(params.means.dtype)
     samples = torch.randn(2, len(sel), 3, generator=gen) * scales
     new_means = (params.means[sel] + torch.einsum("nij,snj->sni", rot, samples)).reshape(-1, 3)
     new = {

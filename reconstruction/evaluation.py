@@ -21,11 +21,12 @@ import torch
 
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
+from calibration.so3 import geodesic_angle_deg
 from reconstruction.gaussians import WHITE, Gaussians, camera_batch, render
 from reconstruction.losses import composite, mask_l1, photometric_loss
 from reconstruction.metrics import image_metrics
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
-from reconstruction.pose_metrics import registration_errors, rotation_error_deg
+from reconstruction.pose_metrics import registration_errors
 from reconstruction.symmetry import NearSymmetry, near_symmetries
 
 PAPER_REFINE_STEPS = 400
@@ -113,7 +114,7 @@ def refine_camera_pose(
             final = float(view_loss(rgb, alpha, target, mask, background))
         if final < best_loss:
             best_c2w = c2w[0].numpy().copy()
-    rot = float(rotation_error_deg(camera.c2w[:3, :3], best_c2w[:3, :3]))
+    rot = float(geodesic_angle_deg(camera.c2w[:3, :3], best_c2w[:3, :3]))
     return Refinement(best_c2w, losses, rot, float(np.linalg.norm(best_c2w[:3, 3] - camera.c2w[:3, 3])))
 
 

@@ -28,9 +28,8 @@ import numba
 import numpy as np
 import trimesh
 
-from calibration.camera import Camera
-from reconstruction.silhouette import project_vertices
-from reconstruction.splats import face_areas_normals, sample_surface
+from calibration.camera import Camera, project_points
+from reconstruction.splats import face_areas_normals
 
 MM_PER_M = 1000.0
 MAX_ANGLE_DEG = 75.0  # beyond this the camera looks along the surface: it cannot place it
@@ -178,7 +177,7 @@ def rasterize_mesh(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> t
     Returns depth [H, W] (camera z, inf where empty), face index [H, W] (-1 where empty) and
     perspective-correct barycentrics [H, W, 3].
     """
-    uv, z = project_vertices(np.asarray(vertices, np.float64), camera.K, camera.viewmat)
+    uv, z = project_points(vertices, camera.K, camera.viewmat, near=_NEAR)
     depth = np.full((camera.height, camera.width), np.inf)
     face_id = np.full((camera.height, camera.width), -1, np.int64)
     bary = np.zeros((camera.height, camera.width, 3))
@@ -213,7 +212,7 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
     cos_best = np.full(len(p), -1.0)
     for i, cam in enumerate(cameras):
         depth, _, _ = rasterize_mesh(vertices, faces, cam)
-        uv, z = project_vertices(p, cam.K, cam.viewmat)
+        uv, z = project_points(p, cam.K, cam.viewmat, near=_NEAR)
         to_cam = cam.center - p
         cos = np.einsum("ij,ij->i", normals, to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-300)
         px = np.floor(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)

@@ -8,7 +8,9 @@ Layout of LIB:
 
 A model's id is its path under MESH_DIR without the extension. Units: the `--unit` default, or a
 `.units<u>` tag in the file name (`counter.unitsmm.stl`), or a `units.json` beside the file mapping
-file names to units. Meshes are never re-centred or re-oriented: the twin lives in the CAD frame.
+file names to units (`reconstruction.mesh_io.unit_of`). Files are read, welded, by
+`reconstruction.mesh_io.read_mesh_parts`. Meshes are never re-centred or re-oriented: the twin
+lives in the CAD frame.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,11 +26,12 @@ import numpy as np
 import trimesh
 
 from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file
+from calibration.units import UNIT_TO_M
+from reconstruction.mesh_io import MeshError, read_mesh_parts, unit_of
 from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, model_frame, open_index, read_shard, render_model_views, shard_key, write_shard
 
 MESH_EXTS = (".obj", ".stl", ".ply", ".glb")
 CAD_ONLY_EXTS = (".step", ".stp")
-UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 LIBRARY_JSON = "library.json"
 FORMAT = "cadsplat-library/1"
 # Faces kept in the mesh that registration renders thousands of times; silhouettes of a
@@ -38,15 +40,9 @@ SCORING_FACES = 3000
 # Outside this size range (largest extent, metres) a unit is probably wrong; the build says so.
 PLAUSIBLE_EXTENT_M = (0.002, 5.0)
 
-_UNIT_TAG = re.compile(r"\.units(mm|cm|m|in)$", re.IGNORECASE)
-
 
 class LibraryError(ValueError):
     """A library directory or mesh folder that cannot be used as it is."""
-
-
-class MeshError(ValueError):
-    """A mesh file that cannot be a library model (one plain sentence)."""
 
 
 @dataclass(frozen=True)
@@ -103,57 +99,23 @@ class Library:
         return shard["score_vertices"], shard["score_faces"]
 
 
-def unit_of(path: Path, default: str) -> str:
-    """Declared unit of a mesh file: name tag, then units.json beside it, then `default`."""
-    tag = _UNIT_TAG.search(path.stem)
-    if tag:
-        return tag.group(1).lower()
-    table = path.parent / "units.json"
-    if table.exists():
-        try:
-            declared = json.loads(table.read_text())
-        except json.JSONDecodeError as e:
-            raise LibraryError(f"{table}: invalid JSON ({e.msg} at line {e.lineno})") from None
-        unit = declared.get(path.name)
-        if unit is not None:
-            if unit not in UNIT_TO_M:
-                raise LibraryError(f"{table}: unit {unit!r} for {path.name} is not one of {', '.join(UNIT_TO_M)}")
-            return unit
-    return default
-
-
 def load_mesh_file(path: Path) -> tuple[trimesh.Trimesh, tuple[str, ...]]:
-    """One triangle mesh (scene graphs flattened with their transforms) and its named parts."""
-    try:
-        loaded = trimesh.load(str(path))
-    except Exception as e:  # trimesh raises many types for bad files
-        raise MeshError(f"cannot be read as a mesh ({type(e).__name__}: {e})") from None
-    parts: tuple[str, ...] = ()
-    if isinstance(loaded, trimesh.Scene):
-        names = [n for n in loaded.graph.nodes_geometry]
-        if len(names) > 1:
-            parts = tuple(sorted(names))
-        meshes = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
-        if not meshes:
-            raise MeshError("contains no triangles")
-        mesh = trimesh.util.concatenate(meshes)
-    elif isinstance(loaded, trimesh.Trimesh):
-        mesh = loaded
-    else:
-        raise MeshError(f"holds a {type(loaded).__name__}, not a triangle mesh")
-    return mesh, parts
+    """The file's parts as one welded triangle mesh, and their names (sorted; empty for a single part)."""
+    parts = read_mesh_parts(path, weld=True)
+    names = tuple(sorted(parts.part_names)) if len(parts.part_names) > 1 else ()
+    return trimesh.Trimesh(parts.vertices, parts.faces, process=False), names
 
 
-def check_mesh(mesh: trimesh.Trimesh) -> None:
-    """Raise MeshError with the reason when `mesh` cannot be a model."""
+def check_mesh(mesh: trimesh.Trimesh, path: Path) -> None:
+    """Raise MeshError with the reason when `mesh` (read from `path`) cannot be a model."""
     v = np.asarray(mesh.vertices)
     if len(mesh.faces) == 0 or len(v) == 0:
-        raise MeshError("is empty (no faces)")
+        raise MeshError(path, "is empty (no faces)")
     if not np.all(np.isfinite(v)):
-        raise MeshError("has non-finite vertex coordinates")
+        raise MeshError(path, "has non-finite vertex coordinates")
     extent = float(np.ptp(v, axis=0).max())
     if extent <= 0 or mesh.area <= 1e-12 * max(extent, 1e-300) ** 2:
-        raise MeshError("has zero surface area")
+        raise MeshError(path, "has zero surface area")
 
 
 def _decimate(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +132,7 @@ def _build_model(job: tuple[str, str, float, dict, str]) -> dict:
     model_id, path, scale, grid_d, shard_path = job
     try:
         mesh, parts = load_mesh_file(Path(path))
-        check_mesh(mesh)
+        check_mesh(mesh, Path(path))
         v = np.asarray(mesh.vertices, np.float64) * scale
         f = np.asarray(mesh.faces, np.int64)
         components = len(trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(f)), min_len=1))
@@ -180,7 +142,7 @@ def _build_model(job: tuple[str, str, float, dict, str]) -> dict:
         write_shard(Path(shard_path), words, geom, center, radius, score_vertices=sv, score_faces=sf)
         return {"id": model_id, "ok": True, "parts": parts, "components": components, "extent": np.ptp(v, axis=0).tolist()}
     except MeshError as e:
-        return {"id": model_id, "ok": False, "reason": str(e)}
+        return {"id": model_id, "ok": False, "reason": e.reason}
 
 
 def scan_meshes(mesh_dir: Path) -> list[Path]:
@@ -218,7 +180,7 @@ def build_library(mesh_dir, out_dir, *, unit: str = "m", workers: int | None = N
         mid = model_id_of(path, mesh_dir)
         try:
             u = unit_of(path, unit)
-        except LibraryError as e:
+        except MeshError as e:
             skipped.append({"file": str(path), "reason": str(e)})
             log(f"skipped {path}: {e}")
             continue

@@ -20,7 +20,7 @@ import torch
 from calibration.camera import Camera
 from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
 from calibration.sim3 import Sim3
-from reconstruction.library import UNIT_TO_M
+from reconstruction.mesh_io import MeshParts, read_mesh_parts
 from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
 from reconstruction.gaussians import Gaussians, camera_batch, render, straight_rgba
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
@@ -28,7 +28,7 @@ from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
-from reconstruction.twin import MeshParts, Twin, TwinCamera, check_replaceable, read_mesh_parts, save_twin, software_versions
+from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
 
 Log = Callable[[str], None]
 
@@ -75,7 +75,7 @@ def calibration_error_px(meta: dict, cams: Sequence[Camera], centre_rig: np.ndar
     uncertainty = meta.get("calibration_uncertainty")
     if not isinstance(uncertainty, dict):
         return None
-    metres_per_unit = UNIT_TO_M.get(str(meta.get("units", "m")), 1.0)
+    metres_per_unit = rig_metres_per_unit(meta) or 1.0
     distance_m = metres_per_unit * np.linalg.norm(np.stack([c.c2w[:3, 3] for c in cams]) - centre_rig, axis=1)
     return extrinsics_error_px(uncertainty, np.array([c.K[0, 0] for c in cams]), distance_m)
 

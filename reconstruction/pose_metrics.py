@@ -2,7 +2,8 @@
 
 Poses are world-to-camera `viewmat`s [N, 4, 4] (OpenCV axes, SPEC conventions) with the world being
 the object's canonical frame, for the estimated and the ground-truth cameras alike. Computed in
-float64; torch tensors and numpy arrays are both accepted.
+float64; torch tensors and numpy arrays are both accepted. The rotation error is
+`calibration.so3.geodesic_angle_deg`.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from typing import TypedDict
 
 import numpy as np
 import torch
+
+from calibration.so3 import geodesic_angle_deg
 
 Array = np.ndarray | torch.Tensor
 
@@ -28,20 +31,6 @@ def _numpy(x: Array) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
-
-
-def rotation_error_deg(R_a: Array, R_b: Array) -> np.ndarray:
-    """Geodesic angle (degrees) between rotations `R_a` and `R_b` [..., 3, 3]; returns [...].
-
-    The angle of R_a^T R_b from atan2(sin, cos) rather than arccos of the trace: arccos loses
-    half the significant digits near 0 deg, exactly where good registrations live.
-    """
-    R = np.swapaxes(_numpy(R_a), -1, -2) @ _numpy(R_b)
-    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    # |axis| * sin(angle) is the vector part of the skew-symmetric half of R.
-    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    sin = np.linalg.norm(skew, axis=-1) / 2.0
-    return np.degrees(np.arctan2(sin, cos))
 
 
 def camera_centers(viewmats: Array) -> np.ndarray:
@@ -99,7 +88,7 @@ def registration_errors(
     results: list[RegistrationErrors] = []
     for index, S in enumerate([np.eye(4), *(_rigid(S) for S in symmetries or ())]):
         moved = est @ S
-        rot = rotation_error_deg(gt[:, :3, :3], moved[:, :3, :3])
+        rot = geodesic_angle_deg(gt[:, :3, :3], moved[:, :3, :3])
         ctr = center_error_pct(camera_centers(moved), c_gt, object_center)
         results.append(
             RegistrationErrors(

@@ -3,7 +3,7 @@
 A silhouette needs no depth test: a pixel is inside when its centre lies inside any projected
 triangle, so the renderer is a coverage fill of 2D triangles (numba, one pass over the faces).
 Pixel (u, v) covers [u, u+1) x [v, v+1) and is tested at its centre (u + 0.5, v + 0.5), the same
-convention as `Camera.project`.
+convention as `calibration.camera.project_points`.
 
 Normalisation makes silhouettes comparable regardless of where the object sits in the image and
 how large it is: rotate to the principal axis of the mask (so in-plane roll is recovered in closed
@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+
+from calibration.camera import project_points
 
 # Triangles with a vertex closer than this (camera z, in the mesh's units) are dropped: a
 # silhouette camera always sits outside the object, so only degenerate poses reach it.
@@ -58,22 +60,13 @@ def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.nd
                     out[v, u] = True
 
 
-def project_vertices(vertices: np.ndarray, K: np.ndarray, viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole projection of `vertices` [N, 3] -> uv [N, 2] (pixel centres at +0.5) and depth [N]."""
-    cam = vertices @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
-    zs = np.where(z > _NEAR, z, 1.0)
-    uv = (cam[:, :2] / zs[:, None]) @ K[:2, :2].T + K[:2, 2]
-    return uv, z
-
-
 def render_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, viewmat: np.ndarray, width: int, height: int) -> np.ndarray:
     """Silhouette bool [height, width] of the mesh (`vertices` [N, 3], `faces` [F, 3]) seen by a pinhole camera.
 
     `K` [3, 3] (pixel centres at +0.5), `viewmat` [4, 4] world-to-camera (OpenCV axes). Distortion
     is not modelled: masks downstream are undistorted once at load.
     """
-    uv, z = project_vertices(np.asarray(vertices, np.float64), np.asarray(K, np.float64), np.asarray(viewmat, np.float64))
+    uv, z = project_points(vertices, np.asarray(K, np.float64), np.asarray(viewmat, np.float64), near=_NEAR)
     out = np.zeros((int(height), int(width)), dtype=np.bool_)
     fill_triangles(uv, np.ascontiguousarray(faces, dtype=np.int64), z > _NEAR, out)
     return out

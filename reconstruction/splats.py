@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from calibration.camera import project_points
 from reconstruction.gaussians import Gaussians
 
 SH_C0 = 0.28209479177387814  # Y_0^0; 3DGS stores colour = 0.5 + SH_C0 * dc
@@ -146,11 +147,9 @@ def point_visibility(
     flat_px = np.zeros((v, n), np.int64)
     tol = 0.01 * float(np.ptp(pts, axis=0).max() if n else 1.0)
     for i in range(v):
-        cam = pts @ viewmats[i, :3, :3].T + viewmats[i, :3, 3]
-        z = cam[:, 2]
+        uv, z = project_points(pts, Ks[i], viewmats[i], near=1e-9)
         ok = z > 1e-9
-        uv = cam[:, :2] / np.where(ok, z, 1.0)[:, None] @ Ks[i, :2, :2].T + Ks[i, :2, 2]
-        px = np.floor(uv).astype(np.int64)
+        px = np.floor(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
         ok &= (px[:, 0] >= 0) & (px[:, 0] < width) & (px[:, 1] >= 0) & (px[:, 1] < height)
         # Facing the camera: normal against the viewing ray (camera centre minus point).
         centre = -viewmats[i, :3, :3].T @ viewmats[i, :3, 3]

@@ -34,6 +34,7 @@ from calibration.camera import Camera
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir
 from calibration.sim3 import Sim3
 from reconstruction.gaussians import Gaussians
+from reconstruction.mesh_io import MeshParts, parts_glb_bytes, read_mesh_parts
 
 TWIN_JSON = "twin.json"
 SPLATS_PLY = "splats.ply"
@@ -80,16 +81,6 @@ class TwinCamera:
             d["file_path"], str(d.get("camera_id", Path(d["file_path"]).stem)), np.array(d["K"], np.float64),
             int(d["width"]), int(d["height"]), np.array(d["c2w_object_opencv"], np.float64),
         )
-
-
-@dataclass
-class MeshParts:
-    """A triangle mesh split into named parts: `vertices` [V, 3], `faces` [F, 3], `face_part` [F] int."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    face_part: np.ndarray
-    part_names: list[str]
 
 
 @dataclass
@@ -256,68 +247,6 @@ def read_splats_ply(path: str | os.PathLike) -> Gaussians:
         opacity_logits=np.asarray(v["opacity"], np.float32),
         sh=sh,
     )
-
-
-# ---------------------------------------------------------------------------------------- GLB
-
-# glTF is +Y up; the object frame is z up (the rig's table). Our GLBs put the parts under this root
-# node, a -90 degree turn about x (+z -> +y), so a glTF viewer shows the part standing as on the rig;
-# readers that know the node (read_mesh_parts) take the parts back in the object frame.
-GLTF_Y_UP_NODE = "cadsplat_object_z_up"
-Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-
-
-def parts_glb_bytes(parts: MeshParts) -> bytes:
-    """GLB with one node per part, named after the part (empty parts are left out), under the
-    GLTF_Y_UP_NODE root so the z-up object frame stands upright in +Y-up viewers."""
-    import trimesh
-
-    scene = trimesh.Scene(base_frame="world")
-    scene.graph.update(frame_from="world", frame_to=GLTF_Y_UP_NODE, matrix=Z_UP_TO_Y_UP)
-    for p, name in enumerate(parts.part_names):
-        sel = np.flatnonzero(parts.face_part == p)
-        if sel.size == 0:
-            continue
-        sub = trimesh.Trimesh(parts.vertices, parts.faces[sel], process=False)
-        sub.remove_unreferenced_vertices()
-        scene.add_geometry(sub, node_name=name, geom_name=name, parent_node_name=GLTF_Y_UP_NODE)
-    return scene.export(file_type="glb")
-
-
-def object_frame_from_file(scene) -> np.ndarray:
-    """[4, 4] taking a loaded trimesh.Scene's world coordinates to the object frame: the inverse of
-    our Y-up root when the file has it (GLBs written by `parts_glb_bytes`), else identity."""
-    if GLTF_Y_UP_NODE in scene.graph.nodes:
-        return np.linalg.inv(scene.graph.get(GLTF_Y_UP_NODE)[0])
-    return np.eye(4)
-
-
-def read_mesh_parts(path: str | os.PathLike) -> MeshParts:
-    """Any mesh file trimesh reads (a GLB written by `parts_glb_bytes`, a CAD export, a PLY) -> MeshParts,
-    one part per scene node, named after the node, in the file's own units."""
-    import trimesh
-
-    try:
-        scene = trimesh.load(str(path), force="scene", process=False)
-    except Exception as e:  # trimesh raises many types on bad files
-        raise TwinError(f"{path}: not a readable mesh ({e})") from None
-    verts, faces, labels, names = [], [], [], []
-    offset = 0
-    to_object = object_frame_from_file(scene)
-    for node in scene.graph.nodes_geometry:
-        transform, geom_name = scene.graph[node]
-        mesh = scene.geometry[geom_name]
-        if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-            continue
-        v = trimesh.transform_points(mesh.vertices, to_object @ transform)
-        verts.append(v)
-        faces.append(np.asarray(mesh.faces) + offset)
-        labels.append(np.full(len(mesh.faces), len(names)))
-        names.append(str(node))
-        offset += len(v)
-    if not names:
-        raise TwinError(f"{path}: holds no triangle meshes")
-    return MeshParts(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels), names)
 
 
 # ---------------------------------------------------------------------------------------- twin dir

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.library import UNIT_TO_M, unit_of
+from calibration.units import UNIT_TO_M
+from reconstruction.mesh_io import MeshParts, read_mesh_parts, unit_of
 from reconstruction.splats import SH_C0
-from reconstruction.twin import MeshParts, Twin
-from simulation.parts import read_mesh_parts
+from reconstruction.twin import Twin
 
 # kg/m^3. Default "plastic" is ABS, the commonest material of small factory parts.
 MATERIAL_DENSITY: dict[str, float] = {
@@ -452,13 +452,18 @@ def asset_from_twin(twin: Twin, name: str | None = None, *, density: Density | N
     return build_asset(name or twin.model_id, parts, face_rgb=rgb, density=density)
 
 
-def load_mesh_asset(path: str | os.PathLike, unit: str | None = None, name: str | None = None, *, density: Density | None = None) -> SimAsset:
+def load_mesh_asset(
+    path: str | os.PathLike, unit: str | None = None, name: str | None = None, *, density: Density | None = None, split_components: bool = False
+) -> SimAsset:
     """A CAD/mesh file as a rigid body. `unit` (m, mm, cm, in) may be omitted only when the file
-    name declares it (`part.unitsmm.stl`) or a units.json beside it does; it is never guessed."""
+    name declares it (`part.unitsmm.stl`) or a units.json beside it does; it is never guessed.
+
+    Parts are the file's (GLB nodes, OBJ objects), as in a twin of the same file; `split_components`
+    makes each connected piece of a single-part file (an STL of several solids) its own part."""
     path = Path(path)
     unit = unit or unit_of(path, "")
     if unit not in UNIT_TO_M:
         raise ValueError(f"{path.name}: declare its unit (one of {', '.join(UNIT_TO_M)}); mesh files do not say")
-    parts, rgb = read_mesh_parts(path)
-    parts = MeshParts(parts.vertices * UNIT_TO_M[unit], parts.faces, parts.face_part, parts.part_names)
-    return build_asset(name or path.name.split(".")[0], parts, face_rgb=rgb, density=density)
+    parts = read_mesh_parts(path, weld=True, split_components=split_components)
+    metric = MeshParts(parts.vertices * UNIT_TO_M[unit], parts.faces, parts.face_part, parts.part_names)
+    return build_asset(name or path.name.split(".")[0], metric, face_rgb=parts.face_rgb, density=density)

@@ -19,12 +19,12 @@ import numpy as np
 
 from calibration.fileio import atomic_write_bytes, fsync_dir, publish_dir
 from reconstruction.gaussians import Gaussians
-from reconstruction.twin import MESH_CAD_GLB, SPLATS_PLY, TWIN_JSON, TwinError, load_twin, parts_glb_bytes, splats_to_ply_bytes
+from reconstruction.mesh_io import material_names, parts_glb_bytes
+from reconstruction.twin import MESH_CAD_GLB, SPLATS_PLY, TWIN_JSON, TwinError, load_twin, splats_to_ply_bytes
 from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
 from simulation.collision import DEFAULT_TOLERANCE, DecompositionOptions, collision_geometry
 from simulation.follow import splats_from_mesh
 from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
-from simulation.parts import material_names
 from simulation.scene import Placement, resting_position
 
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])

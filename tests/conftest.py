@@ -7,6 +7,9 @@ from pathlib import Path
 
 # As the CLI does (deploy/cli.py): sleeping, not spinning, OpenMP threads before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# MuJoCo picks its GL backend when first imported, and collection may import it through any module:
+# headless EGL, as rig/render_mujoco.py asks for, on machines with no display.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 import pytest
 

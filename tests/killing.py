@@ -77,7 +77,7 @@ def work_after_kill(work: Path) -> dict:
 
                 read_splats_ply(out)
             elif out.suffix == ".glb":
-                from reconstruction.twin import read_mesh_parts
+                from reconstruction.mesh_io import read_mesh_parts
 
                 read_mesh_parts(out)
             else:

@@ -8,6 +8,7 @@ from calibration.camera import (
     c2w_opengl_to_opencv,
     invert_rigid,
     look_at_c2w,
+    project_points,
     undistort_image,
 )
 from calibration.so3 import axis_angle_to_matrix
@@ -48,7 +49,7 @@ def test_project_matches_cv2_project_points(n_dist):
         np.testing.assert_allclose(depth, local[:, 2], rtol=1e-12)
 
 
-@pytest.mark.parametrize("n_dist", [0, 4, 5, 8])
+@pytest.mark.parametrize("n_dist", [0, 4, 5, 8, 12])
 def test_unproject_inverts_project(n_dist):
     rng = np.random.default_rng(10 + n_dist)
     cam = random_camera(rng, n_dist)
@@ -56,7 +57,7 @@ def test_unproject_inverts_project(n_dist):
     world = local @ cam.c2w[:3, :3].T + cam.c2w[:3, 3]
     uv, depth = cam.project(world)
     back = cam.unproject(uv, depth)
-    assert np.abs(back - world).max() < 1e-8
+    assert np.abs(back - world).max() < 1e-12
 
 
 def test_points_behind_camera_are_flagged():
@@ -64,6 +65,13 @@ def test_points_behind_camera_are_flagged():
     uv, depth = cam.project(np.array([[0, 0, -1.0], [0, 0, 0.0], [0, 0, 2.0]]))
     assert depth[0] < 0 and np.isnan(uv[0]).all() and np.isnan(uv[1]).all()
     np.testing.assert_allclose(uv[2], [50, 50])
+
+
+def test_project_points_in_the_camera_frame_with_a_near_plane():
+    k = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
+    uv, z = project_points(np.array([[0.1, -0.2, 1.0], [0.0, 0.0, 1e-7]]), k, near=1e-6)
+    np.testing.assert_allclose(uv[0], [60, 30])
+    assert z[1] == 1e-7 and np.isnan(uv[1]).all()
 
 
 def test_pixel_centre_convention():

@@ -15,7 +15,8 @@ from calibration.so3 import axis_angle_to_matrix
 from deploy.cli import main
 from reconstruction.evaluation import METRIC_KEYS
 from reconstruction.symmetry import rotation_about
-from reconstruction.twin import MeshParts, save_twin
+from reconstruction.mesh_io import MeshParts
+from reconstruction.twin import save_twin
 from tests.reconstruction.test_evaluation import make_twin, orbit_camera, photograph, shifted
 
 RIG_TO_OBJECT = Sim3(2.0, axis_angle_to_matrix(np.array([0.0, 0.0, 0.7])), np.array([0.01, -0.02, 0.0]))

@@ -22,7 +22,8 @@ import pytest
 import trimesh
 
 from deploy.cli import main
-from reconstruction.twin import MeshParts, load_twin, read_splats_ply
+from reconstruction.mesh_io import MeshParts
+from reconstruction.twin import load_twin, read_splats_ply
 from simulation.run import load_model
 from tests.simulation.twins import assemble, box, hammer, make_twin
 

@@ -12,7 +12,8 @@ from calibration.fileio import sha256_file
 from calibration.sim3 import Sim3
 from deploy.cli import main
 from reconstruction.splats import init_splats
-from reconstruction.twin import MeshParts, Twin, TwinCamera, save_twin
+from reconstruction.mesh_io import MeshParts
+from reconstruction.twin import Twin, TwinCamera, save_twin
 
 
 def two_parts() -> MeshParts:

@@ -7,7 +7,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
 import trimesh
 
 from calibration.camera import Camera, look_at_c2w

@@ -20,7 +20,7 @@ from reconstruction.deformation import FieldConfig  # noqa: E402
 from reconstruction.presets import SceneStats, resolve_preset  # noqa: E402
 from reconstruction.splats import init_splats  # noqa: E402
 from reconstruction.train import Plateau, Views, train  # noqa: E402
-from reconstruction.twin import read_mesh_parts  # noqa: E402
+from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample"
 

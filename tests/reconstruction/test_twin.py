@@ -12,14 +12,13 @@ from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from reconstruction.gaussians import Gaussians
+from reconstruction.mesh_io import MeshParts, read_mesh_parts
 from reconstruction.twin import (
-    MeshParts,
     Twin,
     TwinCamera,
     TwinError,
     load_twin,
     ply_columns,
-    read_mesh_parts,
     save_twin,
     splat_normals,
 )

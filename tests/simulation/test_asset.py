@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruction.twin import MeshParts
+from reconstruction.mesh_io import MeshParts
 from simulation.asset import (
     RepairError,
     bake_face_colors,
@@ -172,7 +172,9 @@ def test_units_are_declared_or_refused():
         load_mesh_asset(parts / "torus.STL")
     counter = load_mesh_asset(parts / "counter.unitsmm.STL")  # the name declares millimetres
     assert np.ptp(counter.vertices, 0).max() == pytest.approx(0.3048, rel=1e-4)
-    assert len(counter.part_names) == 6  # six separate solids -> six parts
+    assert len(counter.part_names) == 1  # one STL is one part, as in a twin of it
+    split = load_mesh_asset(parts / "counter.unitsmm.STL", split_components=True)
+    assert len(split.part_names) == 6  # six separate solids -> six parts, when asked
 
 
 def test_ycb_object_keeps_its_texture_colour():

@@ -126,7 +126,7 @@ def test_clamp_hangs_on_a_5mm_rod_through_its_opening_which_one_hull_cannot(tmp_
     5 mm rod: with CoACD pieces the opening stays open and the clamp hangs; its single convex hull
     fills the opening, so MuJoCo pushes the rod out and the clamp falls."""
     from calibration.so3 import axis_angle_to_matrix, matrix_to_quat
-    from reconstruction.twin import MeshParts
+    from reconstruction.mesh_io import MeshParts
     from simulation.asset import build_asset, choose_density
     from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
     from simulation.run import load_model, simulate

@@ -12,7 +12,7 @@ import trimesh
 
 from calibration.fileio import sha256_file
 from calibration.so3 import quat_to_matrix
-from reconstruction.twin import MeshParts
+from reconstruction.mesh_io import MeshParts
 from simulation.asset import build_asset, choose_density, load_mesh_asset
 from simulation.collision import DecompositionOptions, collision_geometry
 from simulation.mjcf import BodySpec, face_atlas, write_mjcf_package

@@ -1,57 +1,22 @@
-"""Parts: labels from the CAD file or connected components, splats inherit them, exploded views
-move the chosen parts away from the assembly centre and leave the rest exactly where they were."""
+"""Parts: splats inherit their face's part, exploded views move the chosen parts away from the
+assembly centre and leave the rest exactly where they were."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 
 from calibration.camera import Camera, look_at_c2w
 from calibration.fileio import atomic_write_png
 from reconstruction.twin import load_twin
 from simulation.follow import render_bodies
-from simulation.parts import (
-    component_labels,
-    exploded_splats,
-    list_parts,
-    part_centroids,
-    read_mesh_parts,
-    splat_parts,
-)
-from tests.conftest import require_shared
-from tests.simulation.twins import box, make_twin, skateboard
+from simulation.parts import exploded_splats, list_parts, part_centroids, splat_parts
+from tests.simulation.twins import make_twin, skateboard
 
 
 @pytest.fixture(scope="module")
 def board(tmp_path_factory):
     return load_twin(make_twin(tmp_path_factory.mktemp("twins"), "board", *skateboard(), n=4000))
-
-
-def test_connected_components_label_faces():
-    a, b = box([1, 1, 1]), box([1, 1, 1], (3, 0, 0))
-    mesh = trimesh.util.concatenate([a, b])
-    labels = component_labels(mesh.faces, len(mesh.vertices))
-    assert list(labels) == [0] * 12 + [1] * 12
-
-
-def test_parts_from_obj_objects_glb_nodes_and_stl_components(tmp_path):
-    obj = tmp_path / "two.obj"
-    a, b = box([1, 1, 1]), box([1, 1, 1], (3, 0, 0))
-    lines = ["o lid"] + [f"v {x} {y} {z}" for x, y, z in a.vertices] + [f"f {i + 1} {j + 1} {k + 1}" for i, j, k in a.faces]
-    lines += ["o base"] + [f"v {x} {y} {z}" for x, y, z in b.vertices] + [f"f {i + 9} {j + 9} {k + 9}" for i, j, k in b.faces]
-    obj.write_text("\n".join(lines) + "\n")
-    parts, _ = read_mesh_parts(obj)
-    assert sorted(parts.part_names) == ["base", "lid"]
-    lid = parts.part_names.index("lid")
-    assert parts.vertices[parts.faces[parts.face_part == lid]].reshape(-1, 3)[:, 0].max() == pytest.approx(0.5)
-    scene = trimesh.Scene()
-    scene.add_geometry(a, node_name="deck", geom_name="deck")
-    scene.add_geometry(b, node_name="wheel", geom_name="wheel")
-    (tmp_path / "s.glb").write_bytes(scene.export(file_type="glb"))
-    assert sorted(read_mesh_parts(tmp_path / "s.glb")[0].part_names) == ["deck", "wheel"]
-    counter, _ = read_mesh_parts(require_shared("cad", "parts", "counter.unitsmm.STL"))
-    assert len(counter.part_names) == 6 and np.bincount(counter.face_part).min() > 0
 
 
 def test_splats_inherit_their_face_part():

@@ -11,7 +11,8 @@ from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from reconstruction.gaussians import Gaussians
 from reconstruction.splats import init_splats, rgb_to_sh_dc
-from reconstruction.twin import MeshParts, Twin, TwinCamera, save_twin
+from reconstruction.mesh_io import MeshParts
+from reconstruction.twin import Twin, TwinCamera, save_twin
 
 
 def assemble(pieces: list[tuple[str, trimesh.Trimesh, tuple[float, float, float]]]) -> tuple[MeshParts, np.ndarray]:
