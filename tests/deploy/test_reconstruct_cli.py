@@ -24,17 +24,6 @@ SAMPLE = bundled_sample_dir()
 
 
 @pytest.fixture(scope="module")
-def library(tmp_path_factory):
-    if not SAMPLE.exists():
-        pytest.skip("the bundled sample is absent")
-    from reconstruction.library import build_library
-
-    out = tmp_path_factory.mktemp("lib") / "library"
-    build_library(SAMPLE / "library_meshes", out, progress=False, log=lambda _m: None)
-    return out
-
-
-@pytest.fixture(scope="module")
 def short_preview():
     """The preview preset with short stage caps so a CLI run takes seconds, not a minute."""
     original = presets.resolve_preset
