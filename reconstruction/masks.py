@@ -81,13 +81,15 @@ def mask_quality(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *,
     return MaskQuality(cover, shift, score, problem)
 
 
-def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | None = None, indices: Sequence[int] | None = None) -> tuple[np.ndarray, str]:
+def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | None = None,
+                  indices: Sequence[int] | None = None) -> tuple[np.ndarray, str]:
     """Undistorted bool masks [V, H, W] of the views `indices` (default all) and where they came from
     ("masks" or "background").
 
-    `images`: those views' undistorted images ([V, H, W, 3], or one [H, W, 3] each) when the caller already decoded them
-    (`load_views`), so background subtraction decodes none again. Raises CaptureError when the
-    capture has neither masks/ nor background/ frames for every camera.
+    `images`: those views' undistorted images ([V, H, W, 3], or one [H, W, 3] each) when the caller
+    already decoded them (`load_views`), so background subtraction decodes none again; each empty-rig
+    frame is decoded once. Raises CaptureError when the capture has neither masks/ nor background/
+    frames for every camera.
     """
     idx = list(range(len(capture))) if indices is None else list(indices)
     if capture.has_masks:

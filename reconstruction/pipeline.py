@@ -2,7 +2,9 @@
 
 This is the I/O edge of the reconstruction engine: it reads the capture and the library, writes the
 twin (and a checkpoint beside it while training), and records what it chose, why, and how long each
-step took. The math lives in splats, deformation, pose_correction, losses and train.
+step took. The math lives in splats, deformation, pose_correction, losses and train. A registration,
+masks or decoded images computed before (`cadsplat register`, the service's register step) are taken
+as given, so nothing is masked or registered twice.
 """
 
 from __future__ import annotations
