@@ -84,13 +84,15 @@ def _views(capture: Capture, idx: list[int], images: np.ndarray | None, masks: n
         if given is not None and (len(given) != len(capture) or any(given.shape[1:3] != (f.camera.height, f.camera.width) for f in capture.frames)):
             raise ValueError(f"the given {name} are {given.shape[:3]}, not one per view of the capture at {capture.root} "
                              f"({len(capture)} views of {capture.frames[0].camera.width}x{capture.frames[0].camera.height})")
+    every = idx == list(range(len(capture)))  # then the given arrays are used as they are, not copied
     if images is not None:
         if masks is None:
             raise ValueError("images are handed forward with their masks; give both or neither")
-        return images[idx], masks[idx], [capture.camera(i) for i in idx], "given"
+        cams = [capture.camera(i) for i in idx]
+        return (images, masks, cams, "given") if every else (images[idx], masks[idx], cams, "given")
     images, own, cams = load_views(capture, idx, with_masks=masks is None)
     if masks is not None:
-        return images, masks[idx], cams, "given"
+        return images, masks if every else masks[idx], cams, "given"
     if own is not None:
         return images, own, cams, "masks/"
     computed, source = capture_masks(capture, images, idx)
