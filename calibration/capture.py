@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
-from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_file
+from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_bytes, sha256_file
 from calibration.so3 import project_to_so3
 from calibration.units import UNIT_TO_M
 
@@ -74,14 +74,25 @@ class Capture:
     def mask(self, i: int, *, undistort: bool = True) -> np.ndarray | None:
         """Object mask bool [H, W] from masks/ (or the image's alpha channel); None when the capture has none."""
         frame = self.frames[i]
+        return self._mask(frame, None if frame.mask_path else read_image(self.root / frame.file_path), undistort)
+
+    def view(self, i: int, *, undistort: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """`image(i)` and `mask(i)` with the image file decoded once (its alpha is the mask without masks/)."""
+        frame = self.frames[i]
+        img = read_image(self.root / frame.file_path)
+        self._check_size(frame, img)
+        rgb = img[..., :3]
+        return (undistort_image(frame.camera, rgb)[0] if undistort else rgb), self._mask(frame, img, undistort)
+
+    def _mask(self, frame: CaptureFrame, img: np.ndarray | None, undistort: bool) -> np.ndarray | None:
+        """The mask of `frame` from its masks/ file, else from the alpha of its decoded image `img`."""
         if frame.mask_path:
             m = read_image(self.root / frame.mask_path)
             m = m[..., 0] if m.ndim == 3 else m
-        else:
-            img = read_image(self.root / frame.file_path)
-            if img.ndim != 3 or img.shape[2] != 4:
-                return None
+        elif img.ndim == 3 and img.shape[2] == 4:
             m = img[..., 3]
+        else:
+            return None
         self._check_size(frame, m)
         m = (m > 0.5).astype(np.uint8)
         if undistort:
@@ -374,8 +385,16 @@ def rig_metres_per_unit(meta: dict, where: str | os.PathLike = "capture") -> flo
     return UNIT_TO_M[units]
 
 
-def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
-    """Undistorted images [V, H, W, 3] float32, masks [V, H, W] bool (None without masks) and pinhole cameras."""
+def capture_fingerprint(capture: Capture) -> str:
+    """sha256 of what the capture states (views, cameras, manifest digests): what a result computed
+    from it (a registration) records, so it is never applied to another capture."""
+    return sha256_bytes(json.dumps(capture_document(capture.frames, capture.meta), sort_keys=True).encode())
+
+
+def load_views(capture: Capture, indices: Sequence[int] | None = None, *, with_masks: bool = True) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
+    """Undistorted images [V, H, W, 3] float32, masks [V, H, W] bool (None without masks, or not
+    `with_masks`) and pinhole cameras, each file decoded once: what a caller decodes here it hands
+    forward (to `capture_masks`, `reconstruct`) instead of decoding it again."""
     idx = list(range(len(capture))) if indices is None else list(indices)
     for i in idx:
         if not 0 <= i < len(capture):
@@ -385,7 +404,7 @@ def load_views(capture: Capture, indices: Sequence[int] | None = None) -> tuple[
         # Batched training and scoring need one image size; the caller picks views of one size.
         listed = ", ".join(f"{w}x{h}" for w, h in sizes)
         raise CaptureError(f"{capture.root}: the chosen views have different image sizes ({listed}); choose views of one size")
-    images = np.stack([capture.image(i) for i in idx])
-    masks = [capture.mask(i) for i in idx]
-    mask_arr = None if any(m is None for m in masks) else np.stack(masks)
-    return images, mask_arr, [capture.camera(i) for i in idx]
+    decoded = [capture.view(i) if with_masks else (capture.image(i), None) for i in idx]
+    images = np.stack([image for image, _ in decoded])
+    masks = None if any(m is None for _, m in decoded) else np.stack([m for _, m in decoded])
+    return images, masks, [capture.camera(i) for i in idx]

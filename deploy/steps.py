@@ -4,10 +4,16 @@ Both the local service and a Ray task run these same functions, so a cluster rep
 machine computes. Every step writes its outputs atomically under the job's work directory and
 returns a small JSON summary the job store keeps; a step whose outputs already exist (it finished
 just before a crash, before the job store heard of it) returns them instead of redoing the work.
+
+What a step computed flows forward instead of being recomputed: register writes the masks
+(masks.npz) and the metric-aware registration (registration.json) that reconstruct and the fit
+score use as given, and the images it decoded go on in memory (`Decoded`) to the same job's
+reconstruct step, so a job decodes each image once.
 """
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,8 +21,8 @@ from typing import Callable
 
 import numpy as np
 
-from calibration.capture import load_views, read_capture
-from calibration.fileio import atomic_write_json
+from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
+from calibration.fileio import atomic_write_bytes, atomic_write_json
 from deploy.jobs import Job
 
 Progress = Callable[[str, int, int], None]
@@ -32,61 +38,91 @@ class PipelineConfig:
     inspection_max_unseen_pct: float | None = None
 
 
-def register_step(capture_path: Path, work: Path, cfg: PipelineConfig) -> dict:
-    out = work / "registration.json"
-    if out.exists():
+REGISTRATION_JSON = "registration.json"
+MASKS_NPZ = "masks.npz"
+
+
+@dataclass
+class Decoded:
+    """A capture as one process decoded it: the register step leaves it here and the reconstruct step of
+    the same job takes it, so each image file is decoded once per job (a resumed job decodes once more)."""
+
+    capture_path: str = ""
+    capture: Capture | None = None
+    images: np.ndarray | None = None  # [V, H, W, 3] undistorted, every view
+
+
+def register_step(capture_path: Path, work: Path, cfg: PipelineConfig, decoded: Decoded | None = None) -> dict:
+    """Masks and the metric-aware registration of the capture, written to work/masks.npz and
+    work/registration.json (with its provenance), which the later steps read instead of redoing them."""
+    out = work / REGISTRATION_JSON
+    if out.exists() and (work / MASKS_NPZ).exists():
         return json.loads(out.read_text())["summary"]
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
     from reconstruction.quality import check_masks, check_registration
-    from reconstruction.registration import register
+    from reconstruction.registration import provenance, register
 
     capture = read_capture(capture_path)
-    _, masks, cams = load_views(capture)
+    images, masks, cams = load_views(capture)
     if masks is None:
-        masks, _ = capture_masks(capture)
+        masks, _ = capture_masks(capture, images)
     check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
     library = load_library(cfg.library)
-    reg = register(masks, cams, library, seed=cfg.seed)
+    reg = register(masks, cams, library, seed=cfg.seed, rig_metres_per_unit=rig_metres_per_unit(capture.meta, capture.root))
     check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, masks=masks)
+    atomic_write_bytes(work / MASKS_NPZ, buf.getvalue())
     summary = {"model_id": reg.model_id, "score": float(reg.score), "path": str(out)}
-    atomic_write_json(out, {"summary": summary, "registration": reg.to_dict()})
+    # Written last: registration.json is what says the step is done.
+    atomic_write_json(out, {"summary": summary, "registration": {**reg.to_dict(), **provenance(capture, library, reg.model_id)}})
+    if decoded is not None:
+        decoded.capture_path, decoded.capture, decoded.images = str(capture_path), capture, images
     return summary
 
 
-def fit_iou(twin_dir: Path, capture_path: Path) -> float:
-    """Mean silhouette IoU of the twin's renders of its training views against their masks."""
+def fit_iou(twin_dir: Path, capture: Capture, masks: np.ndarray) -> float:
+    """Mean silhouette IoU of the twin's renders of its training views against their masks ([V, H, W], one per capture view)."""
     from PIL import Image
 
-    from reconstruction.masks import capture_masks
     from reconstruction.metrics import iou
     from reconstruction.twin import load_twin
 
     twin = load_twin(twin_dir)
-    capture = read_capture(capture_path)
     by_path = {f.file_path: i for i, f in enumerate(capture.frames)}
-    masks = capture_masks(capture)[0] if not capture.has_masks else None
     scores = []
     for cam in twin.cameras:
-        i = by_path[cam.file_path]
         render = np.asarray(Image.open(twin_dir / "renders" / f"{Path(cam.file_path).stem}.png"), np.float32) / 255.0
-        mask = capture.mask(i) if masks is None else masks[i]
-        scores.append(iou(render[..., 3], mask))
+        scores.append(iou(render[..., 3], masks[by_path[cam.file_path]]))
     return float(np.mean(scores))
 
 
-def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, model_id: str, progress: Progress | None = None) -> dict:
+def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progress: Progress | None = None,
+                     decoded: Decoded | None = None) -> dict:
+    """The twin of the capture from the register step's masks and registration (used as given) into work/twin."""
+    from reconstruction.registration import RegistrationResult
+
     twin_dir = work / "twin"
+    with np.load(work / MASKS_NPZ) as npz:
+        masks = npz["masks"]
+    carried = decoded is not None and decoded.capture_path == str(capture_path)
+    capture = decoded.capture if carried else read_capture(capture_path)
     if not (twin_dir / "twin.json").exists():
+        from reconstruction.library import load_library
         from reconstruction.pipeline import reconstruct
 
-        reconstruct(capture_path, cfg.library, twin_dir, preset=cfg.preset, model_id=model_id, seed=cfg.seed,
-                    progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
+        reg = RegistrationResult.from_dict(json.loads((work / REGISTRATION_JSON).read_text())["registration"], capture=capture,
+                                           library=load_library(cfg.library), where=str(work / REGISTRATION_JSON))
+        reconstruct(capture, cfg.library, twin_dir, registration=reg, masks=masks, images=decoded.images if carried else None,
+                    preset=cfg.preset, seed=cfg.seed, progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
+    if carried:
+        decoded.capture_path, decoded.capture, decoded.images = "", None, None
     doc = json.loads((twin_dir / "twin.json").read_text())
     summary = {
         "twin": str(twin_dir),
         "model_id": doc["model_id"],
-        "fit_iou": fit_iou(twin_dir, capture_path),
+        "fit_iou": fit_iou(twin_dir, capture, masks),
         "total_s": float(doc.get("timings_s", {}).get("total", 0.0)),
     }
     if cfg.inspection_tolerance_mm is not None:
@@ -139,12 +175,14 @@ def export_step(work: Path, cfg: PipelineConfig) -> dict:
 def make_step_runner(cfg: PipelineConfig, progress: Progress | None = None):
     """A `deploy.service.StepRunner` over the real engine."""
 
+    decoded = Decoded()  # the images the register step decoded, for the same job's reconstruct step
+
     def run(step: str, job: Job, work_dir: Path, previous: dict[str, dict]) -> dict:
         capture = Path(job.capture_path)
         if step == "register":
-            return register_step(capture, work_dir, cfg)
+            return register_step(capture, work_dir, cfg, decoded)
         if step == "reconstruct":
-            return reconstruct_step(capture, work_dir, cfg, previous["register"]["model_id"], progress)
+            return reconstruct_step(capture, work_dir, cfg, progress, decoded)
         if step == "export":
             return export_step(work_dir, cfg)
         raise ValueError(f"unknown pipeline step {step!r}")
@@ -160,7 +198,8 @@ def process_capture(capture_path: str, work_dir: str, cfg: PipelineConfig) -> di
     torch.set_num_threads(1)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
-    reg = register_step(Path(capture_path), work, cfg)
-    rec = reconstruct_step(Path(capture_path), work, cfg, reg["model_id"])
+    decoded = Decoded()
+    reg = register_step(Path(capture_path), work, cfg, decoded)
+    rec = reconstruct_step(Path(capture_path), work, cfg, decoded=decoded)
     exp = export_step(work, cfg)
     return {"register": reg, "reconstruct": rec, "export": exp}

@@ -1,5 +1,8 @@
 """Object masks for a capture: its masks/ when present, else background subtraction against background/.
 
+Masks are computed once per capture and handed forward (the service keeps them beside the
+registration; `reconstruct` takes them as given), so nothing masks the same capture twice.
+
 A static rig sees the same empty scene in every capture, so the per-camera empty frame makes the
 object the set of pixels that changed. The threshold adapts to each view's noise (median absolute
 difference), then small specks are removed and holes closed so the bounding box the silhouette
@@ -13,6 +16,7 @@ changed since the reference was taken).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -77,22 +81,32 @@ def mask_quality(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *,
     return MaskQuality(cover, shift, score, problem)
 
 
-def capture_masks(capture: Capture) -> tuple[np.ndarray, str]:
-    """Undistorted bool masks [V, H, W] of every view and where they came from ("masks" or "background").
+def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | None = None,
+                  indices: Sequence[int] | None = None) -> tuple[np.ndarray, str]:
+    """Undistorted bool masks [V, H, W] of the views `indices` (default all) and where they came from
+    ("masks" or "background").
 
-    Raises CaptureError when the capture has neither masks/ nor background/ frames for every camera.
+    `images`: those views' undistorted images ([V, H, W, 3], or one [H, W, 3] each) when the caller
+    already decoded them (`load_views`), so background subtraction decodes none again; each empty-rig
+    frame is decoded once. Raises CaptureError when the capture has neither masks/ nor background/
+    frames for every camera.
     """
+    idx = list(range(len(capture))) if indices is None else list(indices)
     if capture.has_masks:
-        return np.stack([capture.mask(i) for i in range(len(capture))]), "masks"
+        return np.stack([capture.mask(i) for i in idx]), "masks"
     backgrounds = capture.meta.get("background", {})
     missing = sorted({f.camera_id for f in capture.frames} - set(backgrounds))
     if not backgrounds:
         raise CaptureError(f"{capture.root}: has neither masks/ nor background/ frames, so no object mask can be made")
     if missing:
         raise CaptureError(f"{capture.root}: has no masks/ and no background frame for camera {missing[0]}")
-    out = []
-    for i, frame in enumerate(capture.frames):
-        image, background = capture.image(i), capture.background(frame.camera_id)
+    out, decoded = [], {}
+    for j, i in enumerate(idx):
+        frame = capture.frames[i]
+        image = capture.image(i) if images is None else images[j]
+        if frame.camera_id not in decoded:
+            decoded[frame.camera_id] = capture.background(frame.camera_id)
+        background = decoded[frame.camera_id]
         if image.shape != background.shape:
             raise CaptureError(f"{capture.root}: the background frame of {frame.camera_id} is {background.shape[1]}x{background.shape[0]}, "
                                f"its image {image.shape[1]}x{image.shape[0]}")

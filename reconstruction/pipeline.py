@@ -2,7 +2,9 @@
 
 This is the I/O edge of the reconstruction engine: it reads the capture and the library, writes the
 twin (and a checkpoint beside it while training), and records what it chose, why, and how long each
-step took. The math lives in splats, deformation, pose_correction, losses and train.
+step took. The math lives in splats, deformation, pose_correction, losses and train. A registration,
+masks or decoded images computed before (`cadsplat register`, the service's register step) are taken
+as given, so nothing is masked or registered twice.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px
 from reconstruction.gaussians import Gaussians, camera_batch, render, straight_rgba
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
-from reconstruction.registration import RegistrationResult
+from reconstruction.registration import RegistrationResult, check_fits
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
@@ -51,13 +53,30 @@ def model_parts(library, model_id: str) -> MeshParts:
     return parts
 
 
-def _masks(capture: Capture, indices: Sequence[int], masks: np.ndarray | None) -> tuple[np.ndarray, str]:
-    if masks is not None:
-        return masks, "masks/"
+def _views(capture: Capture, idx: list[int], images: np.ndarray | None, masks: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, list[Camera], str]:
+    """Images [V, H, W, 3], masks [V, H, W] and pinhole cameras of views `idx`, and where the masks came from.
+
+    `images`/`masks` given (one per capture view, undistorted, as `load_views`/`capture_masks` make them)
+    are used as they are ("given"): only what was not given is decoded or computed, each file once."""
     from reconstruction.masks import capture_masks
 
-    all_masks, source = capture_masks(capture)
-    return all_masks[list(indices)], source
+    for name, given in (("images", images), ("masks", masks)):
+        if given is not None and (len(given) != len(capture) or any(given.shape[1:3] != (f.camera.height, f.camera.width) for f in capture.frames)):
+            raise ValueError(f"the given {name} are {given.shape[:3]}, not one per view of the capture at {capture.root} "
+                             f"({len(capture)} views of {capture.frames[0].camera.width}x{capture.frames[0].camera.height})")
+    every = idx == list(range(len(capture)))  # then the given arrays are used as they are, not copied
+    if images is not None:
+        if masks is None:
+            raise ValueError("images are handed forward with their masks; give both or neither")
+        cams = [capture.camera(i) for i in idx]
+        return (images, masks, cams, "given") if every else (images[idx], masks[idx], cams, "given")
+    images, own, cams = load_views(capture, idx, with_masks=masks is None)
+    if masks is not None:
+        return images, masks if every else masks[idx], cams, "given"
+    if own is not None:
+        return images, own, cams, "masks/"
+    computed, source = capture_masks(capture, images, idx)
+    return images, computed, cams, source
 
 
 def metric_sim3(sim3_rig_to_object: Sim3, metres_per_unit: float, centre_object: np.ndarray) -> Sim3:
@@ -105,10 +124,13 @@ def sphere_registration(masks: np.ndarray, cams: Sequence[Camera]) -> tuple[Regi
 
 
 def reconstruct(
-    capture_path: str | os.PathLike,
+    capture: str | os.PathLike | Capture,
     library_path: str | os.PathLike | None,
     out_dir: str | os.PathLike,
     *,
+    registration: RegistrationResult | None = None,
+    masks: np.ndarray | None = None,
+    images: np.ndarray | None = None,
     preset: str = "cpu",
     model_id: str | None = None,
     views: Sequence[int] | None = None,
@@ -126,6 +148,13 @@ def reconstruct(
     An interrupted run leaves `.<out_dir name>.checkpoint.pt` beside `out_dir`; running the same
     command again resumes from it. `views` picks training views by index; `model_id` skips retrieval
     and registers that library model only; `pose_mode` overrides the automatic choice.
+
+    Work done before flows forward instead of being redone: `capture` may be an already read
+    `Capture`; `registration` (of every capture view, on the capture's metric scale, e.g. from
+    `RegistrationResult.from_dict` of reg.json) is used as given instead of registering; `masks`
+    [V, H, W] bool and `images` [V, H, W, 3] (one per capture view, undistorted, as `capture_masks`
+    and `load_views` make them) are used instead of decoding and masking the capture again. What was
+    given is recorded in twin.json `choices` as "given".
 
     Evaluation switches: `init="sphere"` replaces retrieval and registration by the paper's generic
     sphere (section 4.4.2; `library_path` is then not read); `ablations` names entries of
@@ -145,26 +174,33 @@ def reconstruct(
     torch.manual_seed(seed)
 
     t = time.perf_counter()
-    capture = read_capture(capture_path)
-    idx = list(range(len(capture))) if views is None else list(views)
-    images, cap_masks, cams = load_views(capture, idx)
-    masks, mask_source = _masks(capture, idx, cap_masks)
-    check_masks(masks, names=[f"view {i} ({capture.frames[i].camera_id})" for i in idx])
+    if not isinstance(capture, Capture):
+        capture = read_capture(capture)
     if init not in ("cad", "sphere"):
         raise ValueError(f"unknown init {init!r}; choose cad or sphere")
+    if registration is not None:
+        if init != "cad" or (model_id is not None and model_id != registration.model_id):
+            raise ValueError(f"a given registration (of {registration.model_id!r}) replaces registering; "
+                             "it takes neither --init sphere nor another --model")
+        check_fits(registration, capture)
+    idx = list(range(len(capture))) if views is None else list(views)
+    images, masks, cams, mask_source = _views(capture, idx, images, masks)
+    check_masks(masks, names=[f"view {i} ({capture.frames[i].camera_id})" for i in idx])
     library = load_library(library_path) if init == "cad" else None
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
     metric = rig_metres_per_unit(capture.meta, capture.root) if init == "cad" else None
-    if library is not None:
-        say(f"registering {len(idx)} views against {len(library.models)} library models")
-        reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed,
-                       rig_metres_per_unit=metric)
-        check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
-        parts = model_parts(library, reg.model_id)
-    else:
+    if library is None:
         reg, parts = sphere_registration(masks, cams)
+    else:
+        reg = registration
+        if reg is None:
+            say(f"registering {len(idx)} views against {len(library.models)} library models")
+            reg = register(masks, cams, library, model_ids=[model_id] if model_id else None, seed=seed,
+                           rig_metres_per_unit=metric)
+            check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
+        parts = model_parts(library, reg.model_id)
     timings["registration"] = time.perf_counter() - t
     say(f"registered {reg.model_id} (mean silhouette IoU {reg.score:.3f})")
 
@@ -191,7 +227,8 @@ def reconstruct(
     error_px = calibration_error_px(capture.meta, cams, reg.sim3_rig_to_object.inverse().apply(centre[None])[0])
     mode, why = choose_pose_mode(capture.meta, pose_mode, calibration_error_px=error_px)
     choices["pose_mode"] = {"value": mode, "why": why}
-    choices["masks"] = {"value": mask_source, "why": "capture masks when present, else background subtraction"}
+    choices["masks"] = {"value": mask_source, "why": "computed once before reconstruct and handed to it" if mask_source == "given"
+                        else "capture masks when present, else background subtraction"}
     Ks = np.stack([c.K for c in cams])
     viewmats = np.stack([np.linalg.inv(c) for c in c2w_init])
     probe = init_splats(parts.vertices, parts.faces, cfg.num_splats, sh_degree=cfg.sh_degree, face_part=parts.face_part, seed=seed)
@@ -248,7 +285,9 @@ def reconstruct(
     deformed = MeshParts(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, parts.face_part, parts.part_names)
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
-    twin.choices["registration"] = {"value": reg.to_dict(), "why": "silhouette consensus registration (paper 3.2)"}
+    twin.choices["registration"] = {"value": reg.to_dict(), "source": "given" if registration is not None else "computed",
+                                    "why": "silhouette consensus registration (paper 3.2)"
+                                    + (", computed once before reconstruct and handed to it" if registration is not None else "")}
     save_twin(twin, out, deformation_state=model.field.export_state(), mesh_cad=parts, mesh_deformed=deformed,
               renders=renders, overwrite=overwrite)
     if ckpt.exists():

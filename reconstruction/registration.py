@@ -48,6 +48,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from calibration.camera import Camera
+from calibration.capture import Capture, capture_fingerprint, rig_metres_per_unit
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
@@ -165,6 +166,75 @@ class RegistrationResult:
             "scale_observable": self.scale_observable,
             "timings_s": self.timings_s,
         }
+
+    @classmethod
+    def from_dict(cls, doc: dict, *, capture: Capture | None = None, library: Library | None = None,
+                  where: str = "the registration") -> RegistrationResult:
+        """The result `to_dict` wrote (reg.json, the service's registration.json), checked against the
+        `capture` and `library` it is to be used with when given (and the `provenance` the document
+        records). A malformed or mismatched document raises RegistrationError in one sentence."""
+        if not isinstance(doc, dict):
+            raise RegistrationError(f"{where} is not a registration document: it holds a JSON {type(doc).__name__}, not an object")
+        try:
+            scale = doc["scale"]
+            reg = cls(
+                model_id=_typed(doc["model_id"], str),
+                sim3_rig_to_object=Sim3.from_dict(doc["sim3_rig_to_object"]),
+                per_view_iou=np.asarray(doc["per_view_iou"], np.float64).reshape(-1),
+                score=float(doc["score"]),
+                alternatives=[(_typed(a["model_id"], str), float(a["score"])) for a in doc["alternatives"]],
+                ambiguity=None if doc["ambiguity"] is None else _typed(doc["ambiguity"], dict),
+                timings_s=_typed(doc["timings_s"], dict),
+                truncated_views=[int(v) for v in doc["truncated_views"]],
+                scale_observable=_typed(doc["scale_observable"], bool),
+                objective=None if doc["objective"] is None else float(doc["objective"]),
+                rig_metres_per_unit=None if scale["rig_metres_per_unit"] is None else float(scale["rig_metres_per_unit"]),
+                scale_band=tuple(float(b) for b in scale["band"]),
+                model_ties=[_typed(t, dict) for t in doc["model_ties"]],
+                camera_poses=[_typed(p, dict) for p in doc["camera_poses"]],
+            )
+        except KeyError as e:
+            raise RegistrationError(f"{where} is not a registration document: it has no {e.args[0]!r}") from None
+        except (TypeError, ValueError, AttributeError) as e:
+            raise RegistrationError(f"{where} is not a registration document: {e}") from None
+        if len(reg.scale_band) != 2 or not np.all(np.isfinite(reg.per_view_iou)):
+            raise RegistrationError(f"{where} is not a registration document: its scale band or per-view IoUs are malformed")
+        if capture is not None:
+            check_fits(reg, capture, where)
+            views = [f.file_path for f in capture.frames]
+            if doc.get("views", views) != views or doc.get("capture_sha256", capture_fingerprint(capture)) != capture_fingerprint(capture):
+                raise RegistrationError(f"{where} was made from another capture than the one at {capture.root}")
+        if library is not None:
+            if reg.model_id not in library.ids:
+                raise RegistrationError(f"{where} registers model {reg.model_id!r}, which is not in the library at {library.root}")
+            if doc.get("model_sha256", library.entry(reg.model_id).sha256) != library.entry(reg.model_id).sha256:
+                raise RegistrationError(f"{where} was made with another library: its {reg.model_id!r} is not the mesh in {library.root}")
+        return reg
+
+
+def provenance(capture: Capture, library: Library, model_id: str) -> dict:
+    """What a registration document records beside `to_dict()` so `from_dict` can refuse it for another
+    capture or library: the views' file paths, the capture's fingerprint, the model mesh's sha256."""
+    return {"views": [f.file_path for f in capture.frames], "capture_sha256": capture_fingerprint(capture),
+            "model_sha256": library.entry(model_id).sha256}
+
+
+def check_fits(reg: RegistrationResult, capture: Capture, where: str = "the registration") -> None:
+    """Refuse (RegistrationError, one sentence) a registration of another number of views than `capture`
+    has, or one made without the metric scale the capture states (or with one it does not)."""
+    if len(reg.per_view_iou) != len(capture):
+        raise RegistrationError(f"{where} registers {len(reg.per_view_iou)} camera views but the capture at {capture.root} has {len(capture)}")
+    metric = rig_metres_per_unit(capture.meta, capture.root)
+    if reg.rig_metres_per_unit != metric:
+        stated = "no metric scale" if reg.rig_metres_per_unit is None else f"{reg.rig_metres_per_unit:g} m per rig unit"
+        raise RegistrationError(f"{where} was registered with {stated}, but the capture at {capture.root} states "
+                                + ("none" if metric is None else f"{metric:g} m per rig unit"))
+
+
+def _typed(value, kind: type):
+    if not isinstance(value, kind):
+        raise TypeError(f"{value!r} is not a {kind.__name__}")
+    return value
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,7 @@
-"""`cadsplat reconstruct CAPTURE --library LIB --out TWIN`: capture -> registered, trained twin."""
+"""`cadsplat reconstruct CAPTURE --library LIB --out TWIN`: capture -> registered, trained twin.
+
+`--registration reg.json` (from `cadsplat register` of the same capture and library) skips registering.
+"""
 
 from __future__ import annotations
 
@@ -41,12 +44,33 @@ def verdict(twin, registration) -> str:
     )
 
 
+def given_registration(path: Path, capture_dir: Path, lib_dir: Path):
+    """The capture and the registration in the reg.json at `path`, refused in one sentence when it is not
+    one or was made from another capture or library."""
+    import json
+
+    from calibration.capture import read_capture
+    from reconstruction.library import load_library
+    from reconstruction.registration import RegistrationResult
+
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as e:
+        raise click.ClickException(f"{path}: cannot read the registration ({e.strerror or e})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise click.ClickException(f"{path} is not a registration document (not JSON); give the reg.json `cadsplat register` wrote") from None
+    capture = read_capture(capture_dir)
+    return capture, RegistrationResult.from_dict(doc, capture=capture, library=load_library(lib_dir), where=str(path))
+
+
 @click.command(help="Reconstruct a CAD-registered Gaussian-splat twin from CAPTURE; writes the twin directory OUT.")
 @click.argument("capture_dir", type=click.Path(path_type=Path))
 @click.option("--library", "lib_dir", default=None, type=click.Path(path_type=Path), help="CAD library (cadsplat library build); not read with --init sphere.")
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Twin directory to write.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "preview", "paper"]), help="Model size and schedule.")
 @click.option("--model", "model_id", default=None, help="Use this library model instead of retrieving one.")
+@click.option("--registration", "registration_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="A reg.json `cadsplat register` wrote for this capture and library: used as given instead of registering again.")
 @click.option("--views", "views_text", default=None, help="Training views by index, e.g. 0,3,7 (default: all).")
 @click.option("--pose-mode", default=None, type=click.Choice(list(POSE_MODE_NAMES)), help="Override the pose-correction mode chosen from the capture's provenance.")
 @click.option("--seed", default=0, show_default=True, type=int)
@@ -55,8 +79,8 @@ def verdict(twin, registration) -> str:
 @click.option("--ablate", "ablations", multiple=True, type=click.Choice(list(ABLATION_NAMES)),
               help="Switch one ingredient off (repeatable), as the paper's ablations.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing twin at OUT.")
-def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, views_text: str | None,
-                pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], overwrite: bool) -> None:
+def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, registration_path: Path | None,
+                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], overwrite: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from reconstruction.pipeline import reconstruct as run
@@ -70,6 +94,11 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
 
     if out_dir.exists() and not is_twin_dir(out_dir):
         raise click.ClickException(f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out")
+    capture, registration = capture_dir, None
+    if registration_path is not None:
+        if init != "cad":
+            raise click.UsageError("--registration places the CAD model; it does not go with --init sphere")
+        capture, registration = given_registration(registration_path, capture_dir, lib_dir)
     tasks: dict[str, int] = {}
     with Progress(TextColumn("{task.description:<30}"), BarColumn(), MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4f}"),
                   TimeElapsedColumn(), transient=False) as bar:
@@ -81,7 +110,7 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
                 tasks[stage] = bar.add_task(STAGE_TITLES.get(stage, stage), total=cap, loss=float("nan"))
             bar.update(tasks[stage], completed=it, loss=loss)
 
-        result = run(capture_dir, lib_dir, out_dir, preset=preset, model_id=model_id, views=views, pose_mode=pose_mode,
+        result = run(capture, lib_dir, out_dir, registration=registration, preset=preset, model_id=model_id, views=views, pose_mode=pose_mode,
                      seed=seed, progress=progress, log=lambda m: bar.console.print(m), overwrite=overwrite, init=init,
                      ablations=ablations)
         for t in tasks.values():

@@ -6,6 +6,9 @@ measured: the part must be within `--scale-tolerance` of its CAD size and reg.js
 is off. Without units the scale is searched. The known part (`--known-part`, or rig.toml's
 `[registration] known_part`) skips the library search; `--prior` (a previous reg.json) makes it the
 fast conveyor search (yaw and position about the previous part's pose).
+
+reg.json records its capture and library (`registration.provenance`), so `cadsplat reconstruct
+--registration reg.json` uses it as given and refuses it for another capture or library.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     from calibration.sim3 import Sim3
     from reconstruction.library import load_library
     from reconstruction.masks import capture_masks
-    from reconstruction.registration import SCALE_TOLERANCE, known_part_register
+    from reconstruction.registration import SCALE_TOLERANCE, known_part_register, provenance
     from reconstruction.quality import check_masks, check_registration
     from reconstruction.registration import register as run
 
@@ -64,11 +67,12 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     capture = read_capture(capture_dir)
     metres_per_unit = rig_metres_per_unit(capture.meta, capture.root)
     lib = load_library(lib_dir)
-    masks, source = capture_masks(capture)
+    photos = [capture.image(i) for i in range(len(capture))]  # decoded once: masks, colour tie-breaks and overlays
+    masks, source = capture_masks(capture, photos)
     check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
     t_masks = time.perf_counter() - t0
     cameras = [capture.camera(i) for i in range(len(capture))]
-    images = np.stack([capture.image(i) for i in range(len(capture))]) if len({(c.width, c.height) for c in cameras}) == 1 else None
+    images = np.stack(photos) if len({(c.width, c.height) for c in cameras}) == 1 else None
     if known_part is not None:
         prior = None
         if prior_path is not None:
@@ -84,11 +88,10 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
         res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None,
                   rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, images=images)
     check_registration(res.score, res.alternatives, masks, len(lib.models), res.model_id)
-    doc = res.to_dict()
+    doc = {**res.to_dict(), **provenance(capture, lib, res.model_id)}
     doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
     doc["mask_source"] = source
     doc["known_part"] = known_part
-    doc["views"] = [f.file_path for f in capture.frames]
     for pose, frame in zip(doc["camera_poses"], capture.frames):
         pose["view"], pose["camera_id"] = frame.file_path, frame.camera_id
     if out_path.parent and not out_path.parent.exists():
@@ -101,7 +104,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
         mesh = lib.load_mesh(res.model_id)
         doc["overlays"] = {}
         for i, frame in enumerate(capture.frames):
-            img = overlay(capture.image(i), masks[i], np.asarray(mesh.vertices), np.asarray(mesh.faces), cameras[i], res.sim3_rig_to_object)
+            img = overlay(photos[i], masks[i], np.asarray(mesh.vertices), np.asarray(mesh.faces), cameras[i], res.sim3_rig_to_object)
             name = f"{Path(frame.file_path).stem}.png"
             doc["overlays"][frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(folder / name, encode_png(img))}
     atomic_write_json(out_path, doc)

@@ -103,15 +103,18 @@ def _render_all(jobs, twin, gaussians, capture, refine_steps: int, folder: Path)
     from calibration.fileio import atomic_write_png
     from reconstruction.gaussians import camera_batch, render, straight_rgba
 
+    masks = None
+    if refine_steps and capture is not None:
+        from reconstruction.masks import capture_masks
+
+        # Once for the whole capture: its own masks (masks/ or alpha) when every view has one, else background subtraction.
+        own = [capture.mask(i) for i in range(len(capture))]
+        masks = own if all(m is not None for m in own) else capture_masks(capture)[0]
     for name, cam, i in track(jobs, description="rendering", transient=True):
         if refine_steps and capture is not None:
             from reconstruction.evaluation import refine_camera_pose
-            from reconstruction.masks import capture_masks
 
-            mask = capture.mask(i)
-            if mask is None:
-                mask = capture_masks(capture)[0][i]
-            ref = refine_camera_pose(twin.gaussians, cam, capture.image(i), mask, steps=refine_steps)
+            ref = refine_camera_pose(twin.gaussians, cam, capture.image(i), masks[i], steps=refine_steps)
             cam = cam.with_c2w(ref.c2w)
         rgba = straight_rgba(*render(gaussians, *camera_batch(cam), background=None))[0]
         atomic_write_png(folder / f"{Path(name).stem}.png", rgba)

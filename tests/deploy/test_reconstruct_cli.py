@@ -24,17 +24,6 @@ SAMPLE = bundled_sample_dir()
 
 
 @pytest.fixture(scope="module")
-def library(tmp_path_factory):
-    if not SAMPLE.exists():
-        pytest.skip("the bundled sample is absent")
-    from reconstruction.library import build_library
-
-    out = tmp_path_factory.mktemp("lib") / "library"
-    build_library(SAMPLE / "library_meshes", out, progress=False, log=lambda _m: None)
-    return out
-
-
-@pytest.fixture(scope="module")
 def short_preview():
     """The preview preset with short stage caps so a CLI run takes seconds, not a minute."""
     original = presets.resolve_preset
@@ -159,3 +148,75 @@ def test_all_white_masks_are_refused_not_a_confident_wrong_twin(tmp_path, librar
         err = capsys.readouterr().err.strip()
         assert err.startswith("Error: masks refused: view 0 (") and "covers 100% of the image" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "twin").exists() and not (tmp_path / "reg.json").exists()
+
+
+@pytest.fixture(scope="module")
+def reg_json(tmp_path_factory, library):
+    """`cadsplat register` of the sample's training capture."""
+    out = tmp_path_factory.mktemp("reg") / "reg.json"
+    assert main(["register", str(SAMPLE / "train"), "--library", str(library), "--out", str(out), "--no-overlays"]) == 0
+    return out
+
+
+def test_reconstruct_uses_a_register_output_as_given(tmp_path, library, reg_json, short_preview, monkeypatch, capsys):
+    def no_second_registration(*_a, **_k):
+        raise AssertionError("reconstruct registered again although it was given a registration")
+
+    monkeypatch.setattr("reconstruction.registration.register", no_second_registration)
+    capsys.readouterr()
+    rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--registration", str(reg_json), "--out", str(tmp_path / "twin"),
+               "--preset", "preview", "--views", "0,2,4,6,8"])
+    assert rc == 0, capsys.readouterr().err
+    twin = load_twin(tmp_path / "twin")
+    reg = json.loads(reg_json.read_text())
+    assert twin.model_id == reg["model_id"] and twin.choices["registration"]["source"] == "given"
+    np.testing.assert_allclose(twin.sim3_rig_to_object_init.rotation, reg["sim3_rig_to_object"]["rotation"], atol=1e-9)
+    assert twin.sim3_rig_to_object_init.scale == pytest.approx(reg["sim3_rig_to_object"]["scale"])
+
+
+def _refused(argv, capsys) -> str:
+    assert main(argv) != 0
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    return err
+
+
+def test_a_registration_of_another_capture_or_library_is_refused_in_one_sentence(tmp_path, library, reg_json, capsys):
+    from calibration.capture import FrameData, write_capture
+    from reconstruction.library import build_library
+
+    train, held = read_capture(SAMPLE / "train"), read_capture(SAMPLE / "heldout")
+    # Another capture of the rig: as many views, named alike, other photographs and poses.
+    frames = [FrameData(Path(train.frames[i].file_path).stem, (held.image(i, undistort=False) * 255).round().astype(np.uint8),
+                        held.camera(i, undistorted=False), train.frames[i].camera_id, None, held.mask(i, undistort=False))
+              for i in range(len(train))]
+    other = write_capture(tmp_path / "other", frames, meta={"units": "m"}).root
+    fewer = write_capture(tmp_path / "fewer", frames[:4], meta={"units": "m"}).root
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "medium_clamp_cad.ply").write_bytes((SAMPLE / "library_meshes" / "scissors.ply").read_bytes())
+    build_library(meshes, tmp_path / "otherlib", progress=False, log=lambda _m: None)
+    def run(capture, lib, reg=reg_json):
+        return ["reconstruct", str(capture), "--library", str(lib), "--registration", str(reg), "--out", str(tmp_path / "twin"), "--preset", "preview"]
+
+    capsys.readouterr()
+    assert "was made from another capture than the one at" in _refused(run(other, library), capsys)
+    assert "registers 9 camera views but the capture at" in _refused(run(fewer, library), capsys)
+    assert "was made with another library" in _refused(run(SAMPLE / "train", tmp_path / "otherlib"), capsys)
+    unknown = tmp_path / "unknown.json"
+    unknown.write_text(json.dumps({**json.loads(reg_json.read_text()), "model_id": "nonesuch"}))
+    assert "registers model 'nonesuch', which is not in the library" in _refused(run(SAMPLE / "train", library, unknown), capsys)
+    assert not (tmp_path / "twin").exists()
+
+
+def test_a_malformed_registration_is_refused_in_one_sentence(tmp_path, library, reg_json, capsys):
+    doc = json.loads(reg_json.read_text())
+    cases = {"garbage.json": "not json {", "list.json": "[1, 2]", "empty.json": "{}",
+             "noscale.json": json.dumps({k: v for k, v in doc.items() if k != "scale"}),
+             "badsim3.json": json.dumps({**doc, "sim3_rig_to_object": {**doc["sim3_rig_to_object"], "scale": -1}})}
+    capsys.readouterr()
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        err = _refused(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--registration", str(tmp_path / name), "--out", str(tmp_path / "twin")], capsys)
+        assert "is not a registration document" in err, err
+    assert not (tmp_path / "twin").exists()

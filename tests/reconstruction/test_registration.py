@@ -175,3 +175,31 @@ def test_bad_input_is_one_sentence(lib):
         register(np.zeros((2, 48, 64), bool), [cam], lib)
     with pytest.raises(RegistrationError, match="none of the requested models"):
         register(np.ones((1, 48, 64), bool), [cam], lib, model_ids=["nope"])
+
+
+def test_from_dict_reads_back_what_to_dict_wrote_and_checks_it_against_capture_and_library(lib, tmp_path):
+    import json
+
+    from calibration.capture import FrameData, write_capture
+    from reconstruction.registration import RegistrationResult, provenance
+
+    mesh = bracket()
+    masks, cams = scene(mesh, ring(4), true_sim3(mesh, 0.35))
+    res = register(masks, cams, lib)
+    frames = [FrameData(f"cam{i}", m.astype(np.uint8) * 200, c, f"cam{i}", None, m) for i, (m, c) in enumerate(zip(masks, cams))]
+    cap = write_capture(tmp_path / "cap", frames)
+    doc = json.loads(json.dumps({**res.to_dict(), **provenance(cap, lib, res.model_id)}))
+    back = RegistrationResult.from_dict(doc, capture=cap, library=lib)
+    again, first = back.to_dict(), json.loads(json.dumps(res.to_dict()))
+    assert {k: v for k, v in again.items() if k != "sim3_rig_to_object"} == {k: v for k, v in first.items() if k != "sim3_rig_to_object"}
+    np.testing.assert_allclose(back.sim3_rig_to_object.matrix(), res.sim3_rig_to_object.matrix(), atol=1e-12)  # Sim3 re-orthonormalises
+    metric = write_capture(tmp_path / "metric", frames, meta={"units": "m"})
+    with pytest.raises(RegistrationError, match="registered with no metric scale, but the capture at .* states 1 m per rig unit"):
+        RegistrationResult.from_dict(doc, capture=metric)
+    fewer = write_capture(tmp_path / "fewer", frames[:3])
+    with pytest.raises(RegistrationError, match="registers 4 camera views but the capture at .* has 3"):
+        RegistrationResult.from_dict(doc, capture=fewer)
+    with pytest.raises(RegistrationError, match="has no 'per_view_iou'"):
+        RegistrationResult.from_dict({k: v for k, v in doc.items() if k != "per_view_iou"})
+    with pytest.raises(RegistrationError, match="registers model 'gear', which is not in the library"):
+        RegistrationResult.from_dict({**doc, "model_id": "gear"}, library=lib)
