@@ -33,10 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+from benchmarks._common import RESULTS, SHARED
+
 RIG_SCENES = SHARED / "rig_scenes"
-RESULTS = REPO / "benchmarks" / "results"
 SCENES = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane",
           "033_spatula", "077_rubiks_cube", "061_foam_brick")
 SURFACE_SAMPLES = 20_000
