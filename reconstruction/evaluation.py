@@ -391,6 +391,7 @@ def run_protocol(
     *,
     preset: str = "cpu",
     views: Sequence[int] | None = None,
+    pose_mode: str | None = None,
     init: str = "cad",
     ablations: Sequence[str] = (),
     overrides: Mapping[str, Any] | None = None,
@@ -405,13 +406,15 @@ def run_protocol(
     log: Callable[[str], None] | None = None,
     heldout_progress: Callable[[int, int], None] | None = None,
 ) -> ProtocolResult:
-    """Reconstruct the twin of `capture` into `out_dir`, score it on held-out views, and (with `gt`, the
-    synthetic rig's gt.json dict) measure its registration error against the truth.
+    """The whole protocol: reconstruct the twin of the capture at `capture` into `out_dir`, score it on the
+    held-out capture at `heldout` (`evaluate_twin`, nominal and after `refine_steps` of test-time
+    refinement) and, with `gt` (the synthetic rig's gt.json dict), measure its registration error
+    against the truth, modulo `symmetries` (object-frame transforms the object maps onto itself).
 
-    With `reuse`, a twin already in `out_dir` is scored instead of trained again. The engine's arguments
-    (`preset` ... `seed`, `progress`, `log`, `overwrite`) go to `pipeline.reconstruct`. `heldout_views`:
-    how many views of `heldout`, evenly spread (`select_views`), or their indices; all when None.
-    `heldout_progress` is called with (0, V) when scoring starts, then with (views done, V).
+    preset, views, pose_mode, init, ablations, overrides, seed, progress, log and overwrite go to
+    `pipeline.reconstruct`; with `reuse`, a twin already in `out_dir` is scored instead of trained again.
+    heldout_views: how many held-out views, evenly spread (`select_views`), or their indices; all when None.
+    heldout_progress is called with (0, V) when scoring starts, then with (views done, V).
     """
     from reconstruction.pipeline import reconstruct
 
@@ -419,8 +422,8 @@ def run_protocol(
     t0 = time.perf_counter()
     rec = None
     if not (reuse and os.path.exists(os.path.join(out, "twin.json"))):
-        rec = reconstruct(capture, library, out, preset=preset, views=views, seed=seed, progress=progress, log=log,
-                          overwrite=overwrite, init=init, ablations=ablations, overrides=overrides)
+        rec = reconstruct(capture, library, out, preset=preset, views=views, pose_mode=pose_mode, seed=seed, progress=progress,
+                          log=log, overwrite=overwrite, init=init, ablations=ablations, overrides=overrides)
     twin = load_twin(out) if rec is None else rec.twin
     trained_s = time.perf_counter() - t0
 
