@@ -7,6 +7,9 @@ refinement: per view, only an SE(3) delta of that camera learns (`PoseCorrection
 mode) against the view's own photograph with the twin frozen, under the training loss of one view
 (L1 + D-SSIM on RGB with the photograph composited on the render's background, plus the L1 mask
 loss on alpha). The twin's arrays are only read: refinement cannot fit the twin to held-out views.
+
+`run_protocol` is the whole harness the demo and the benchmarks share: reconstruct a capture, score the
+twin on held-out views, measure its registration error against ground truth; one `ProtocolResult`.
 """
 
 from __future__ import annotations
@@ -353,7 +356,7 @@ def evaluate_twin(
     return report
 
 
-@dataclass
+@dataclass(frozen=True)
 class ProtocolResult:
     """One run of the protocol: the twin, how it scored on held-out views and how well it registered.
 
