@@ -158,9 +158,9 @@ def run_demo(root: Path, work: Path, *, preset: str = "cpu", heldout_views: int 
             bar.update(tasks[stage], completed=it)
 
         def scoring(done: int, total: int) -> None:
-            if done == 0:  # training is over: its bars stop where they ended
+            if done == 0:  # training is over: its bars stop where they ended (the display closes on leaving `with`)
                 finish_stages()
-                bar.stop()
+                bar.live.stop()
 
         run = run_protocol(root / manifest.get("train", "train"), root / manifest.get("heldout", "heldout"), work / "library",
                            work / "twin", preset=preset, heldout_views=heldout_views, refine_steps=0, gt=gt,
