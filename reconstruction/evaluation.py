@@ -432,7 +432,8 @@ def run_protocol(
 
     t0 = time.perf_counter()
     held = read_capture(heldout)
-    idx = select_views(len(held), heldout_views) if heldout_views is None or isinstance(heldout_views, int) else list(heldout_views)
+    count = heldout_views is None or isinstance(heldout_views, (int, np.integer))
+    idx = select_views(len(held), heldout_views) if count else [int(i) for i in heldout_views]
     images, masks, cams = load_views(held, idx)
     if heldout_progress:
         heldout_progress(0, len(idx))
@@ -442,7 +443,8 @@ def run_protocol(
     reg_init = reg_refined = reg_raw = None
     if gt is not None:
         train_c2w = np.stack([f.camera.c2w for f in read_capture(capture).frames])
-        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]), symmetries)
+        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]),
+                                       symmetries)
         reg_refined = report["registration"]
         reg_raw = registration_report(*gt_train_poses(twin.cameras, gt)[:2])
     return ProtocolResult(
