@@ -23,8 +23,11 @@ demo: env
 test: env
 	$(PY) -m pytest -n 2 --timeout=900 -q
 
+# The quick benchmarks (minutes; no shared data needed): each rewrites its table in benchmarks/results/.
+# The others: python -m benchmarks.bench_<thing> --help.
 bench: env
-	$(PY) benchmarks/run_all.py
+	$(PY) -m benchmarks.bench_acquisition
+	$(PY) -m benchmarks.bench_calibration
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

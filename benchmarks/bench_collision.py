@@ -15,13 +15,13 @@ Prints a markdown table and writes benchmarks/results/collision.md and collision
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks._common import RESULTS, SHARED, load_line
 from simulation.asset import load_mesh_asset
 from simulation.collision import (
     DEFAULT_TOLERANCE,
@@ -39,9 +39,6 @@ from simulation.mjcf import BodySpec, write_mjcf_package
 from simulation.run import load_model, rest_report, simulate
 from simulation.scene import euler_xyz_to_quat, resting_position
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-SHARED = REPO.parent / "shared" / "data"
 YCB = ["011_banana", "033_spatula", "037_scissors", "043_phillips_screwdriver", "050_medium_clamp", "061_foam_brick", "072-c_toy_airplane", "077_rubiks_cube"]
 PARTS = {
     "1002_tray_bottom.STL": "mm", "ADIS16480.STL": "m", "angle_block.STL": "in", "counter.unitsmm.STL": None,
@@ -100,7 +97,7 @@ def main() -> None:
                 "lowest_mm": 1e3 * rep.lowest_height, "support_mm": 1e3 * rep.support_margin, "sim_s": sim_s,
             })
             print(f"{name}: hull {100 * hull_err:.1f}%, {prim.kind} {100 * prim_err:.1f}%, CoACD {rows[-1]['pieces']} pieces {100 * dec_err:.1f}% in {dec_s:.1f} s", flush=True)
-    table = render_table(rows, opts, f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end")
+    table = render_table(rows, opts, f"{load_line()} at the end")
     print(table)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "collision.md").write_text(table)

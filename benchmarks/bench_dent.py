@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import time
 from datetime import datetime, timezone
@@ -23,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
+from benchmarks._common import REPO, RESULTS, load_line
+
 SOURCE = REPO / "sample" / "object" / "050_medium_clamp.obj"
 MODEL_ID = "clamp"
 
@@ -217,7 +216,7 @@ def main() -> None:
     res = run(work, preset=args.preset, depth_mm=args.depth_mm, radius_mm=args.radius_mm, tolerance_mm=args.tolerance,
               max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen)
     print(json.dumps(res, indent=1))
-    load = "1-min load average {:.1f} on {} cores".format(os.getloadavg()[0], os.cpu_count())
+    load = f"1-min {load_line()}"
     print(write_markdown(res, load, args.out or RESULTS / f"dent_{args.preset}.md"))
     print(f"captures, twins and reports: {work}")
 

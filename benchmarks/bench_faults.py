@@ -24,11 +24,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks._common import RESULTS
 from tests.deploy.test_faults import _captures, _keeper_flow, _run_rig, _Steps
 from tests.faultfs import FaultyDisk
 from tests.killing import REPO, cadsplat, job_statuses, reported, run_until_killed, store_after_kill, work_after_kill
 
-RESULTS = Path(__file__).resolve().parent / "results"
 TRIGGERS = 3  # captures per write-site run, after the reference
 
 

@@ -18,15 +18,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
-DATA = Path(os.environ.get("CADSPLAT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "rig_scenes"
+from benchmarks._common import RESULTS, SHARED, load_line
+
+DATA = SHARED / "rig_scenes"
 SAMPLES = 20_000
 
 
@@ -180,7 +180,7 @@ def main() -> None:
         rows.append(row)
     if not rows:
         raise SystemExit(f"no twins found under {args.twins}")
-    load = "1-min load average {:.1f} on {} cores".format(os.getloadavg()[0], os.cpu_count())
+    load = f"1-min {load_line()}"
     tiles = [r.pop("figure") for r in rows if "figure" in r]
     if tiles:
         from calibration.fileio import atomic_write_png

@@ -35,17 +35,15 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from benchmarks._common import RESULTS, SHARED
 from calibration.capture import read_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from reconstruction.library import build_library, load_library
 from reconstruction.registration import known_part_register, register, rig_up
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 SCENES = SHARED / "rig_scenes" / "scenes"
 LIB_SRC = SHARED / "rig_scenes" / "library"
-RESULTS = REPO / "benchmarks" / "results"
 # Acceptance: pose and model-surface errors below this % of the bounding-sphere diameter.
 PASS_PCT = 3.0
 # Surface samples for the closest-point distances (enough for a 0.1 % -of-diameter resolution).

@@ -1,6 +1,6 @@
 """The reference benchmark: the engine on the path-traced rig captures of `shared/data/rig_scenes`.
 
-    .venv/bin/python -m benchmarks.bench_rig_scenes [--scenes A,B] [--variant NAME] [--preset cpu]
+    python -m benchmarks.bench_rig_scenes [--scenes A,B] [--variant NAME] [--preset cpu]
         [--views all|5|3] [--pose-mode global|per_camera] [--override KEY=JSON ...] [--vanilla ITERS ...]
         [--refine-steps N] [--work DIR] [--report-only]
 
@@ -33,10 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+from benchmarks._common import RESULTS, SHARED
+
 RIG_SCENES = SHARED / "rig_scenes"
-RESULTS = REPO / "benchmarks" / "results"
 SCENES = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane",
           "033_spatula", "077_rubiks_cube", "061_foam_brick")
 SURFACE_SAMPLES = 20_000
@@ -98,19 +97,25 @@ def views_for(gt: dict, n: int, views: str) -> list[int]:
     return list(range(n)) if views == "all" else [int(i) for i in gt["subsets"][views]]
 
 
-def score_twin(twin, scene: Path, gt: dict, idx: list[int], refine_steps: int, cad_frame: bool) -> dict:
-    """Held-out metrics (nominal and refined), training-pose and geometry scores of one twin."""
-    from calibration.capture import load_views, read_capture
-    from reconstruction.evaluation import evaluate_twin
+def score_heldout(scene: Path, twin_dir: Path, args, library: Path | None = None, **engine) -> tuple:
+    """The protocol on the scene's held-out views (nominal and refined); trains the twin first (against
+    `library`, with the engine's arguments) unless `twin_dir` holds one.
+    Returns (twin, {mean, mean_refined, num_splats})."""
+    from reconstruction.evaluation import run_protocol
 
-    held = read_capture(scene / "heldout")
-    images, masks, cams = load_views(held)
-    report = evaluate_twin(twin, cams, images, masks, refine_steps=refine_steps)
-    doc = {"mean": report["mean"], "mean_refined": report.get("mean_refined"), "num_splats": int(twin.num_splats)}
-    if not cad_frame:
-        return doc
+    run = run_protocol(scene / "train", scene / "heldout", library, twin_dir, refine_steps=args.refine_steps, seed=args.seed,
+                       reuse=True, overwrite=True, **engine)
+    return run.twin, {"mean": run.mean, "mean_refined": run.mean_refined, "num_splats": int(run.twin.num_splats)}
+
+
+def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int]) -> dict:
+    """Training-pose (registration and trained), Sim(3) and geometry scores of a CAD-frame twin."""
     import trimesh
 
+    from calibration.capture import read_capture
+    from calibration.sim3 import Sim3
+
+    doc = {}
     true_mesh = trimesh.load(scene / "gt_mesh.ply", process=False)
     diameter = 2.0 * float(gt["object"]["bounding_sphere_radius_m"])
     pts = surface_points(np.asarray(true_mesh.vertices), np.asarray(true_mesh.faces), POSE_SAMPLES)
@@ -122,8 +127,6 @@ def score_twin(twin, scene: Path, gt: dict, idx: list[int], refine_steps: int, c
     doc["pose_registration"] = pose_scores(registered, truth, pts, diameter)
     doc["pose_trained"] = pose_scores(trained, truth, pts, diameter)
     doc["sim3_scale"] = float(twin.sim3_rig_to_object.scale)
-    from calibration.sim3 import Sim3
-
     true_sim3 = Sim3.from_dict(gt["sim3_rig_to_object"])
     doc["sim3_adds_pct"] = {"registration": sim3_add_s_pct(twin.sim3_rig_to_object_init, true_sim3, pts, diameter),
                             "twin": sim3_add_s_pct(twin.sim3_rig_to_object, true_sim3, pts, diameter)}
@@ -135,9 +138,6 @@ def score_twin(twin, scene: Path, gt: dict, idx: list[int], refine_steps: int, c
 
 
 def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
-    from reconstruction.pipeline import reconstruct
-    from reconstruction.twin import load_twin
-
     key = f"{args.variant}-{args.preset}-v{args.views}"
     cache = work / "runs" / key / f"{scene.name}-r{args.refine_steps}.json"
     if cache.exists():
@@ -145,16 +145,13 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     gt = json.loads((scene / "gt.json").read_text())
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
-    twin_dir = work / "twins" / key / scene.name
-    if not (twin_dir / "twin.json").exists():
-        overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
-        reconstruct(scene / "train", lib, twin_dir, preset=args.preset, views=idx, pose_mode=args.pose_mode, seed=args.seed,
-                    overwrite=True, overrides=overrides or None)
-    twin = load_twin(twin_dir)
+    overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
+    twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
+                                 pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
            "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
            "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0],
-           **score_twin(twin, scene, gt, idx, args.refine_steps, cad_frame=True)}
+           **scores, **pose_and_geometry_scores(twin, scene, gt, idx)}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -163,7 +160,7 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
 def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
     from calibration.capture import load_views, read_capture
     from reconstruction.baselines import VanillaConfig, train_vanilla_3dgs, vanilla_twin
-    from reconstruction.twin import load_twin, save_twin
+    from reconstruction.twin import save_twin
 
     key = f"vanilla-i{iterations}-v{args.views}"
     cache = work / "runs" / key / f"{scene.name}-r{args.refine_steps}.json"
@@ -177,9 +174,9 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
         images, masks, cams = load_views(train, idx)
         result = train_vanilla_3dgs(images, masks, cams, VanillaConfig().scaled(iterations), seed=args.seed)
         save_twin(vanilla_twin(result, cams, [str(train.frames[i].camera_id) for i in idx]), twin_dir, overwrite=True)
-    twin = load_twin(twin_dir)
+    twin, scores = score_heldout(scene, twin_dir, args)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "load": os.getloadavg()[0], **score_twin(twin, scene, gt, idx, args.refine_steps, cad_frame=False)}
+           "load": os.getloadavg()[0], **scores}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc

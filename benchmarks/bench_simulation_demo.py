@@ -17,7 +17,6 @@ frame_last.png, contacts.png, exploded.png}.
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import time
 from dataclasses import replace
@@ -25,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._common import REPO, RESULTS, SHARED, load_line
 from calibration.camera import Camera, look_at_c2w
 from calibration.fileio import atomic_write_png
 from calibration.so3 import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
@@ -37,9 +37,7 @@ from simulation.parts import explode
 from simulation.run import load_model, simulate
 from simulation.scene import CameraSpec, Placement
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared" / "data"
-OUT = REPO / "benchmarks" / "results" / "simulation_demo"
+OUT = RESULTS / "simulation_demo"
 CLAMP, SCREWDRIVER = "050_medium_clamp", "043_phillips_screwdriver"
 DROP_HEIGHT = 0.06  # m between the clamp's top and the screwdriver's lowest point
 SCREW_TURN = matrix_to_quat(axis_angle_to_matrix(np.array([0.0, 0.0, np.deg2rad(35.0)])) @ axis_angle_to_matrix(np.array([np.deg2rad(8.0), 0.0, 0.0])))
@@ -121,7 +119,7 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
         "# Physics demo: the screwdriver twin dropped onto the clamp twin, against the same drop with the true meshes\n",
         f"Twins from the engine's rig_scenes run; true meshes = rig_scenes gt_mesh.ply (same object frames). ABS density, "
         f"{DROP_HEIGHT * 100:.0f} cm drop, screwdriver turned 35 deg and tilted 8 deg over the clamp's centre, {duration:g} s at 1 ms steps, "
-        f"MuJoCo {__import__('mujoco').__version__}. Load: load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n",
+        f"MuJoCo {__import__('mujoco').__version__}. Load: {load_line()}.\n",
         "| body | run | mass kg | collision | shapes | vol. err | Hausdorff mm | collision s |",
         "|---|---|---:|---|---:|---:|---:|---:|",
     ]

@@ -1,7 +1,7 @@
 """Synthetic rig speed: render time per view against image size (flat background vs backdrop), and
 the wall time of a full `synth_dataset` (9 train + 36 held-out views).
 
-    .venv/bin/python benchmarks/bench_synthetic.py [--mesh PATH]
+    python -m benchmarks.bench_synthetic [--mesh PATH]
 
 Prints markdown tables; writes benchmarks/results/synthetic.md and synthetic_render.png.
 """
@@ -16,10 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from rig.synthetic import SyntheticScene, load_textured_mesh, ring_rig, synth_dataset  # noqa: E402
+from benchmarks._common import REPO, RESULTS
+from rig.synthetic import SyntheticScene, load_textured_mesh, ring_rig, synth_dataset
 
 SIZES = [(160, 120), (320, 240), (640, 480), (1280, 960)]
 
@@ -40,7 +38,7 @@ def time_renders(scene: SyntheticScene, size: tuple[int, int], n: int = 8) -> fl
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", type=Path, default=REPO / "sample" / "object" / "050_medium_clamp.obj")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 

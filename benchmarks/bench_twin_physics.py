@@ -31,6 +31,7 @@ import numpy as np
 import trimesh
 from pxr import Usd, UsdPhysics
 
+from benchmarks._common import REPO, RESULTS, SHARED, load_line
 from simulation.export import export_glb
 from simulation.asset import repair_mesh
 from simulation.collision import DecompositionOptions
@@ -39,9 +40,7 @@ from simulation.mjcf import SimOptions, write_mjcf_package
 from simulation.run import SimulationError, load_model
 from simulation.usd import write_usd
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-RIG_SCENES = REPO.parent / "shared" / "data" / "rig_scenes"
+RIG_SCENES = SHARED / "rig_scenes"
 VOXEL_M = 1e-3
 
 
@@ -166,7 +165,7 @@ def main() -> None:
             print(f"{scene}: mass {100 * r['mass_vs_true']:+.1f}% vs true ({100 * r['mass_vs_twin']:+.2f}% vs twin), "
                   f"{r['col_kind']} {r['hulls']} hulls {100 * r['col_err']:+.1f}%, {r['col_s']:.0f} s", flush=True)
             # The table so far after every twin: a long run cut short still leaves its rows.
-            table = render_table(rows, f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores after the last row")
+            table = render_table(rows, f"{load_line()} after the last row")
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(table)
     print(table)

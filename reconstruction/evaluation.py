@@ -7,19 +7,25 @@ refinement: per view, only an SE(3) delta of that camera learns (`PoseCorrection
 mode) against the view's own photograph with the twin frozen, under the training loss of one view
 (L1 + D-SSIM on RGB with the photograph composited on the render's background, plus the L1 mask
 loss on alpha). The twin's arrays are only read: refinement cannot fit the twin to held-out views.
+
+`run_protocol` is the whole harness the demo and the benchmarks share: reconstruct a capture, score the
+twin on held-out views, measure its registration error against ground truth; one `ProtocolResult`.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from calibration.camera import Camera
+from calibration.capture import load_views, read_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import geodesic_angle_deg
 from reconstruction.gaussians import WHITE, Gaussians, camera_batch, render
@@ -27,7 +33,9 @@ from reconstruction.losses import composite, mask_l1, photometric_loss
 from reconstruction.metrics import image_metrics
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.pose_metrics import registration_errors
+from reconstruction.registration import RegistrationResult
 from reconstruction.symmetry import NearSymmetry, near_symmetries
+from reconstruction.twin import Twin, load_twin
 
 PAPER_REFINE_STEPS = 400
 REFINE_LR = 5e-4  # the paper's pose-correction learning rate (Table "Hyperparameters")
@@ -305,3 +313,101 @@ def evaluate_twin(
         report["registration"] = {"cameras": cam_names, **registration_report(est, ref, symmetries)}
     report["timings_s"]["total"] = time.perf_counter() - t0
     return report
+
+
+@dataclass(frozen=True)
+class ProtocolResult:
+    """One run of the protocol: the twin, how it scored on held-out views and how well it registered.
+
+    registration: the engine's `RegistrationResult` (None when an existing twin was scored).
+    heldout_views: indices into the held-out capture. report: `evaluate_twin`'s report.
+    With ground truth (else None), registration errors of the training cameras (`registration_report`):
+    reg_init at the retrieval's Sim(3), before training, over every view of the training capture;
+    reg_refined at the trained twin's cameras, modulo the given symmetries; reg_raw the same without them.
+    timings_s: reconstruct (the twin's own total; the wall time when it records none), evaluate (wall).
+    """
+
+    twin: Twin
+    registration: RegistrationResult | None
+    heldout_views: list[int]
+    report: dict
+    reg_init: dict | None
+    reg_refined: dict | None
+    reg_raw: dict | None
+    timings_s: dict[str, float]
+
+    @property
+    def mean(self) -> dict[str, float | None]:
+        return self.report["mean"]
+
+    @property
+    def mean_refined(self) -> dict[str, float | None] | None:
+        return self.report.get("mean_refined")
+
+
+def run_protocol(
+    capture: str | os.PathLike,
+    heldout: str | os.PathLike,
+    library: str | os.PathLike | None,
+    out_dir: str | os.PathLike,
+    *,
+    preset: str = "cpu",
+    views: Sequence[int] | None = None,
+    pose_mode: str | None = None,
+    init: str = "cad",
+    ablations: Sequence[str] = (),
+    overrides: Mapping[str, Any] | None = None,
+    seed: int = 0,
+    heldout_views: int | Sequence[int] | None = None,
+    refine_steps: int = PAPER_REFINE_STEPS,
+    gt: dict | None = None,
+    symmetries: Sequence[np.ndarray] | None = None,
+    reuse: bool = False,
+    overwrite: bool = False,
+    progress: Callable[[str, int, int, float], None] | None = None,
+    log: Callable[[str], None] | None = None,
+    heldout_progress: Callable[[int, int], None] | None = None,
+) -> ProtocolResult:
+    """The whole protocol: reconstruct the twin of the capture at `capture` into `out_dir`, score it on the
+    held-out capture at `heldout` (`evaluate_twin`, nominal and after `refine_steps` of test-time
+    refinement) and, with `gt` (the synthetic rig's gt.json dict), measure its registration error
+    against the truth, modulo `symmetries` (object-frame transforms the object maps onto itself).
+
+    preset, views, pose_mode, init, ablations, overrides, seed, progress, log and overwrite go to
+    `pipeline.reconstruct`; with `reuse`, a twin already in `out_dir` is scored instead of trained again.
+    heldout_views: how many held-out views, evenly spread (`select_views`), or their indices; all when None.
+    heldout_progress is called with (0, V) when scoring starts, then with (views done, V).
+    """
+    from reconstruction.pipeline import reconstruct
+
+    out = os.fspath(out_dir)
+    t0 = time.perf_counter()
+    rec = None
+    if not (reuse and os.path.exists(os.path.join(out, "twin.json"))):
+        rec = reconstruct(capture, library, out, preset=preset, views=views, pose_mode=pose_mode, seed=seed, progress=progress,
+                          log=log, overwrite=overwrite, init=init, ablations=ablations, overrides=overrides)
+    twin = load_twin(out) if rec is None else rec.twin
+    trained_s = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    held = read_capture(heldout)
+    count = heldout_views is None or isinstance(heldout_views, (int, np.integer))
+    idx = select_views(len(held), heldout_views) if count else [int(i) for i in heldout_views]
+    images, masks, cams = load_views(held, idx)
+    if heldout_progress:
+        heldout_progress(0, len(idx))
+    report = evaluate_twin(twin, cams, images, masks, names=[held.frames[i].camera_id for i in idx], refine_steps=refine_steps,
+                           gt=gt, symmetries=symmetries, progress=heldout_progress)
+    evaluate_s = time.perf_counter() - t0
+    reg_init = reg_refined = reg_raw = None
+    if gt is not None:
+        train_c2w = np.stack([f.camera.c2w for f in read_capture(capture).frames])
+        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]),
+                                       symmetries)
+        reg_refined = report["registration"]
+        reg_raw = registration_report(*gt_train_poses(twin.cameras, gt)[:2])
+    return ProtocolResult(
+        twin=twin, registration=None if rec is None else rec.registration, heldout_views=idx, report=report,
+        reg_init=reg_init, reg_refined=reg_refined, reg_raw=reg_raw,
+        timings_s={"reconstruct": float(twin.timings_s.get("total", trained_s)), "evaluate": evaluate_s},
+    )

@@ -138,7 +138,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     # same offset and the pose had to be frozen beside it.
     fc = FieldConfig(depth=depth, width=width, bands=10, num_anchors=anchors, anchor_k=4, project_similarity=True)
     choices["deformation"] = _choice(asdict(fc), f"MLP {depth}x{width} evaluated at {anchors} farthest-point anchors and "
-                                                 f"blended to the {n} splats (see benchmarks/reconstruction.py); its rigid "
+                                                 f"blended to the {n} splats (see benchmarks/bench_reconstruction.py); its rigid "
                                                  f"(and, without a metric rig, similarity) component projected out")
     # Preview's Stage II gets 80 iterations: at 40 the rim had not saturated yet (sample, lambda_fill 1.5:
     # held-out fgPSNR 26.8 dB at 40, 27.6 dB at 80; the stage takes ~20-40 s more on 2 cores).

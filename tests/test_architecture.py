@@ -93,7 +93,6 @@ def test_no_package_imports_a_package_above_it():
     assert upward == []
 
 
-@pytest.mark.xfail(strict=True, reason="benchmarks become a package with helper 15A's branch")
 def test_benchmarks_do_not_edit_sys_path():
     edits = [f"{p.relative_to(REPO)}:{i}" for p in sorted((REPO / "benchmarks").rglob("*.py"))
              for i, line in enumerate(p.read_text().splitlines(), start=1) if "sys.path" in line]

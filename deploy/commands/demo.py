@@ -20,7 +20,7 @@ PLAUSIBLE_EXTENT_M = (0.002, 5.0)
 
 
 class SampleError(ValueError):
-    """A sample directory that is not what `make_sample.py` writes; one sentence naming the file."""
+    """A sample directory that is not what `benchmarks.bench_make_sample` writes; one sentence naming the file."""
 
 
 def bundled_sample_dir() -> Path:
@@ -134,11 +134,9 @@ def run_demo(root: Path, work: Path, *, preset: str = "cpu", heldout_views: int 
     """library -> register -> reconstruct -> render held-out views -> metrics against the sample's truth."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calibration.capture import load_views
     from deploy.commands.reconstruct import STAGE_TITLES
-    from reconstruction.evaluation import evaluate_twin, registration_report, select_views
+    from reconstruction.evaluation import run_protocol
     from reconstruction.library import build_library
-    from reconstruction.pipeline import reconstruct
 
     manifest = _read_json(root / "sample.json")
     gt = _read_json(root / manifest.get("gt", "gt.json"))
@@ -149,29 +147,27 @@ def run_demo(root: Path, work: Path, *, preset: str = "cpu", heldout_views: int 
     tasks: dict[str, int] = {}
     with Progress(TextColumn("{task.description:<30}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as bar:
 
+        def finish_stages() -> None:
+            for task in tasks.values():
+                bar.update(task, total=bar.tasks[task].completed)
+
         def progress(stage: str, it: int, cap: int, loss: float) -> None:
             if stage not in tasks:
-                for other in tasks.values():
-                    bar.update(other, total=bar.tasks[other].completed)
+                finish_stages()
                 tasks[stage] = bar.add_task(STAGE_TITLES.get(stage, stage), total=cap)
             bar.update(tasks[stage], completed=it)
 
-        rec = reconstruct(root / manifest.get("train", "train"), work / "library", work / "twin", preset=preset,
-                          progress=progress, log=lambda m: bar.console.print(f"  {m}"))
-        for task in tasks.values():
-            bar.update(task, total=bar.tasks[task].completed)
-    twin = rec.twin
-    timings["reconstruct"] = twin.timings_s["total"]
-    t = time.perf_counter()
-    held = read_capture(root / manifest.get("heldout", "heldout"))
-    idx = select_views(len(held), heldout_views)
-    images, masks, cams = load_views(held, idx)
-    report = evaluate_twin(twin, cams, images, masks, refine_steps=0, gt=gt)
-    timings["evaluate"] = time.perf_counter() - t
-    init_c2w = np.stack([twin.sim3_rig_to_object_init.apply_to_c2w(f.camera.c2w) for f in read_capture(root / "train").frames])
-    reg_init = registration_report(init_c2w, np.array(gt["train_c2w_object"]))
-    return {"twin": twin, "registration": rec.registration, "metrics": report["mean"], "heldout_views": len(idx),
-            "reg_init": reg_init, "reg_refined": report["registration"], "timings_s": timings,
+        def scoring(done: int, total: int) -> None:
+            if done == 0:  # training is over: its bars stop where they ended (the display closes on leaving `with`)
+                finish_stages()
+                bar.live.stop()
+
+        run = run_protocol(root / manifest.get("train", "train"), root / manifest.get("heldout", "heldout"), work / "library",
+                           work / "twin", preset=preset, heldout_views=heldout_views, refine_steps=0, gt=gt,
+                           progress=progress, log=lambda m: bar.console.print(f"  {m}"), heldout_progress=scoring)
+    timings |= run.timings_s
+    return {"twin": run.twin, "registration": run.registration, "metrics": run.mean, "heldout_views": len(run.heldout_views),
+            "reg_init": run.reg_init, "reg_refined": run.reg_refined, "timings_s": timings,
             "true_model_id": manifest["true_model_id"]}
 
 

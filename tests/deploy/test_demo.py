@@ -77,3 +77,37 @@ def test_mask_that_misses_the_object_is_caught(sample_copy):
 def test_missing_sample_dir_is_one_sentence(tmp_path, capsys):
     assert main(["demo", "--sample", str(tmp_path / "nope")]) != 0
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_demo_runs_the_shared_protocol_and_prints_its_record(tmp_path, monkeypatch, capsys):
+    """`cadsplat demo` = library + `run_protocol` (12 held-out views, no refinement, the sample's truth);
+    its figures are the record's. The protocol itself is tested in tests/reconstruction/test_evaluation.py."""
+    from types import SimpleNamespace
+
+    from reconstruction.evaluation import ProtocolResult
+
+    calls = []
+
+    def protocol(capture, heldout, library, out_dir, **kw):
+        calls.append((capture, heldout, library, out_dir, kw))
+        twin = SimpleNamespace(model_id="medium_clamp_cad", num_splats=1234)
+        reg = {"rotation_deg_median": 1.25, "center_pct_median": 2.5}
+        return ProtocolResult(twin=twin, registration=None, heldout_views=list(range(12)),
+                              report={"mean": {"fgpsnr": 28.33, "iou": 0.984, "psnr": 28.31}}, reg_init=reg,
+                              reg_refined={"rotation_deg_median": 0.99, "center_pct_median": 1.11}, reg_raw=None,
+                              timings_s={"reconstruct": 60.0, "evaluate": 5.0})
+
+    monkeypatch.setattr("reconstruction.evaluation.run_protocol", protocol)
+    monkeypatch.setattr("reconstruction.library.build_library", lambda *a, **k: None)
+    assert main(["demo", "--work", str(tmp_path / "work")]) == 0
+    out = capsys.readouterr().out
+    (capture, heldout, library, twin_dir, kw), = calls
+    root = bundled_sample_dir()
+    work = tmp_path / "work"
+    assert (capture, heldout, library, twin_dir) == (root / "train", root / "heldout", work / "library", work / "twin")
+    assert kw["heldout_views"] == 12 and kw["refine_steps"] == 0 and kw["preset"] == "cpu"
+    assert kw["gt"] == json.loads((root / "gt.json").read_text())
+    assert "Retrieved 'medium_clamp_cad' (the true model); twin of 1234 splats, preset cpu." in out
+    assert "Held-out views (12): fgPSNR 28.33 dB, IoU 0.984, object-crop PSNR 28.31 dB." in out
+    assert "1.25 deg / 2.50 % after retrieval, 0.99 deg / 1.11 % after reconstruction" in out
+    assert "reconstruction 60 s, evaluation 5 s" in out

@@ -1,6 +1,6 @@
 """CPU rasterizer speed: forward+backward ms per iteration against a tiled pure-PyTorch rasterizer.
 
-    .venv/bin/python benchmarks/rasterizer.py [--mesh PATH] [--sizes 256 512] [--counts 10000 ...]
+    python -m benchmarks.bench_rasterizer [--mesh PATH] [--sizes 256 512] [--counts 10000 ...]
 
 Gaussians are sampled on a real mesh (YCB banana from ../shared/data when present, else an icosphere),
 flattened along the surface normal, with the camera zoomed so the object covers ~30% of the image.
@@ -30,12 +30,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks._common import REPO, RESULTS, SHARED
+from reconstruction.render import rasterize
 
-from reconstruction.render import rasterize  # noqa: E402
-
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 DEFAULT_MESH = SHARED / "objects" / "ycb" / "011_banana" / "textured.obj"
 TARGET_COVERAGE = 0.30
 # Floating-point operations per shaded (pixel, Gaussian) pair, an FMA counting as 2: forward ~60
@@ -304,7 +301,7 @@ def main() -> int:
     ap.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     ap.add_argument("--counts", type=int, nargs="+", default=[10_000, 20_000, 50_000, 200_000, 600_000])
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "rasterizer.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "rasterizer.md")
     ap.add_argument("--one", nargs=4, metavar=("SIZE", "N", "FOCAL", "TORCH_ITERS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
@@ -322,8 +319,8 @@ def main() -> int:
         for n in args.counts:
             torch_iters = 3 if n <= 20_000 else 1
             one = [str(size), str(n), str(focal), str(torch_iters)]
-            cmd = [sys.executable, __file__, "--mesh", str(args.mesh), "--one", *one]
-            out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+            cmd = [sys.executable, "-m", "benchmarks.bench_rasterizer", "--mesh", str(args.mesh), "--one", *one]
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env, cwd=REPO).stdout
             row = json.loads(out.strip().splitlines()[-1])
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -1,7 +1,7 @@
 """Reconstruction benchmark (issue 5): the cost-vs-accuracy figures behind the `cpu` preset's choices,
 and the `cpu` preset end to end on shared objects.
 
-    .venv/bin/python benchmarks/reconstruction.py [--quick] [--objects N] [--work DIR]
+    python -m benchmarks.bench_reconstruction [--quick] [--objects N] [--work DIR]
 
 1. Deformation field: fit a known smooth warp (a few mm on the CAD model of the sample's clamp)
    with the paper's 8x256 MLP at every splat, and with narrower nets evaluated at farthest-point
@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,16 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks._common import REPO, RESULTS, SHARED, decimate
+from calibration.camera import look_at_c2w
+from reconstruction.deformation import DeformationField, FieldConfig
+from reconstruction.render import rasterize
+from reconstruction.splats import init_splats
+from reconstruction.mesh_io import read_mesh_parts
 
-from calibration.camera import look_at_c2w  # noqa: E402
-from reconstruction.deformation import DeformationField, FieldConfig  # noqa: E402
-from reconstruction.render import rasterize  # noqa: E402
-from reconstruction.splats import init_splats  # noqa: E402
-from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
-
-RESULTS = REPO / "benchmarks" / "results"
 SAMPLE_CAD = REPO / "sample" / "library_meshes" / "medium_clamp_cad.ply"
 OBJECTS = ["050_medium_clamp", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane"]
 
@@ -105,19 +102,14 @@ def batching_sweep(n_splats: int, reps: int) -> list[dict]:
 
 
 def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100) -> list[dict]:
-    from calibration.capture import load_views, read_capture
-    import os
-
     import trimesh
 
-    from reconstruction.evaluation import evaluate_twin, gt_train_poses, registration_report, select_views
-    from reconstruction.symmetry import near_symmetries
+    from reconstruction.evaluation import run_protocol
     from reconstruction.library import build_library
-    from reconstruction.pipeline import reconstruct
-    from reconstruction.twin import load_twin
+    from reconstruction.symmetry import near_symmetries
     from rig.synthetic import synth_dataset
 
-    shared = REPO.parent / "shared" / "data" / "objects" / "ycb"
+    shared = SHARED / "objects" / "ycb"
     rows = []
     for obj in OBJECTS[:n]:
         mesh = shared / obj / "textured.obj"
@@ -126,15 +118,9 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
             synth_dataset(mesh, scene, views=9, heldout=36, size=(320, 240), seed=1, calib_noise_deg=0.3, calib_noise_mm=2.0)
         lib_meshes = work / f"{obj}_meshes"
         if not lib_meshes.exists():
-            import trimesh
-
             lib_meshes.mkdir()
-            m = trimesh.load(mesh, force="mesh", process=False)
             # The "CAD" is a decimated copy of the scanned object (the photographed mesh is never in the library).
-            import fast_simplification
-
-            v, f = fast_simplification.simplify(np.asarray(m.vertices, np.float32), np.asarray(m.faces), target_reduction=0.85)
-            trimesh.Trimesh(v, f, process=False).export(lib_meshes / f"{obj}_cad.ply")
+            decimate(trimesh.load(mesh, force="mesh", process=False), 0.15).export(lib_meshes / f"{obj}_cad.ply")
             for other in (REPO / "sample" / "library_meshes").glob("*.ply"):
                 if "clamp" not in other.name or "clamp" not in obj:
                     shutil.copy(other, lib_meshes / other.name)
@@ -142,34 +128,24 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
         if not lib.exists():
             build_library(lib_meshes, lib, progress=False, log=lambda _m: None)
         gt = json.loads((scene / "gt.json").read_text())
-        twin_dir = work / f"{obj}_twin"
-        if not (reuse and (twin_dir / "twin.json").exists()):
-            reconstruct(scene / "train", lib, twin_dir, preset="cpu", overwrite=True)
-        twin = load_twin(twin_dir)
-        held = read_capture(scene / "heldout")
-        images, masks, cams = load_views(held, select_views(len(held), 12))
         # Errors modulo the object's near-symmetries: turns that move its surface by less than the rig's
         # calibration noise moves a camera (the poses neither silhouettes nor a simulator can tell apart).
         tol_m = 1e-3 * gt["calib_noise"]["sigma_mm"]
         m = trimesh.load(mesh, force="mesh", process=False)
         near = near_symmetries(np.asarray(m.vertices), np.asarray(m.faces), tol_m)
-        sym = [s.transform for s in near]
         # The paper's protocol: with and without test-time refinement (per-camera pose delta, twin frozen).
-        rep = evaluate_twin(twin, cams, images, masks, refine_steps=refine_steps, gt=gt, symmetries=sym)
-        init = registration_report(
-            np.stack([twin.sim3_rig_to_object_init.apply_to_c2w(f.camera.c2w) for f in read_capture(scene / "train").frames]),
-            np.array(gt["train_c2w_object"]), sym)
-        raw = registration_report(*gt_train_poses(twin.cameras, gt)[:2])
-        t = twin.timings_s
+        run = run_protocol(scene / "train", scene / "heldout", lib, work / f"{obj}_twin", preset="cpu", heldout_views=12,
+                           refine_steps=refine_steps, gt=gt, symmetries=[s.transform for s in near], reuse=reuse, overwrite=True)
+        twin, t = run.twin, run.twin.timings_s
         iters = twin.choices["iterations"]["value"]
         rows.append({
             "object": obj, "model": twin.model_id, "splats": twin.num_splats, "wall_s": t["total"],
             "register_s": t["registration"], "pose_s": t["train_pose"], "deform_s": t["train_deform"], "photo_s": t["train_photo"],
-            "iters": iters, "load": os.getloadavg()[0], "fgpsnr": rep["mean"]["fgpsnr"], "iou": rep["mean"]["iou"],
-            "fgpsnr_refined": rep["mean_refined"]["fgpsnr"], "iou_refined": rep["mean_refined"]["iou"],
-            "rot_init": init["rotation_deg_median"], "ctr_init": init["center_pct_median"],
-            "rot": rep["registration"]["rotation_deg_median"], "ctr": rep["registration"]["center_pct_median"],
-            "rot_raw": raw["rotation_deg_median"], "ctr_raw": raw["center_pct_median"],
+            "iters": iters, "load": os.getloadavg()[0], "fgpsnr": run.mean["fgpsnr"], "iou": run.mean["iou"],
+            "fgpsnr_refined": run.mean_refined["fgpsnr"], "iou_refined": run.mean_refined["iou"],
+            "rot_init": run.reg_init["rotation_deg_median"], "ctr_init": run.reg_init["center_pct_median"],
+            "rot": run.reg_refined["rotation_deg_median"], "ctr": run.reg_refined["center_pct_median"],
+            "rot_raw": run.reg_raw["rotation_deg_median"], "ctr_raw": run.reg_raw["center_pct_median"],
             "symmetry": _symmetry_label(near, tol_m), "pose_mode": twin.choices["pose_mode"]["value"],
             "ambiguity": "yes" if (twin.choices["registration"]["value"].get("ambiguity") or {}).get("ambiguous") else "no",
         })

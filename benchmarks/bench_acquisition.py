@@ -7,7 +7,7 @@ Triggers are software events fired back to back (the next one as soon as the pre
 committed), so captures/s is the sustained rate of the store. The synthetic MuJoCo rig's render
 cost per trigger is reported separately (`--render`).
 
-    .venv/bin/python benchmarks/acquisition.py [--captures 20] [--render]
+    python -m benchmarks.bench_acquisition [--captures 20] [--render]
 
 Prints a markdown table and writes benchmarks/results/acquisition.md and acquisition.png.
 """
@@ -22,16 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks._common import RESULTS
+from rig.acquisition import Acquisition, Thresholds, agree_photometry
+from rig.camera import CameraSettings
+from rig.store import CaptureStore
+from rig.synthetic_driver import PatternCamera
+from rig.triggers import SoftwareTrigger
 
-from rig.acquisition import Acquisition, Thresholds, agree_photometry  # noqa: E402
-from rig.camera import CameraSettings  # noqa: E402
-from rig.store import CaptureStore  # noqa: E402
-from rig.synthetic_driver import PatternCamera  # noqa: E402
-from rig.triggers import SoftwareTrigger  # noqa: E402
-
-RESULTS = REPO / "benchmarks" / "results"
 W, H = 640, 480
 
 

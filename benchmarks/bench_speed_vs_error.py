@@ -1,6 +1,6 @@
 """Speed against error (issue 6): the method's presets, its ablations and the baselines, one harness.
 
-    .venv/bin/python benchmarks/speed_vs_error.py [--quick] [--work DIR] [--scenes N] [--refine-steps N]
+    python -m benchmarks.bench_speed_vs_error [--quick] [--work DIR] [--scenes N] [--refine-steps N]
 
 Scenes: the synthetic rig (rig.synthetic, MuJoCo) photographs real YCB meshes from ../shared/data
 (9-13 train views, 320x240, 0.3 deg / 2 mm calibration noise, 36 held-out orbit views). The CAD
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -42,12 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.append(str(REPO / "benchmarks"))  # after the packages: benchmarks/calibration.py must not shadow calibration/
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+from benchmarks._common import RESULTS, SHARED, decimate, deform, engine_kwargs
+
 YCB = SHARED / "objects" / "ycb"
-RESULTS = REPO / "benchmarks" / "results"
 OBJECTS = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane", "033_spatula",
            "077_rubiks_cube", "061_foam_brick")
 VIEW_COUNTS = ("all", 8, 5, 3)
@@ -73,7 +69,6 @@ class Run:
 
 def make_scene(work: Path, index: int, obj: str) -> Path:
     """Synthetic rig capture of `obj` + its CAD library (one deformed, decimated variant); cached."""
-    from registration import decimate, deform  # benchmarks/registration.py: the same CAD variants
     import trimesh
 
     from reconstruction.library import build_library
@@ -103,25 +98,7 @@ def fps_views(centres: np.ndarray, k: int, seed: int) -> list[int]:
     return sorted(chosen)
 
 
-# ------------------------------------------------------------------------------------ engine switches
-
-
-def engine_kwargs(method: str, preset: str, cuda: bool) -> dict:
-    """`pipeline.reconstruct` keyword arguments for a method: ablations and the sphere init are engine
-    switches; the `paper` preset runs its iterations / 30 on a CPU."""
-    from reconstruction.presets import ABLATIONS, PAPER
-
-    kw: dict = {}
-    if method == "sphere-init":
-        kw["init"] = "sphere"
-    elif method in ABLATIONS:
-        kw["ablations"] = [method]
-    elif method != "full":
-        raise ValueError(f"unknown method {method!r}")
-    if preset == "paper" and not cuda:
-        kw["overrides"] = {"iters_pose": PAPER.iters_pose // 30, "iters_deform": PAPER.iters_deform // 30,
-                           "iters_photo": PAPER.iters_photo // 30, "dropout_anneal": PAPER.dropout_anneal // 30}
-    return kw
+# ------------------------------------------------------------------------------------ symmetries
 
 
 def scene_symmetries(scene_dir: Path, gt: dict) -> list[np.ndarray]:
@@ -149,8 +126,8 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
 
     from calibration.capture import load_views, read_capture
     from calibration.fileio import atomic_write_json
-    from reconstruction.evaluation import evaluate_twin, gt_train_poses, registration_report, select_views
-    from reconstruction.twin import load_twin, save_twin
+    from reconstruction.evaluation import run_protocol
+    from reconstruction.twin import save_twin
 
     cache = work / "runs" / f"{run.key}-r{args.refine_steps}-h{args.heldout_views}.json"
     if cache.exists():
@@ -159,9 +136,9 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
     centres = np.stack([f.camera.c2w[:3, 3] for f in train.frames])
     idx = list(range(len(train))) if run.views == "all" else fps_views(centres, int(run.views), seed=args.seed)
     twin_dir = work / "twins" / run.key
-    t0 = time.perf_counter()
-    if not (twin_dir / "twin.json").exists():
-        if run.method == "vanilla-3dgs":
+    engine: dict = {}  # the baseline is trained here; run_protocol then scores its twin (reuse)
+    if run.method == "vanilla-3dgs":
+        if not (twin_dir / "twin.json").exists():
             from reconstruction.baselines import VanillaConfig, train_vanilla_3dgs, vanilla_twin
 
             images, masks, cams = load_views(train, idx)
@@ -169,30 +146,19 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
             result = train_vanilla_3dgs(images, masks, cams, cfg, seed=args.seed)
             names = [train.frames[i].camera_id for i in idx]
             save_twin(vanilla_twin(result, cams, names), twin_dir, overwrite=True)
-        else:
-            from reconstruction.pipeline import reconstruct
-
-            reconstruct(scene_dir / "train", scene_dir / "lib", twin_dir, preset=run.preset, views=idx, seed=args.seed,
-                        overwrite=True, **engine_kwargs(run.method, run.preset, torch.cuda.is_available()))
-    train_wall = time.perf_counter() - t0
-    twin = load_twin(twin_dir)
-    held = read_capture(scene_dir / "heldout")
-    hidx = select_views(len(held), args.heldout_views)
-    images, masks, cams = load_views(held, hidx)
+    else:
+        engine = {"preset": run.preset, **engine_kwargs(run.method, run.preset, torch.cuda.is_available())}
     gt = json.loads((scene_dir / "gt.json").read_text())
-    report = evaluate_twin(twin, cams, images, masks, refine_steps=args.refine_steps,
-                           gt=gt if run.method in CAD_FRAME_METHODS else None)
-    reg_sym = {}
-    if run.method in CAD_FRAME_METHODS:
-        est, ref, _ = gt_train_poses(twin.cameras, gt)
-        full = registration_report(est, ref, scene_symmetries(scene_dir, gt))
-        reg_sym = {k: v for k, v in full.items() if k.endswith("median")}
+    cad_frame = run.method in CAD_FRAME_METHODS
+    result = run_protocol(scene_dir / "train", scene_dir / "heldout", scene_dir / "lib", twin_dir, views=idx, seed=args.seed,
+                          heldout_views=args.heldout_views, refine_steps=args.refine_steps, gt=gt if cad_frame else None,
+                          symmetries=scene_symmetries(scene_dir, gt) if cad_frame else None, reuse=True, overwrite=True, **engine)
     doc = {
-        "run": run.__dict__, "train_views": idx, "heldout_views": hidx, "refine_steps": args.refine_steps,
-        "train_wall_s": float(twin.timings_s.get("total", train_wall)), "num_splats": twin.num_splats,
-        "mean": report["mean"], "mean_refined": report.get("mean_refined"), "eval_timings_s": report["timings_s"],
-        "registration": {k: v for k, v in report.get("registration", {}).items() if k.endswith("median")},
-        "registration_near_symmetric": reg_sym,
+        "run": run.__dict__, "train_views": idx, "heldout_views": result.heldout_views, "refine_steps": args.refine_steps,
+        "train_wall_s": result.timings_s["reconstruct"], "num_splats": result.twin.num_splats,
+        "mean": result.mean, "mean_refined": result.mean_refined, "eval_timings_s": result.report["timings_s"],
+        "registration": {k: v for k, v in (result.reg_raw or {}).items() if k.endswith("median")},
+        "registration_near_symmetric": {k: v for k, v in (result.reg_refined or {}).items() if k.endswith("median")},
     }
     cache.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(cache, doc)
@@ -225,7 +191,7 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         r = d["run"]
         groups.setdefault((r["method"], r["preset"], str(r["views"])), []).append(d)
     lines = [
-        "# Speed against error (benchmarks/speed_vs_error.py)",
+        "# Speed against error (python -m benchmarks.bench_speed_vs_error)",
         "",
         f"{'--quick: ' if args.quick else ''}{len({d['run']['scene'] for d in docs})} synthetic rig scenes (YCB meshes, 320x240, "
         f"0.3 deg / 2 mm calibration noise, deformed+decimated CAD), {args.heldout_views} held-out views each, metrics "

@@ -1,6 +1,6 @@
 """Registration benchmark (issue 4): consensus vs independent matching, grid choice, library scale.
 
-    python -m benchmarks.registration [--quick] [--scenes-only] [--work DIR]
+    python -m benchmarks.bench_registration [--quick] [--scenes-only] [--work DIR]
 
 1. Library: every shared YCB object as a "CAD" variant (decimated to 30% and smoothly deformed,
    so the true model is never the photographed mesh), plus distractors: stretched, scaled and
@@ -31,6 +31,7 @@ import numpy as np
 
 import trimesh
 
+from benchmarks._common import RESULTS, SHARED, decimate, deform
 from calibration.capture import read_capture, rig_metres_per_unit
 from calibration.so3 import geodesic_angle_deg
 from calibration.units import UNIT_TO_M
@@ -40,14 +41,11 @@ from reconstruction.registration import hypothesis, independent_poses, observe, 
 from reconstruction.silhouette import pack, render_silhouette, unpack
 from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, popcount_rows, read_shard, render_model_views, write_shard
 
-REPO = Path(__file__).resolve().parents[1]
 # The synthetic rig renders off-screen (set before rig.synthetic imports MuJoCo).
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 YCB = SHARED / "objects" / "ycb"
 PARTS = SHARED / "cad" / "parts"
-RESULTS = REPO / "benchmarks" / "results"
 # Units of the shared CAD parts, declared after inspection (exact inch fractions / mm / m sizes).
 PART_UNITS = {
     "1002_tray_bottom.STL": "mm", "ADIS16480.STL": "m", "angle_block.STL": "in", "featuretype.STL": "in",
@@ -68,27 +66,6 @@ def cube_group() -> list[np.ndarray]:
 
 
 SYMMETRIES = {"077_rubiks_cube": cube_group(), "061_foam_brick": [np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]}
-
-
-def decimate(mesh: trimesh.Trimesh, keep: float) -> trimesh.Trimesh:
-    import fast_simplification
-
-    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32), target_reduction=1.0 - keep)
-    return trimesh.Trimesh(v.astype(np.float64), f, process=False)
-
-
-def deform(mesh: trimesh.Trimesh, amplitude: float, seed: int) -> trimesh.Trimesh:
-    """Smooth deformation: a sum of low-frequency sinusoids, `amplitude` x the model radius at most."""
-    rng = np.random.default_rng(seed)
-    v = mesh.vertices
-    c = v.mean(0)
-    r = float(np.linalg.norm(v - c, axis=1).max())
-    out = v.copy()
-    for _ in range(3):
-        k = rng.normal(size=3) / r * 1.5
-        a = rng.normal(size=3)
-        out += amplitude * r / 3 * np.outer(np.sin((v - c) @ k + rng.uniform(0, 2 * np.pi)), a / np.linalg.norm(a))
-    return trimesh.Trimesh(out, mesh.faces, process=False)
 
 
 def make_meshes(work: Path, distractors_per_object: int) -> dict[str, list[str]]:

@@ -1,6 +1,6 @@
 """Real photographs (issue 6 part 4): NeRS MVMC car 7246694387 and NeRS espresso, leave-one-out.
 
-    .venv/bin/python benchmarks/real_photos.py [--quick] [--preset cpu] [--refine-steps N] [--work DIR]
+    python -m benchmarks.bench_real_photos [--quick] [--preset cpu] [--refine-steps N] [--work DIR]
 
 Each set is converted to a capture (calibration.import_ners: the car's `camera_optimized`
 PyTorch3D cameras; the espresso machine's rough azimuth/elevation made into look-at poses), both
@@ -18,19 +18,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.append(str(REPO / "benchmarks"))  # after the packages: benchmarks/calibration.py must not shadow calibration/
-SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+from benchmarks._common import RESULTS, SHARED, engine_kwargs
+
 NERS = SHARED / "real" / "ners"
-RESULTS = REPO / "benchmarks" / "results"
 PUBLISHED = {"NeRS (20 cars, fixed optimized cameras)": (16.5, 0.720, 0.172),
              "CADSplat paper (20 cars)": (18.7, 0.767, 0.157)}
 
@@ -50,12 +46,9 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     """Train on every view but `held` (sphere init, per-camera poses), score `held`; cached."""
     import torch
 
-    from calibration.capture import load_views, read_capture
+    from calibration.capture import read_capture
     from calibration.fileio import atomic_write_json
-    from reconstruction.evaluation import evaluate_twin
-    from reconstruction.pipeline import reconstruct
-    from reconstruction.twin import load_twin
-    from speed_vs_error import engine_kwargs
+    from reconstruction.evaluation import run_protocol
 
     cache = work / "folds" / capture_dir.name / f"{args.preset}-r{args.refine_steps}-{held:02d}.json"
     if cache.exists():
@@ -66,18 +59,12 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     sizes = [(f.camera.width, f.camera.height) for f in capture.frames]
     common = max(set(sizes), key=sizes.count)
     train_idx = [i for i in range(len(capture)) if i != held and sizes[i] == common]
-    twin_dir = work / "twins" / capture_dir.name / f"{args.preset}-{held:02d}"
-    t0 = time.perf_counter()
-    if not (twin_dir / "twin.json").exists():
-        reconstruct(capture_dir, None, twin_dir, preset=args.preset, views=train_idx, overwrite=True,
-                    **engine_kwargs("sphere-init", args.preset, torch.cuda.is_available()))
-    train_s = time.perf_counter() - t0
-    twin = load_twin(twin_dir)
-    images, masks, cams = load_views(capture, [held])
-    report = evaluate_twin(twin, cams, images, masks, names=[capture.frames[held].camera_id], refine_steps=args.refine_steps)
-    doc = {"held": held, "train_views": train_idx, "skipped_sizes": [i for i in range(len(capture)) if sizes[i] != common], "pose_mode": twin.pose_mode, "num_splats": twin.num_splats,
-           "train_s": float(twin.timings_s.get("total", train_s)), "mean": report["mean"], "mean_refined": report.get("mean_refined"),
-           "refine": report["views"][0].get("refine", {})}
+    run = run_protocol(capture_dir, capture_dir, None, work / "twins" / capture_dir.name / f"{args.preset}-{held:02d}",
+                       preset=args.preset, views=train_idx, heldout_views=[held], refine_steps=args.refine_steps, reuse=True,
+                       overwrite=True, **engine_kwargs("sphere-init", args.preset, torch.cuda.is_available()))
+    doc = {"held": held, "train_views": train_idx, "skipped_sizes": [i for i in range(len(capture)) if sizes[i] != common], "pose_mode": run.twin.pose_mode, "num_splats": run.twin.num_splats,
+           "train_s": run.timings_s["reconstruct"], "mean": run.mean, "mean_refined": run.mean_refined,
+           "refine": run.report["views"][0].get("refine", {})}
     doc["refine"].pop("c2w_object", None)
     cache.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(cache, doc)
@@ -105,7 +92,7 @@ def main() -> None:
 
     t0 = time.perf_counter()
     lines = [
-        "# Real photographs: NeRS MVMC car 7246694387 and NeRS espresso (benchmarks/real_photos.py)",
+        "# Real photographs: NeRS MVMC car 7246694387 and NeRS espresso (python -m benchmarks.bench_real_photos)",
         "",
         f"Leave-one-out over the photos{f' (folds scored: {args.folds})' if args.folds else ''}: train on the others with the "
         f"`{args.preset}` preset, sphere initialisation (no CAD model of these objects here) and per-camera pose correction; "

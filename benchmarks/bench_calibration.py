@@ -1,34 +1,32 @@
 """Calibration benchmark: time, RMS and cross-validation diff against the number of board views;
 extrinsic error on a synthetic 4-camera rig; drift-check time per camera; OpenCV's real photographs.
 
-    .venv/bin/python benchmarks/calibration.py
+    python -m benchmarks.bench_calibration
+
 Prints markdown tables and writes benchmarks/results/calibration.md and calibration.png.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._common import RESULTS, SHARED
+from calibration.board import detect_board, parse_board
+from calibration.calibfile import CalibrationDoc
+from calibration.camera import invert_rigid
+from calibration.drift import CHEAP, THOROUGH
+from calibration.intrinsics import calibrate_intrinsics
+from calibration.keeper import KeeperConfig, assess
+from calibration.multiview import calibrate_rig
+from calibration.simulated import render_planes, rig_board_views, rig_frame_scene, ring_rig, sensor
+from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg
 
-from calibration.board import detect_board, parse_board  # noqa: E402
-from calibration.calibfile import CalibrationDoc  # noqa: E402
-from calibration.camera import invert_rigid  # noqa: E402
-from calibration.drift import CHEAP, THOROUGH  # noqa: E402
-from calibration.intrinsics import calibrate_intrinsics  # noqa: E402
-from calibration.keeper import KeeperConfig, assess  # noqa: E402
-from calibration.multiview import calibrate_rig  # noqa: E402
-from calibration.simulated import render_planes, rig_board_views, rig_frame_scene, ring_rig, sensor  # noqa: E402
-from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg  # noqa: E402
-
-OUT = Path(__file__).resolve().parent / "results"
 SPEC = parse_board("charuco:11x8:0.025:0.015:DICT_5X5_100")
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
+CALIBRATION_DATA = SHARED / "calibration"
 
 
 def table(head: list[str], rows: list[list]) -> str:
@@ -88,15 +86,15 @@ def drift_timing() -> str:
 
 def real_images() -> str:
     rows = []
-    if (SHARED / "opencv_chessboard").exists():
+    if (CALIBRATION_DATA / "opencv_chessboard").exists():
         spec = parse_board("chessboard:9x6:0.025")
         for side, ref in (("left", 0.409), ("right", 0.459)):
-            dets = {p.name: detect_board(spec, cv2.imread(str(p))) for p in sorted((SHARED / "opencv_chessboard").glob(f"{side}*.jpg"))}
+            dets = {p.name: detect_board(spec, cv2.imread(str(p))) for p in sorted((CALIBRATION_DATA / "opencv_chessboard").glob(f"{side}*.jpg"))}
             r = calibrate_intrinsics(dets, (640, 480))
             rows.append([f"OpenCV chessboard {side} (13 views)", r.rms_px, ref, f"fx {r.camera.K[0, 0]:.1f} fy {r.camera.K[1, 1]:.1f}"])
-    if (SHARED / "charuco").exists():
+    if (CALIBRATION_DATA / "charuco").exists():
         spec = parse_board("charuco:5x7:0.04:0.02:DICT_6X6_250")
-        dets = {i: detect_board(spec, cv2.imread(str(SHARED / "charuco" / f"img_0{i}.jpg"))) for i in range(4)}
+        dets = {i: detect_board(spec, cv2.imread(str(CALIBRATION_DATA / "charuco" / f"img_0{i}.jpg"))) for i in range(4)}
         r = calibrate_intrinsics(dets, (640, 480))
         k = r.camera.K
         ref = (452.51, 456.77, 317.70 + 0.5, 277.75 + 0.5)
@@ -106,12 +104,13 @@ def real_images() -> str:
 
 
 def main() -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
     sweep_md, rows = views_sweep()
     parts = ["## Real photographs", real_images(), "## Synthetic 4-camera rig: views sweep", sweep_md, "## Drift check (0.1 deg knock on cam2)", drift_timing()]
     text = "\n\n".join(parts) + "\n"
     print(text)
-    (OUT / "calibration.md").write_text(text)
+    (RESULTS / "calibration.md").write_text(text)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -131,7 +130,7 @@ def main() -> None:
     axes[2].set(xlabel="board views per camera")
     axes[2].legend()
     fig.tight_layout()
-    fig.savefig(OUT / "calibration.png", dpi=100)
+    fig.savefig(RESULTS / "calibration.png", dpi=100)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Regenerate the bundled sample (`sample/`) from the shared YCB scans and CAD parts.
 
-    .venv/bin/python benchmarks/make_sample.py [--shared ../shared/data] [--force]
+    python -m benchmarks.bench_make_sample [--shared ../shared/data] [--force]
 
 What it makes (all deterministic):
   sample/object/           the physical object: YCB 050_medium_clamp's scan (OBJ as published,
@@ -27,13 +27,11 @@ import fast_simplification
 import numpy as np
 import trimesh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file  # noqa: E402
-from calibration.units import UNIT_TO_M  # noqa: E402
-from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
-from rig.synthetic import synth_dataset  # noqa: E402
+from benchmarks._common import REPO, SHARED
+from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file
+from calibration.units import UNIT_TO_M
+from reconstruction.mesh_io import read_mesh_parts
+from rig.synthetic import synth_dataset
 
 OBJECT = "050_medium_clamp"
 TRUE_MODEL_ID = "medium_clamp_cad"
@@ -114,7 +112,7 @@ README = """# The bundled sample
 
 A small synthetic capture of a real scanned object and a small CAD library, used by `cadsplat demo`
 (and its tests) so a fresh clone works without `../shared`. Regenerate with
-`.venv/bin/python benchmarks/make_sample.py --force` (needs `../shared/data`).
+`python -m benchmarks.bench_make_sample --force` (needs `../shared/data`).
 
 - `object/`: the "physical" object, YCB **050_medium_clamp** (google_16k scan, metres). Texture
   downscaled to 1024 px.
@@ -161,7 +159,7 @@ def build(shared: Path, dst: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--shared", type=Path, default=SHARED)
     ap.add_argument("--out", type=Path, default=REPO / "sample")
     ap.add_argument("--force", action="store_true", help="replace an existing sample")
     args = ap.parse_args()

@@ -1,0 +1,61 @@
+"""What the benchmark scripts share: where the repository, its results and the shared data live, the
+load line their tables state, the CAD variants of the synthetic scenes (decimated, smoothly deformed)
+and the engine switches of each evaluated method."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def load_line() -> str:
+    """'load average 3.2 on 2 cores': the 1-minute load, to read timings taken on a shared machine."""
+    return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+
+
+def decimate(mesh: trimesh.Trimesh, keep: float) -> trimesh.Trimesh:
+    """`mesh` simplified to the fraction `keep` of its faces."""
+    import fast_simplification
+
+    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32), target_reduction=1.0 - keep)
+    return trimesh.Trimesh(v.astype(np.float64), f, process=False)
+
+
+def deform(mesh: trimesh.Trimesh, amplitude: float, seed: int) -> trimesh.Trimesh:
+    """Smooth deformation: a sum of low-frequency sinusoids, `amplitude` x the model radius at most."""
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices
+    c = v.mean(0)
+    r = float(np.linalg.norm(v - c, axis=1).max())
+    out = v.copy()
+    for _ in range(3):
+        k = rng.normal(size=3) / r * 1.5
+        a = rng.normal(size=3)
+        out += amplitude * r / 3 * np.outer(np.sin((v - c) @ k + rng.uniform(0, 2 * np.pi)), a / np.linalg.norm(a))
+    return trimesh.Trimesh(out, mesh.faces, process=False)
+
+
+def engine_kwargs(method: str, preset: str, cuda: bool) -> dict:
+    """`pipeline.reconstruct` keyword arguments for a method (full | an ablation of `presets.ABLATIONS` |
+    sphere-init): ablations and the sphere init are engine switches; the `paper` preset runs its
+    iterations / 30 on a CPU."""
+    from reconstruction.presets import ABLATIONS, PAPER
+
+    kw: dict = {}
+    if method == "sphere-init":
+        kw["init"] = "sphere"
+    elif method in ABLATIONS:
+        kw["ablations"] = [method]
+    elif method != "full":
+        raise ValueError(f"unknown method {method!r}")
+    if preset == "paper" and not cuda:
+        kw["overrides"] = {"iters_pose": PAPER.iters_pose // 30, "iters_deform": PAPER.iters_deform // 30,
+                           "iters_photo": PAPER.iters_photo // 30, "dropout_anneal": PAPER.dropout_anneal // 30}
+    return kw
