@@ -6,8 +6,14 @@ whole capture, or a camera down and reconnecting by itself; decided before its f
 nothing is stored, nothing lost), `late` (the trigger waited longer than the part stays in view),
 `dropped` (a duplicate or too-soon trigger), `held` (the store could take neither the capture nor a
 quarantine entry, e.g. it went read-only mid-write: the frames stay in memory and are written as
-soon as it can; `failed` only if the rig stops first) or `reference` (the belt was empty: a new
-empty-rig reference was taken, see rig.reference).
+soon as it can), `spilled` (held until the rig stopped: the capture waits in the spill, see below)
+or `reference` (the belt was empty: a new empty-rig reference was taken, see rig.reference).
+`failed` only when the rig stops with a held capture that the spill could not take either.
+
+A held capture is written to the spill (rig.store.Spill, on another filesystem) at once, not only
+at close: a SIGKILL or power loss while the store is read-only then loses nothing either. Once the
+store takes the capture from memory its spill copy is removed; if the rig stops first, the spill
+copy is what the store imports on its next start.
 
 The empty-rig reference is taken on command (`take_reference`), on schedule (`reference_every_s`,
 while no trigger waits) and whenever a trigger says the belt is empty (payload `belt: "empty"`,
@@ -20,17 +26,18 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from calibration.capture import FrameData
+from calibration.capture import CaptureError, FrameData
 from rig.camera import CameraDriver, CameraError, CameraSettings, Frame
 from rig.reference import ReferenceError
-from rig.store import CaptureStore, StoreError, is_enospc
+from rig.store import CaptureStore, Spill, StoreError, is_enospc
 from rig.triggers import TriggerEvent, TriggerFilter, TriggerSource
 
-OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference", "held")
+OUTCOMES = ("committed", "quarantined", "refused", "late", "dropped", "failed", "reference", "held", "spilled")
 EMPTY_BELT_SEQ = -1  # what cameras are armed with for an empty-rig reference (the simulated rig renders no part)
 
 
@@ -122,9 +129,10 @@ def agree_photometry(cameras: Sequence[CameraDriver], settings: CameraSettings) 
     return locked
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Held:
-    """A capture whose frames the store could not take yet: committed (or quarantined, with `reason`) later."""
+    """A capture whose frames the store could not take yet: committed (or quarantined, with `reason`) later.
+    `spilled`: where its copy in the spill is ('' while it has none); `spill_error`: why it has none."""
 
     event: TriggerEvent
     capture_id: str
@@ -132,6 +140,8 @@ class _Held:
     meta: dict
     backgrounds: dict | None
     quarantine_reason: str = ""
+    spilled: str = ""
+    spill_error: str = ""
 
 
 @dataclass
@@ -155,6 +165,7 @@ class Acquisition:
     backgrounds: dict[str, np.ndarray] = field(default_factory=dict)
     background_id: str = ""
     reference_every_s: float | None = None
+    spill: Spill | None = None  # where held captures go when the store stays unwritable (None: nowhere, they fail at close)
 
     def __post_init__(self) -> None:
         ids = [c.camera_id for c in self.cameras]
@@ -282,7 +293,23 @@ class Acquisition:
 
     def _hold(self, held: _Held, why: str) -> Outcome:
         self.held.append(held)
-        return Outcome("held", held.event, held.capture_id, f"{why}; its frames are kept in memory and written as soon as the store can take them")
+        where = f" (a copy is in the spill at {held.spilled})" if self._spill(held) else ""
+        return Outcome("held", held.event, held.capture_id, f"{why}; its frames are kept in memory{where} and written as soon as the store can take them")
+
+    def _spill(self, held: _Held) -> bool:
+        """Write a held capture to the spill once; False (with `spill_error`) when there is none or it cannot take it."""
+        if held.spilled:
+            return True
+        if self.spill is None:
+            held.spill_error = "no spill directory is configured"
+            return False
+        meta = {**held.meta, "quarantined": held.quarantine_reason} if held.quarantine_reason else held.meta
+        try:
+            held.spilled = str(self.spill.write(held.capture_id, held.data, meta, None if held.quarantine_reason else held.backgrounds))
+        except (OSError, CaptureError) as e:
+            held.spill_error = f"the spill at {self.spill.dir} could not take it either ({getattr(e, 'strerror', None) or e})"
+            return False
+        return True
 
     def flush_held(self) -> list[Outcome]:
         """Write the held captures the store can now take, oldest first; their outcomes replace "held" in the counts."""
@@ -298,6 +325,11 @@ class Acquisition:
                 break
             self.held.pop(0)
             self.counts["held"] -= 1
+            if h.spilled:
+                try:
+                    self.spill.discard(Path(h.spilled))
+                except OSError:
+                    pass  # the store copy verifies: the next import drops the spill copy
             status = "quarantined" if h.quarantine_reason else "committed"
             out.append(self._count(Outcome(status, h.event, h.capture_id, h.quarantine_reason or "written after the store could take it again",
                                            self.clock() - h.event.timestamp_ns)))
@@ -384,7 +416,8 @@ class Acquisition:
                 on_outcome(out)
 
     def close(self) -> list[Outcome]:
-        """Close the cameras; returns what became of the held captures (committed now, or failed: the rig stopped first)."""
+        """Close the cameras; returns what became of the held captures: committed now, else spilled (the store
+        imports them on its next start), else failed (the spill could not take them either)."""
         self._pool.shutdown(wait=True)
         for cam in self.cameras:
             try:
@@ -394,7 +427,11 @@ class Acquisition:
         out = self.flush_held()
         for h in self.held:
             self.counts["held"] -= 1
-            out.append(self._count(Outcome("failed", h.event, h.capture_id, "the rig stopped before the store could be written; its frames are lost")))
+            if self._spill(h):
+                out.append(self._count(Outcome("spilled", h.event, h.capture_id, f"the store stayed unwritable until the rig stopped; the capture waits "
+                                                f"in the spill at {h.spilled} and goes into the store on its next start (or `cadsplat store import-spill`)")))
+            else:
+                out.append(self._count(Outcome("failed", h.event, h.capture_id, f"the rig stopped before the store could be written and {h.spill_error}; its frames are lost")))
         self.held.clear()
         return out
 

@@ -52,8 +52,12 @@ class TriggerConfig:
 
 @dataclass(frozen=True)
 class StorageConfig:
+    """`[storage]`: `spill` is where captures go that the store cannot take (it went read-only) before the rig
+    stops; it must be on another filesystem than `root`. None: rig.store.default_spill_dir()."""
+
     root: Path = Path("captures")
     min_free_gb: float = 1.0
+    spill: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -200,8 +204,13 @@ def _trigger(v: "_Validator", d: dict) -> TriggerConfig:
 
 
 def _storage(v: "_Validator", d: dict, base: Path) -> StorageConfig:
-    v.known(d, "storage", {"root", "min_free_gb"})
-    return StorageConfig(root=base / v.string(d, "storage.root", default="captures"), min_free_gb=v.number(d, "storage.min_free_gb", default=1.0, lo=0.0, hi=1e6))
+    v.known(d, "storage", {"root", "min_free_gb", "spill"})
+    root = base / v.string(d, "storage.root", default="captures")
+    spill = v.string(d, "storage.spill", default="")
+    spill_dir = base / spill if spill else None
+    if spill_dir is not None and Path(os.path.abspath(spill_dir)).is_relative_to(os.path.abspath(root)):
+        raise ConfigError(f"{v.name}: storage.spill must lie outside storage.root (on another filesystem, which stays writable when the store does not)")
+    return StorageConfig(root=root, min_free_gb=v.number(d, "storage.min_free_gb", default=1.0, lo=0.0, hi=1e6), spill=spill_dir)
 
 
 def _thresholds(v: "_Validator", d: dict) -> Thresholds:

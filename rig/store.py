@@ -19,12 +19,18 @@ is above its threshold and holds `.reserve`, a file as large as the capture. Whe
 meets ENOSPC (another process filled the disk), the reserve is released and the write retried, so
 the capture in flight is committed whole; the store says "STOPPED: disk full" and refuses further
 captures (before their frames are taken) until space returns and the reserve can be held again.
+
+A store that cannot be written at all (read-only, I/O error) loses no capture either: the rig
+writes a capture it could not commit into the spill (`Spill`, a directory on another filesystem,
+in this same capture format) and `CaptureStore.import_spill` moves it into the store under its id
+once the store is writable again (the rig's next start, or `cadsplat store import-spill`).
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import errno
+import hashlib
 import json
 import os
 import re
@@ -34,12 +40,13 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from calibration.capture import Capture, CaptureError, FrameData, read_capture, write_capture
-from calibration.fileio import atomic_write_json, fsync_dir
+from calibration.fileio import atomic_write_bytes, atomic_write_json, fsync_dir
 from rig.reference import ReferenceStore
 
 CAPTURES, QUARANTINE, INCOMING, STATE = "captures", "quarantine", ".incoming", "store.json"
 REFERENCES, RESERVE = "references", ".reserve"
 REASON = "reason.json"
+IMPORTING = ".import"  # suffix of a spilled capture being copied into .incoming/ (its source stays in the spill)
 DISK_FULL = "STOPPED: disk full"
 _ID = re.compile(r"^(\d{6,})-\d{8}T\d{6}Z")
 
@@ -280,6 +287,9 @@ class CaptureStore:
             if p.is_file():
                 p.unlink()  # an atomic write's temp file: never published under a real name
                 continue
+            if p.name.endswith(IMPORTING):
+                shutil.rmtree(p)  # a half-copied import: its source is still whole in the spill and is imported again
+                continue
             final = self._free_name(self.root / QUARANTINE / capture_id)
             record = {
                 "capture_id": capture_id,
@@ -324,6 +334,156 @@ class CaptureStore:
     def read(self, capture_id: str) -> Capture:
         """A stored capture, every sha256 verified."""
         return read_capture(self.root / CAPTURES / capture_id, verify=True)
+
+    # ---- the spill ---------------------------------------------------------------------------
+
+    def import_spill(self, spill: "Spill") -> tuple[list[StoredCapture], str]:
+        """Move the spilled captures into the store under their ids, oldest first; (what became of each, and one
+        sentence when the store could not take them all: the rest wait in the spill).
+
+        Each entry is copied into .incoming/, verified, renamed into captures/ (an invalid capture, or a spilled
+        copy that does not verify, into quarantine/ with its reason) and only then removed from the spill. A crash
+        anywhere leaves the entry in the spill and running this again finishes the job: a store copy that is
+        already there and verifies is kept, a half-copied one is deleted when the store opens."""
+        spill.clean()
+        out: list[StoredCapture] = []
+        for src, capture_id, damage in spill.entries():
+            try:
+                out.append(self._import_one(spill, src, capture_id, damage))
+            except (OSError, CaptureError) as e:
+                left = len(spill.entries())
+                return out, (f"could not import spilled capture {capture_id} into {self.root} ({getattr(e, 'strerror', None) or e}); "
+                             f"{left} spilled capture(s) wait in {spill.dir}")
+        return out, ""
+
+    def _import_one(self, spill: "Spill", src: Path, capture_id: str, damage: str) -> StoredCapture:
+        cap = None
+        if not damage:
+            try:
+                cap = read_capture(src, verify=True)
+                if cap.meta.get("capture_id") != capture_id:
+                    raise CaptureError(f"its transforms.json names capture {cap.meta.get('capture_id')!r}")
+            except (CaptureError, OSError, ValueError) as e:
+                damage = f"its spilled copy does not verify ({e})"
+        reason = damage or (cap.meta.get("quarantined", "") if cap is not None else "")
+        final = self.root / CAPTURES / capture_id
+        done = None
+        if reason:
+            done = next((StoredCapture(capture_id, q, "quarantined", reason) for q in sorted((self.root / QUARANTINE).glob(f"{capture_id}*"))
+                         if _reason_record(q).get("spill") == str(src)), None)
+        elif final.exists():
+            try:
+                same = read_capture(final, verify=True).meta.get("sha256") == cap.meta.get("sha256")
+            except (CaptureError, OSError, ValueError):
+                same = False
+            if same:  # imported before a crash that came ahead of the spill entry's removal
+                done = StoredCapture(capture_id, final, "committed", "already in the store")
+            else:
+                reason = f"the store already holds a different capture {capture_id}"
+        if done is None:
+            done = self.with_reserve(lambda: self._copy_in(src, capture_id, reason))
+        spill.discard(src)
+        return done
+
+    def _copy_in(self, src: Path, capture_id: str, reason: str) -> StoredCapture:
+        staging = self.root / INCOMING / f"{capture_id}{IMPORTING}"
+        shutil.rmtree(staging, ignore_errors=True)
+        try:
+            _copy_tree(src, staging)
+            if reason:
+                final = self._free_name(self.root / QUARANTINE / capture_id)
+                atomic_write_json(staging / REASON, {"capture_id": capture_id, "reason": reason, "time_utc": _now_utc(), "spill": str(src)})
+            else:
+                final = self.root / CAPTURES / capture_id
+                read_capture(staging, verify=True)
+            os.rename(staging, final)
+            fsync_dir(final.parent)
+            fsync_dir(staging.parent)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        return StoredCapture(capture_id, final, "quarantined" if reason else "committed", reason)
+
+
+def default_spill_dir() -> Path:
+    """`$XDG_STATE_HOME/cadsplat/spill` (else `~/.local/state/cadsplat/spill`): the user's state, which on an
+    appliance lies on the system disk, not on the store's filesystem (a sibling of the store would go read-only with it)."""
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(state) / "cadsplat" / "spill"
+
+
+DISCARD = ".discard"  # suffix of a spill entry being removed (its store copy verifies)
+_HALF_SPILLED = "left half-written in the spill by an interrupted write (crash, kill or power loss)"
+
+
+class Spill:
+    """Captures a store could not take before the rig stopped, kept for it on another filesystem.
+
+    Layout: `<root>/<store name>-<hash of its absolute path>/<capture id>/`, each entry a capture in the store's
+    own format (calibration.capture, sha256 of every file; `quarantined` in its meta when it was invalid), so
+    one spill directory serves several stores. Nothing is created until the first capture is spilled.
+    """
+
+    def __init__(self, root: str | os.PathLike, store_root: str | os.PathLike) -> None:
+        self.root = Path(root)
+        store = Path(os.path.abspath(store_root))
+        self.dir = self.root / f"{store.name}-{hashlib.sha256(str(store).encode()).hexdigest()[:10]}"
+
+    def write(self, capture_id: str, frames: Sequence[FrameData], meta: dict, backgrounds: dict | None = None) -> Path:
+        """Write one capture atomically (fsynced, read back, verified); raises OSError or CaptureError when the spill cannot take it."""
+        path = self.dir / capture_id
+        write_capture(path, frames, backgrounds=backgrounds, meta={**meta, "capture_id": capture_id})
+        return path
+
+    def entries(self) -> list[tuple[Path, str, str]]:
+        """(path, capture id, damage) of every entry waiting for the store, oldest first; `damage` names a half-written one."""
+        try:
+            names = sorted(os.listdir(self.dir))
+        except FileNotFoundError:
+            return []
+        out = []
+        for name in names:
+            path = self.dir / name
+            if name.endswith(DISCARD) or not path.is_dir():
+                continue
+            m = _ID.match(name.lstrip("."))
+            if name.startswith("."):
+                out.append((path, m.group(0) if m else name.lstrip("."), _HALF_SPILLED))
+            else:
+                out.append((path, name, ""))
+        return out
+
+    def discard(self, entry: Path) -> None:
+        """Remove an entry the store now holds: renamed aside first (one atomic step), then deleted."""
+        gone = entry.with_name(f".{entry.name.lstrip('.')}{DISCARD}")
+        shutil.rmtree(gone, ignore_errors=True)
+        os.rename(entry, gone)
+        fsync_dir(self.dir)
+        shutil.rmtree(gone, ignore_errors=True)
+
+    def clean(self) -> None:
+        """Delete what an interrupted `discard` left."""
+        for p in self.dir.glob(f".*{DISCARD}") if self.dir.is_dir() else ():
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _copy_tree(src: Path, dst: Path) -> None:
+    """Copy a capture directory file by file, each written durably, then make its directories durable."""
+    dirs = [dst, *(dst / d.relative_to(src) for d in sorted(p for p in src.rglob("*") if p.is_dir()))]
+    for d in dirs:
+        os.mkdir(d)
+    for f in sorted(p for p in src.rglob("*") if p.is_file()):
+        atomic_write_bytes(dst / f.relative_to(src), f.read_bytes())
+    for d in reversed(dirs):
+        fsync_dir(d)
+
+
+def _reason_record(entry: Path) -> dict:
+    try:
+        record = json.loads((entry / REASON).read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
 
 
 def _now_utc() -> str:

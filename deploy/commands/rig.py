@@ -3,7 +3,9 @@
 `watch` prints one line per capture on stdout (`committed <id>`, `quarantined <id>: <reason>`,
 ...) only after the capture is durable, and a live status line on stderr. SIGTERM/SIGINT stop it
 after the capture in flight. A full disk prints `STOPPED: disk full ...` once (the refused
-triggers are counted on the status line) and `RESUMED ...` when space returns.
+triggers are counted on the status line) and `RESUMED ...` when space returns. A store that stays
+read-only until the rig stops: its held captures go to the spill (`--spill`, `[storage] spill`)
+and are imported into the store on the next start (`spilled <id>: ...`, then `imported <id>`).
 
 `reference` takes the empty-rig reference (the belt must be empty); the simulated rig takes one
 itself on its first start, and `watch --reference-every S` retakes it on schedule.
@@ -20,6 +22,8 @@ from pathlib import Path
 import click
 
 STORE_HELP = "Capture store directory (default: storage.root of the config)."
+SPILL_HELP = ("Where captures wait when the store cannot be written until the rig stops; on another filesystem than the store "
+              "(default: storage.spill of the config, else $XDG_STATE_HOME/cadsplat/spill).")
 
 
 def _load(config: str | None, simulate: bool):
@@ -36,12 +40,13 @@ def _load(config: str | None, simulate: bool):
 
 
 @contextmanager
-def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None):
-    """Open cameras and store (config or simulated); yields (acquisition, rig closer)."""
+def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None,
+             spill_dir: str | None):
+    """Open cameras and store (config or simulated), importing what waits in the spill; yields the acquisition."""
     from rig.acquisition import Acquisition, Thresholds, open_cameras
     from rig.assembly import build_cameras, build_store, load_rig_calibration, simulated_cameras
     from rig.camera import CameraError, CameraSettings
-    from rig.store import CaptureStore
+    from rig.store import CaptureStore, Spill, default_spill_dir
 
     synthetic = None
     if simulate:
@@ -63,6 +68,12 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
         rig_id, thresholds, settings = cfg.rig_id, cfg.thresholds, cfg.cameras[0].settings
     for r in store.recovered:
         click.echo(f"recovered {r.capture_id}: moved to quarantine ({r.reason})", err=True)
+    spill = Spill(spill_dir or (cfg.storage.spill if cfg is not None and cfg.storage.spill else default_spill_dir()), store.root)
+    imported, problem = store.import_spill(spill)
+    for r in imported:
+        click.echo(f"imported {r.capture_id} from the spill" + (f" into quarantine: {r.reason}" if r.status == "quarantined" else ""))
+    if problem:
+        click.echo(problem, err=True)
     try:
         locked = open_cameras(cameras, settings)
     except CameraError as e:
@@ -72,7 +83,7 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
             synthetic.close()
         raise click.ClickException(str(e)) from None
     acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, calibration_uncertainty=uncertainty, units=units,
-                      thresholds=thresholds, settings=locked)
+                      thresholds=thresholds, settings=locked, spill=spill)
     try:
         if acq.reference_note:
             click.echo(acq.reference_note, err=True)
@@ -94,7 +105,7 @@ def _report(out) -> None:
         click.echo("RESUMED: disk space is back; capturing again")
     if out.status == "committed":
         click.echo(f"committed {out.capture_id}  ({out.latency_ns / 1e6:.0f} ms after trigger {out.trigger.seq})")
-    elif out.status in ("quarantined", "failed", "held"):
+    elif out.status in ("quarantined", "failed", "held", "spilled"):
         click.echo(f"{out.status} {out.capture_id}: {out.reason}")
     elif out.status == "reference":
         click.echo(f"reference {out.capture_id}: empty-rig frames taken ({out.reason})")
@@ -129,6 +140,7 @@ def _common(f):
             click.option("--size", default=(640, 480), show_default=True, type=(click.IntRange(16, 4096), click.IntRange(16, 4096)), help="Simulated image size W H."),
             click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="Simulated part (default: the bundled sample, else a procedural box)."),
             click.option("--min-free-gb", type=click.FloatRange(0), help="Stop capturing below this much free disk."),
+            click.option("--spill", "spill_dir", type=click.Path(file_okay=False), help=SPILL_HELP),
         ]
     ):
         f = opt(f)
@@ -189,12 +201,12 @@ def list_cmd(config: str | None) -> None:
 
 @rig.command()
 @_common
-def capture(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None:
+def capture(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) -> None:
     """Take one software-triggered capture."""
     from rig.triggers import SoftwareTrigger
 
     cfg = _load(config, simulate)
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         out = acq.handle(SoftwareTrigger().fire({"from": "cli"}))
         _report(out)
     if out.status != "committed":
@@ -207,13 +219,13 @@ def capture(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None
 @click.option("--rate", default=0.5, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
 @click.option("--max-captures", type=click.IntRange(1), help="Stop after this many captures (committed or quarantined).")
 @click.option("--reference-every", type=click.FloatRange(1), default=None, help="Retake the empty-rig reference every this many seconds while no trigger waits.")
-def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_kind, rate, max_captures, reference_every) -> None:
+def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir, trigger_kind, rate, max_captures, reference_every) -> None:
     """Capture on every trigger until stopped, with a live status line."""
     from rig.assembly import SimulatedPlc, build_trigger
 
     cfg = _load(config, simulate)
     stop = threading.Event()
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         acq.reference_every_s = reference_every
         if simulate:
             plc = SimulatedPlc(trigger_kind, rate)
@@ -238,10 +250,10 @@ def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, trigger_k
 
 @rig.command()
 @_common
-def reference(config, simulate, store_dir, views, size, mesh, min_free_gb) -> None:
+def reference(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) -> None:
     """Take the empty-rig reference now (the belt must be empty): a new version every capture records."""
     cfg = _load(config, simulate)
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb) as acq:
+    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         out = acq.take_reference("taken on command")
         _report(out)
     if out.status != "reference":

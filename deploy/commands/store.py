@@ -1,8 +1,11 @@
-"""`cadsplat store verify STORE`: every digest of a capture store checked, one line per problem.
+"""`cadsplat store verify | import-spill STORE`: every digest of a capture store checked; the spill emptied into it.
 
-Checks each committed capture against its transforms.json manifest, each quarantine entry for
-its reason, each empty-rig reference version against its digests, and that nothing was left
-half-written. Exit 0 when everything verifies, 1 otherwise.
+`verify` checks each committed capture against its transforms.json manifest, each quarantine entry
+for its reason, each empty-rig reference version against its digests, that nothing was left
+half-written and that no capture waits in the spill. Exit 0 when everything verifies, 1 otherwise.
+
+`import-spill` moves the captures the rig spilled (the store was unwritable until it stopped) into
+the store under their ids, as the rig's next start does; run it with the rig stopped.
 """
 
 from __future__ import annotations
@@ -12,14 +15,18 @@ from pathlib import Path
 import click
 
 
-def verify_store(root: Path) -> tuple[dict, list[str]]:
-    """(counts, problems): one sentence per capture, quarantine entry or reference that does not verify."""
+SPILL_HELP = "The rig's spill directory (default: storage.spill of --config, else $XDG_STATE_HOME/cadsplat/spill)."
+
+
+def verify_store(root: Path, spill_dir: Path | None = None) -> tuple[dict, list[str]]:
+    """(counts, problems): one sentence per capture, quarantine entry or reference that does not verify, and per
+    capture still waiting in the spill (`spill_dir`, default rig.store.default_spill_dir())."""
     from calibration.capture import CaptureError, read_capture
     from rig.reference import ReferenceStore
-    from rig.store import CAPTURES, INCOMING, QUARANTINE, REASON, REFERENCES
+    from rig.store import CAPTURES, INCOMING, QUARANTINE, REASON, REFERENCES, Spill, default_spill_dir
 
     problems: list[str] = []
-    counts = {"captures": 0, "verified": 0, "quarantined": 0, "references": 0}
+    counts = {"captures": 0, "verified": 0, "quarantined": 0, "references": 0, "spilled": 0}
     captures = sorted(p for p in (root / CAPTURES).iterdir() if p.is_dir()) if (root / CAPTURES).is_dir() else []
     for cap in captures:
         counts["captures"] += 1
@@ -42,7 +49,29 @@ def verify_store(root: Path) -> tuple[dict, list[str]]:
     left = [p.name for p in (root / INCOMING).iterdir()] if (root / INCOMING).is_dir() else []
     if left:
         problems.append(f"{root / INCOMING}: {len(left)} half-written entries (opening the store moves them to quarantine)")
+    for path, capture_id, _ in Spill(spill_dir or default_spill_dir(), root).entries():
+        counts["spilled"] += 1
+        problems.append(f"{path}: capture {capture_id} waits in the spill, not yet in the store (`cadsplat store import-spill {root}`)")
     return counts, problems
+
+
+def _spill_dir(spill: Path | None, config: str | None) -> Path:
+    from rig.config import ConfigError, load_config
+    from rig.store import default_spill_dir
+
+    if spill is not None:
+        return spill
+    if config is not None:
+        try:
+            return load_config(config).storage.spill or default_spill_dir()
+        except ConfigError as e:
+            raise click.ClickException(str(e)) from None
+    return default_spill_dir()
+
+
+def _require_store(root: Path) -> None:
+    if not (root / "captures").is_dir():
+        raise click.ClickException(f"{root} is not a capture store (no captures/ folder)")
 
 
 @click.group()
@@ -50,16 +79,49 @@ def store() -> None:
     """The rig's capture store."""
 
 
+_SPILL_OPTIONS = (
+    click.option("--spill", type=click.Path(file_okay=False, path_type=Path), help=SPILL_HELP),
+    click.option("--config", type=click.Path(dir_okay=False), help="rig.toml whose [storage] spill to use."),
+)
+
+
+def _spill_options(f):
+    for opt in reversed(_SPILL_OPTIONS):
+        f = opt(f)
+    return f
+
+
 @store.command()
 @click.argument("root", type=click.Path(path_type=Path))
-def verify(root: Path) -> None:
-    """Check every digest in the capture store ROOT and report."""
-    if not (root / "captures").is_dir():
-        raise click.ClickException(f"{root} is not a capture store (no captures/ folder)")
-    counts, problems = verify_store(root)
+@_spill_options
+def verify(root: Path, spill: Path | None, config: str | None) -> None:
+    """Check every digest in the capture store ROOT and report (and any capture still waiting in the spill)."""
+    _require_store(root)
+    counts, problems = verify_store(root, _spill_dir(spill, config))
     for p in problems:
         click.echo(p)
     click.echo(f"{counts['verified']}/{counts['captures']} captures verify, {counts['quarantined']} quarantined, "
-               f"{counts['references']} empty-rig reference version(s); {len(problems)} problem(s)")
+               f"{counts['references']} empty-rig reference version(s), {counts['spilled']} waiting in the spill; {len(problems)} problem(s)")
     if problems:
         raise click.exceptions.Exit(1)
+
+
+@store.command("import-spill")
+@click.argument("root", type=click.Path(path_type=Path))
+@_spill_options
+def import_spill(root: Path, spill: Path | None, config: str | None) -> None:
+    """Move the captures waiting in the spill into the capture store ROOT under their ids (with the rig stopped)."""
+    from rig.store import CaptureStore, Spill
+
+    _require_store(root)
+    spill_dir = _spill_dir(spill, config)
+    try:
+        store = CaptureStore(root, min_free_bytes=0)
+    except OSError as e:
+        raise click.ClickException(f"cannot open the capture store {root} ({e.strerror or e})") from None
+    imported, problem = store.import_spill(Spill(spill_dir, root))
+    for r in imported:
+        click.echo(f"imported {r.capture_id}" + (f" into quarantine: {r.reason}" if r.status == "quarantined" else ""))
+    click.echo(f"{len(imported)} capture(s) imported from {Spill(spill_dir, root).dir}")
+    if problem:
+        raise click.ClickException(problem)

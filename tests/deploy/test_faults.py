@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from calibration.keeper import Keeper
 from deploy.commands.store import verify_store
 from deploy.jobs import STEPS
 from deploy.service import PipelineService
-from rig.store import CaptureStore
+from rig.store import CaptureStore, Spill
 from rig.triggers import SoftwareTrigger
 from tests.faultfs import FaultyDisk
 from tests.rig.conftest import assert_store_sound, make_acquisition
@@ -25,10 +26,15 @@ from tests.rig.conftest import assert_store_sound, make_acquisition
 TRIGGERS = 2  # per run; benchmarks.bench_faults runs 3
 
 
+def spill_of(root: Path) -> Spill:
+    """The spill the fault runs use: a sibling of the store, outside the faulty disk's root (another filesystem)."""
+    return Spill(root.with_name(f"{root.name}.spill"), root)
+
+
 def _run_rig(root: Path, disk: FaultyDisk, *, heal: bool = False, triggers: int = TRIGGERS) -> tuple[list, object]:
     """A reference and `triggers` captures on pattern cameras under `disk`'s faults; with `heal`, the fault then
-    clears and one more trigger comes (what was held in memory is written then)."""
-    acq = make_acquisition(root)
+    clears and one more trigger comes (what was held in memory is written then). Held captures spill to `spill_of(root)`."""
+    acq = make_acquisition(root, spill=spill_of(root))
     trig = SoftwareTrigger()
     outs = []
     with disk.active():
@@ -99,7 +105,51 @@ def test_erofs_at_every_write_site_holds_the_frames_until_the_store_is_writable(
         assert all("\n" not in o.reason for o in outs)
         settled = [o for o in outs if o.status != "held"]
         _assert_nothing_lost(root, settled)
+        assert spill_of(root).entries() == []  # each spill copy was dropped once the store took the capture
     assert held > 0  # some faults did land mid-capture
+
+
+def _next_start(root: Path) -> list:
+    """What the rig's next start does with the store: reopen it and import what waits in the spill."""
+    imported, problem = CaptureStore(root, min_free_bytes=0).import_spill(spill_of(root))
+    assert problem == ""
+    return imported
+
+
+def test_erofs_until_the_rig_stops_spills_the_held_captures_and_the_next_start_imports_them(tmp_path):
+    """The filesystem goes read-only at each write site in turn and stays so until the rig stops: a capture the
+    fault caught mid-write is spilled (never failed); the next start imports it under its id and `store verify` passes."""
+    n_sites = _rig_sites(tmp_path)
+    spilled = 0
+    for n in range(1, n_sites + 1):
+        root = tmp_path / f"ro-{n}"
+        outs, acq = _run_rig(root, FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True))
+        statuses = [o.status for o in outs]
+        assert "failed" not in statuses and statuses.count("held") == statuses.count("spilled") == acq.counts["spilled"]
+        for o in outs:
+            if o.status == "spilled":
+                assert "\n" not in o.reason and str(spill_of(root).dir) in o.reason
+        spilled += statuses.count("spilled")
+        ids = [o.capture_id for o in outs if o.status == "spilled"]
+        imported = _next_start(root)
+        assert [(r.capture_id, r.status) for r in imported] == [(i, "committed") for i in ids]
+        settled = [o for o in outs if o.status not in ("held", "spilled")] + [o for o in outs if o.status == "spilled"]
+        _assert_nothing_lost(root, [replace(o, status="committed") if o.status == "spilled" else o for o in settled])
+        assert verify_store(root, spill_of(root).root)[1] == [] and _next_start(root) == []
+    assert spilled > 0  # some faults did land mid-capture
+
+
+def test_a_spill_that_cannot_be_written_either_fails_the_capture_in_one_sentence(tmp_path):
+    for n in range(1, _rig_sites(tmp_path) + 1):
+        root = tmp_path / f"ro-{n}"
+        spill_disk = FaultyDisk(spill_of(root).root, fail_at=1, errno_=errno.EROFS, persistent=True)
+        with spill_disk.active():
+            outs, acq = _run_rig(root, FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True))
+        if acq.counts["failed"]:
+            break
+    failed = [o for o in outs if o.status == "failed"]
+    assert failed and acq.counts["spilled"] == 0
+    assert all("\n" not in o.reason and "could not take it either (Read-only file system); its frames are lost" in o.reason for o in failed)
 
 
 def test_store_counter_survives_enospc(tmp_path):
