@@ -451,7 +451,7 @@ class Spill:
                 out.append((path, m.group(0) if m else name.lstrip("."), _HALF_SPILLED))
             else:
                 out.append((path, name, ""))
-        return out
+        return sorted(out, key=lambda e: (e[1], e[0].name))
 
     def discard(self, entry: Path) -> None:
         """Remove an entry the store now holds: renamed aside first (one atomic step), then deleted."""

@@ -11,7 +11,7 @@ import pytest
 import calibration.capture as capture_mod
 from calibration.camera import Camera
 from calibration.capture import FrameData
-from rig.store import CAPTURES, INCOMING, QUARANTINE, STATE, CaptureStore
+from rig.store import CAPTURES, IMPORTING, INCOMING, QUARANTINE, STATE, CaptureStore, Spill
 from tests.rig.conftest import assert_store_sound
 
 
@@ -135,3 +135,75 @@ def test_a_full_tmpfs_loses_no_capture_says_stopped_once_and_resumes(tiny_tmpfs)
     acq.close()
     assert again.status == "committed" and again.state_change == "resumed"
     assert_store_sound(store_root, committed[1:] + [again.capture_id])
+
+
+def _spilled(tmp_path, n: int = 2) -> tuple[CaptureStore, Spill, list[str]]:
+    """A store whose ids were reserved but whose captures went to the spill (the store was read-only)."""
+    store = CaptureStore(tmp_path / "store", min_free_bytes=0)
+    spill = Spill(tmp_path / "spill", store.root)
+    ids = [store.reserve_id() for _ in range(n)]
+    for k, cid in enumerate(ids):
+        spill.write(cid, _frames(seed=k), {"rig_id": "line-3"})
+    return store, spill, ids
+
+
+def test_spilled_captures_are_imported_under_their_ids_and_the_spill_emptied(tmp_path):
+    store, spill, ids = _spilled(tmp_path)
+    assert [cid for _, cid, _ in spill.entries()] == ids and spill.dir.parent == tmp_path / "spill"
+    imported, problem = store.import_spill(spill)
+    assert problem == "" and [(r.capture_id, r.status) for r in imported] == [(i, "committed") for i in ids]
+    assert assert_store_sound(store.root, ids) == ids and store.read(ids[0]).meta["rig_id"] == "line-3"
+    assert spill.entries() == [] and list(spill.dir.iterdir()) == []
+
+
+def test_import_is_idempotent_after_a_crash_between_copy_and_delete(tmp_path, monkeypatch):
+    store, spill, ids = _spilled(tmp_path)
+
+    def crash(_entry):
+        raise KeyboardInterrupt("killed after the store copy, before the spill entry was removed")
+
+    monkeypatch.setattr(spill, "discard", crash)
+    with pytest.raises(KeyboardInterrupt):
+        store.import_spill(spill)
+    monkeypatch.undo()
+    assert store.capture_ids() == ids[:1] and len(spill.entries()) == 2
+    again = CaptureStore(store.root, min_free_bytes=0)
+    imported, problem = again.import_spill(spill)
+    assert problem == "" and [r.reason for r in imported] == ["already in the store", ""]
+    assert assert_store_sound(store.root, ids) == ids and again.quarantined_ids() == [] and spill.entries() == []
+    assert again.import_spill(spill) == ([], "")
+
+
+def test_a_half_copied_import_is_dropped_on_open_and_imported_again(tmp_path):
+    store, spill, ids = _spilled(tmp_path, 1)
+    half = store.root / INCOMING / f"{ids[0]}{IMPORTING}" / "images"
+    half.mkdir(parents=True)
+    (half / "cam0.png").write_bytes(b"\x89PNG truncated")  # killed mid-copy
+    again = CaptureStore(store.root, min_free_bytes=0)
+    assert again.recovered == [] and not any((store.root / INCOMING).iterdir())
+    assert again.import_spill(spill)[0][0].status == "committed" and assert_store_sound(store.root, ids) == ids
+
+
+def test_a_damaged_spilled_capture_is_quarantined_with_its_reason(tmp_path):
+    store, spill, ids = _spilled(tmp_path)
+    png = spill.dir / ids[1] / "images" / "cam0.png"
+    damaged = png.read_bytes()[:-20]
+    png.write_bytes(damaged)
+    half = spill.dir / f".{ids[1][:6]}9-20260101T000000Z.abc.incoming"  # a spill write cut short by a kill
+    half.mkdir()
+    imported, problem = store.import_spill(spill)
+    assert problem == "" and [r.status for r in imported] == ["committed", "quarantined", "quarantined"]
+    assert "spilled copy does not verify" in imported[1].reason and "interrupted write" in imported[2].reason
+    assert store.capture_ids() == ids[:1] and ids[1] in store.quarantined_ids() and spill.entries() == []
+    assert (store.root / QUARANTINE / ids[1] / "images" / "cam0.png").read_bytes() == damaged  # kept as it was, with its reason
+
+
+def test_import_into_a_store_that_is_still_read_only_leaves_the_spill_as_it_is(tmp_path):
+    from tests.faultfs import FaultyDisk
+
+    store, spill, ids = _spilled(tmp_path)
+    with FaultyDisk(store.root, fail_at=1, errno_=errno.EROFS, persistent=True).active():
+        imported, problem = store.import_spill(spill)
+    assert imported == [] and f"could not import spilled capture {ids[0]}" in problem and "Read-only file system" in problem
+    assert f"2 spilled capture(s) wait in {spill.dir}" in problem and "\n" not in problem
+    assert store.capture_ids() == [] and len(spill.entries()) == 2 and not any((store.root / INCOMING).iterdir())
