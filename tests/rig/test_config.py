@@ -15,12 +15,15 @@ def test_example_config_loads_with_every_section():
     assert (cam.driver, cam.device, cam.settings.width, cam.settings.sync, cam.settings.locked) == ("oak", "18443010D1C2A41200", 1280, "fsin", True)
     assert (cfg.trigger.kind, cfg.trigger.arbitration_id, cfg.trigger.min_interval_ms) == ("serial", 0x181, 250.0)
     assert cfg.thresholds.sync_tolerance_ns == 2_000_000 and cfg.storage.min_free_gb == 5.0
+    assert str(cfg.storage.spill) == "/var/lib/cadsplat/spill"
 
 
 def test_defaults_and_relative_paths(tmp_path):
     cfg = parse_config({**MINIMAL, "storage": {"root": "caps"}}, base=tmp_path)
     assert cfg.storage.root == tmp_path / "caps" and cfg.trigger.kind == "software" and cfg.calibration is None
     assert cfg.registration.known_part == "" and cfg.registration.scale_tolerance == 0.10
+    assert cfg.storage.spill is None  # rig.store.default_spill_dir(), chosen where the store is opened
+    assert parse_config({**MINIMAL, "storage": {"spill": "../spill"}}, base=tmp_path).storage.spill == tmp_path / "../spill"
 
 
 def test_registration_names_the_known_part():
@@ -44,6 +47,7 @@ def test_registration_names_the_known_part():
         ({**MINIMAL, "trigger": {"pattern": "GO"}}, "trigger.pattern needs a named group"),
         ({**MINIMAL, "trigger": {"payload_format": "<QQ"}}, "a CAN frame holds 8"),
         ({**MINIMAL, "storage": {"min_free_gb": "lots"}}, "storage.min_free_gb must be a number"),
+        ({**MINIMAL, "storage": {"root": "/data/caps", "spill": "/data/caps/spill"}}, "storage.spill must lie outside storage.root"),
         ({**MINIMAL, "thresholds": {"black_level": 2}}, "thresholds.black_level must be a number in [0, 1]"),
         ({**MINIMAL, "extra": 1}, "unknown key extra"),
         ({**MINIMAL, "registration": {"scale_tolerance": 1.5}}, "registration.scale_tolerance must be a number in [0, 0.99]"),
