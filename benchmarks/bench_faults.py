@@ -1,8 +1,9 @@
 """Fault injection over the appliance, with counts: `python -m benchmarks.bench_faults [--kills N]`.
 
 1. ENOSPC (once; and "another process fills the disk") and EROFS (read-only from that site on, then
-   writable again before one more trigger) at every write site of the capture store (a reference + 3
-   captures on pattern cameras), the calibration keeper and the service (one run per site,
+   writable again before one more trigger; and read-only until the rig stops, its held captures
+   spilled and imported on the next start) at every write site of the capture store (a reference +
+   3 captures on pattern cameras), the calibration keeper and the service (one run per site,
    tests.faultfs.FaultyDisk wrapping the write sites).
 2. SIGKILL at N random points of `cadsplat rig watch --simulate` (one store, restarted after each kill).
 3. SIGKILL at N random points of `cadsplat service run` (preview preset) on 2 simulated captures, then
@@ -25,7 +26,7 @@ import time
 from pathlib import Path
 
 from benchmarks._common import RESULTS
-from tests.deploy.test_faults import _captures, _keeper_flow, _run_rig, _Steps
+from tests.deploy.test_faults import _captures, _keeper_flow, _run_rig, _Steps, spill_of
 from tests.faultfs import FaultyDisk
 from tests.killing import REPO, cadsplat, job_statuses, reported, run_until_killed, store_after_kill, work_after_kill
 
@@ -43,12 +44,13 @@ def rig_sweep(tmp: Path, mode: str) -> dict:
     count = FaultyDisk(tmp / f"{mode}-count")
     _run_rig(tmp / f"{mode}-count", count, triggers=TRIGGERS)
     sites = len(count.calls)
-    tally = {"sites": sites, "triggers": 0, "committed": 0, "of_which_held_then_written": 0, "refused": 0, "quarantined": 0, "failed": 0,
-             "lost": 0, "half_written": 0, "not_one_sentence": 0}
+    tally = {"sites": sites, "triggers": 0, "committed": 0, "of_which_held_then_written": 0, "refused": 0, "quarantined": 0,
+             "spilled": 0, "imported_at_next_start": 0, "failed": 0, "lost": 0, "half_written": 0, "not_one_sentence": 0}
     for n in range(1, sites + 1):
         root = tmp / f"{mode}-{n}"
         disk = {"enospc": lambda: FaultyDisk(root, fail_at=n), "filled": lambda: FaultyDisk(root, fill_at=n),
-                "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True)}[mode]()  # then writable again
+                "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True),  # then writable again
+                "erofs-until-stop": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True)}[mode]()
         outs, _ = _run_rig(root, disk, heal=mode == "erofs", triggers=TRIGGERS)
         for o in outs[1:]:
             if o.status == "held":
@@ -58,10 +60,12 @@ def rig_sweep(tmp: Path, mode: str) -> dict:
             tally[o.status if o.status in tally else "failed"] += 1
             tally["lost"] += o.status == "failed"
             tally["not_one_sentence"] += o.status != "committed" and not one_sentence(o.reason)
-        CaptureStore(root, min_free_bytes=0)
-        counts, problems = verify_store(root)
-        committed = {o.capture_id for o in outs if o.status == "committed"}
-        tally["lost"] += len(committed - set(p.name for p in (root / "captures").iterdir()))
+        imported, problem = CaptureStore(root, min_free_bytes=0).import_spill(spill_of(root))  # the next start
+        tally["imported_at_next_start"] += sum(r.status == "committed" for r in imported)
+        tally["not_one_sentence"] += bool(problem) and not one_sentence(problem)
+        counts, problems = verify_store(root, spill_of(root).root)  # a capture still waiting in the spill is a problem too
+        stored = {o.capture_id for o in outs if o.status in ("committed", "spilled")}
+        tally["lost"] += len(stored - set(p.name for p in (root / "captures").iterdir()))
         tally["half_written"] += len(problems)
     return tally
 
@@ -193,7 +197,7 @@ def main() -> None:
     service_kills = args.kills if args.service_kills is None else args.service_kills
     try:
         if "sites" in parts:
-            for mode in ("enospc", "filled", "erofs"):
+            for mode in ("enospc", "filled", "erofs", "erofs-until-stop"):
                 sections.append(table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode)))
                 print(sections[-1], flush=True)
             sections.append(table("Calibration keeper, ENOSPC at each write site", keeper_sweep(tmp)))
