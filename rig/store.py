@@ -439,7 +439,7 @@ class Spill:
         """(path, capture id, damage) of every entry waiting for the store, oldest first; `damage` names a half-written one."""
         try:
             names = sorted(os.listdir(self.dir))
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             return []
         out = []
         for name in names:

@@ -95,7 +95,8 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
                            "run `cadsplat rig reference` with the belt empty", err=True)
         yield acq
     finally:
-        acq.close()
+        for out in acq.close():  # what became of captures still held: committed now, spilled or failed
+            _report(out)
         if synthetic is not None:
             synthetic.close()
 

@@ -207,3 +207,18 @@ def test_import_into_a_store_that_is_still_read_only_leaves_the_spill_as_it_is(t
     assert imported == [] and f"could not import spilled capture {ids[0]}" in problem and "Read-only file system" in problem
     assert f"2 spilled capture(s) wait in {spill.dir}" in problem and "\n" not in problem
     assert store.capture_ids() == [] and len(spill.entries()) == 2 and not any((store.root / INCOMING).iterdir())
+
+
+def test_a_spilled_invalid_capture_goes_to_quarantine_once_with_its_reason(tmp_path, monkeypatch):
+    store = CaptureStore(tmp_path / "store", min_free_bytes=0)
+    spill = Spill(tmp_path / "spill", store.root)
+    cid = store.reserve_id()
+    spill.write(cid, _frames(1), {"quarantined": "no frame from cam1"})
+    monkeypatch.setattr(spill, "discard", lambda _e: (_ for _ in ()).throw(KeyboardInterrupt("killed before the spill entry was removed")))
+    with pytest.raises(KeyboardInterrupt):
+        store.import_spill(spill)
+    monkeypatch.undo()
+    imported, problem = store.import_spill(spill)
+    assert problem == "" and [(r.capture_id, r.status, r.reason) for r in imported] == [(cid, "quarantined", "no frame from cam1")]
+    assert store.quarantined_ids() == [cid] and store.quarantine_reason(cid) == "no frame from cam1"  # one entry, not two
+    assert store.capture_ids() == [] and spill.entries() == []
