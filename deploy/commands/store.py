@@ -114,14 +114,14 @@ def import_spill(root: Path, spill: Path | None, config: str | None) -> None:
     from rig.store import CaptureStore, Spill
 
     _require_store(root)
-    spill_dir = _spill_dir(spill, config)
+    waiting = Spill(_spill_dir(spill, config), root)
     try:
         store = CaptureStore(root, min_free_bytes=0)
     except OSError as e:
         raise click.ClickException(f"cannot open the capture store {root} ({e.strerror or e})") from None
-    imported, problem = store.import_spill(Spill(spill_dir, root))
+    imported, problem = store.import_spill(waiting)
     for r in imported:
         click.echo(f"imported {r.capture_id}" + (f" into quarantine: {r.reason}" if r.status == "quarantined" else ""))
-    click.echo(f"{len(imported)} capture(s) imported from {Spill(spill_dir, root).dir}")
+    click.echo(f"{len(imported)} capture(s) imported from {waiting.dir}")
     if problem:
         raise click.ClickException(problem)
