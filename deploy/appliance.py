@@ -10,6 +10,7 @@ capture; `knock(camera, degrees)` turns a camera physically, as a bump during ma
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -47,6 +48,7 @@ class Appliance:
         owns_dir: bool = False,
         closers=(),
         inspection=None,
+        spill=None,
     ) -> None:
         from deploy.service import PipelineService
         from deploy.steps import PipelineConfig, make_step_runner
@@ -73,12 +75,17 @@ class Appliance:
         self.software_trigger = trigger_source
         self._monitor = monitor_views
         self._closers = list(closers)
+        # Captures a read-only store could not take before the last stop wait in the spill: import them first.
+        imported, problem = store.import_spill(spill) if spill is not None else ([], "")
+        self._spill_problem = problem
+        # Said on screen until the next capture.
+        self._import_note = f"imported {len(imported)} capture(s) the read-only store could not take last time; " if imported else ""
         first = self.drivers[0].camera
         settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
         self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(),
                                        calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
                                        units=self.keeper.store.load().units,
-                                       backgrounds=dict(backgrounds or {}))
+                                       backgrounds=dict(backgrounds or {}), spill=spill)
         cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
                              inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
                              inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None)
@@ -103,6 +110,7 @@ class Appliance:
         from calibration.keeper import Keeper
         from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
         from rig.config import load_config
+        from rig.store import Spill, default_spill_dir
 
         cfg = load_config(config_path)
         if cfg.calibration is None:
@@ -113,8 +121,9 @@ class Appliance:
         store = build_store(cfg)
         work = Path(work_dir)
         work.mkdir(parents=True, exist_ok=True)
+        spill = Spill(cfg.storage.spill or default_spill_dir(), store.root)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection)
+                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),
@@ -126,7 +135,7 @@ class Appliance:
         from calibration.simulated import render_planes, rig_frame_scene
         from reconstruction.library import build_library
         from rig.assembly import simulated_cameras
-        from rig.store import CaptureStore
+        from rig.store import CaptureStore, Spill
         from rig.triggers import SoftwareTrigger
 
         owns = work_dir is None
@@ -146,12 +155,13 @@ class Appliance:
             return {d.camera_id: render_planes(rig.true_camera(i), walls, supersample=2) for i, d in enumerate(drivers)}
 
         keeper.set_reference(monitor())
-        app = cls(drivers, SoftwareTrigger(), CaptureStore(work / "store", min_free_bytes=256 << 20), keeper, lib_dir, work,
-                  preset=preset, interval_s=interval_s, monitor_views=monitor, rig=rig, rig_id="simulated-rig", owns_dir=owns,
-                  closers=[rig.close])
+        store = CaptureStore(work / "store", min_free_bytes=256 << 20)
+        # The simulated rig keeps its spill in its own work directory, not in the user's state directory.
+        app = cls(drivers, SoftwareTrigger(), store, keeper, lib_dir, work, preset=preset, interval_s=interval_s, monitor_views=monitor,
+                  rig=rig, rig_id="simulated-rig", owns_dir=owns, closers=[rig.close], spill=Spill(work / "spill", store.root))
         if not app.acquisition.backgrounds:
             app.take_background()  # the simulated belt starts empty
-        app._message = "ready: press t to take a capture, w to start watching the line"
+            app._message = "ready: press t to take a capture, w to start watching the line"
         return app
 
     # ---- rig and keeper ------------------------------------------------------------------------
@@ -194,6 +204,7 @@ class Appliance:
         def outcome(out) -> None:
             with self._lock:
                 self._last_trigger = f"#{out.trigger.seq} {time.strftime('%H:%M:%S')} {out.status}"
+                self._import_note = ""
             if out.status == "committed":
                 try:
                     self._check_drift(out.capture_id)
@@ -260,6 +271,8 @@ class Appliance:
         if note and not any(c.calibration == RECALIBRATE for c in cams):
             alarms.append(Alarm(f"keeper:{note}", f"Calibration keeper {note}."))
         disk_full = next((a for a in (self.acquisition.stopped, self.store.alarm, self.service.state) if a.startswith("STOPPED")), "")
+        if self._spill_problem:
+            alarms.append(Alarm("spill", self._spill_problem))
         if self.store.alarm or self.service.state:
             alarms.append(Alarm("disk", "; ".join(a for a in (self.store.alarm, self.service.state) if a)))
         for job in self.service.jobs.jobs("failed"):
@@ -288,7 +301,7 @@ class Appliance:
             progress=progress,
             last_twin=verdict,
             alarms=alarms,
-            message=self._message,
+            message=self._import_note + self._message,
             disk_full=disk_full,
         )
 
@@ -338,7 +351,9 @@ class Appliance:
         self.service.stop()
         for t in self._threads:
             t.join(timeout=60)
-        self.acquisition.close()
+        for out in self.acquisition.close():  # captures still held: committed now, spilled, or failed (each one sentence)
+            if out.status != "committed":
+                print(f"{out.status} {out.capture_id}: {out.reason}", file=sys.stderr)
         for close in self._closers:
             close()
         if self._own_dir:

@@ -81,3 +81,17 @@ def test_disk_full_is_a_state_on_screen_and_in_the_rig_log(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 3 and lines[0].startswith("STOPPED: disk full") and "trigger 7 and those after it" in lines[0]
     assert lines[1] == "RESUMED: disk space is back; capturing again" and lines[2].startswith("committed 000004-x")
+
+
+def test_the_kiosk_imports_what_a_read_only_store_left_in_the_spill(tmp_path):
+    from deploy.appliance import Appliance
+    from tests.rig.test_store import _spilled
+
+    work = tmp_path / "appliance"
+    _, _, ids = _spilled(work, 1)
+    backend = Appliance.simulated(work, views=4, size=(96, 72), preset="preview", interval_s=3600)
+    try:
+        assert ids[0] in backend.store.capture_ids()
+        assert backend.state().message.startswith("imported 1 capture(s)")
+    finally:
+        backend.close()
