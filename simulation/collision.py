@@ -13,6 +13,9 @@ Hausdorff distance between the collision set's surface and the mesh's (see `haus
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import signal
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -22,6 +25,7 @@ import numpy as np
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule")
 DECOMPOSE_FACES = 4000  # CoACD's cost grows with the input; its pieces do not need a finer mesh
 DEFAULT_TOLERANCE = 0.10
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 HAUSDORFF_SAMPLES = 5000  # per surface: spacing ~ sqrt(area / samples), 1.4 mm on a 0.1 m part
 
 
@@ -162,7 +166,19 @@ def hull_vertices(vertices: np.ndarray) -> np.ndarray:
     return pts[ConvexHull(pts).vertices]
 
 
-def _coacd_worker(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions, threshold: float, queue) -> None:
+def _die_with_parent(parent_pid: int) -> None:
+    """Linux: have the kernel SIGKILL this child when the thread that started it goes, so a killed service
+    leaves no CoACD running on (it did: minutes of CPU, holding the service's stdout open)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent_pid:  # the parent died before the request above took effect
+        os._exit(1)
+
+
+def _coacd_worker(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions, threshold: float, queue, parent_pid: int) -> None:
+    _die_with_parent(parent_pid)
     import coacd
 
     coacd.set_log_level("error")
@@ -193,7 +209,8 @@ def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOption
     # child deadlocks on a mutex one of them held (seen: the export step hung for its whole time budget).
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue), daemon=True)
+    proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue, os.getpid()),
+                       daemon=True)
     proc.start()
     try:
         pieces = queue.get(timeout=opts.timeout_s if timeout_s is None else timeout_s)

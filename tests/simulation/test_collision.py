@@ -3,6 +3,13 @@ CoACD pieces for concave ones, with the volume error that justified each choice.
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -154,3 +161,50 @@ def test_clamp_hangs_on_a_5mm_rod_through_its_opening_which_one_hull_cannot(tmp_
         heights[name] = traj.pos[:, 1, 2]
     assert heights["pieces"].min() > -0.04  # it swings on the rod, its origin never more than 4 cm below it
     assert heights["hull"][-1] < -1.0  # one hull: pushed off the rod, in free fall
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _children(pid: int) -> set[int]:
+    """Child pids of a process (Linux /proc; every thread's list, since threads start children too)."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        out |= {int(c) for c in (task / "children").read_text().split()}
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to see the child process")
+def test_a_killed_parent_takes_its_coacd_child_with_it(tmp_path):
+    """A SIGKILLed service must not leave CoACD running (it held the service's stdout and the CPU for minutes)."""
+    script = (
+        "import trimesh; from simulation.collision import decompose, DecompositionOptions\n"
+        "m = trimesh.creation.torus(major_radius=0.05, minor_radius=0.015, major_sections=128, minor_sections=64)\n"
+        "print('start', flush=True)\n"
+        "decompose(m.vertices, m.faces, DecompositionOptions(threshold=0.001, timeout_s=600))\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=REPO,
+                              env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert parent.stdout.readline().startswith("start")
+        deadline = time.monotonic() + 60
+        while not (child := _children(parent.pid)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert child, "decompose started no child process"
+        time.sleep(3)  # past the child's start-up (it exits by itself if its parent dies before handing it the job)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10
+        while any(Path(f"/proc/{c}").exists() and "zombie" not in _state(c) for c in child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [c for c in child if Path(f"/proc/{c}").exists() and "zombie" not in _state(c)]
+    finally:
+        parent.kill()
+        parent.wait()
+
+
+def _state(pid: int) -> str:
+    try:
+        return next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith("State:")).lower()
+    except (OSError, StopIteration):
+        return "zombie"
