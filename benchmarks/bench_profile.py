@@ -268,6 +268,8 @@ def table(per_iter: list[dict[str, float]], stages: list[tuple[str, int]], plain
         cells = [f"{mean[s][key]:.1f} ({100 * mean[s][key] / mean[s]['wall']:.0f} %)" for s in order]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append("| **iteration, profiled** | " + " | ".join(f"**{mean[s]['wall']:.1f}**" for s in order) + " |")
+    spread = {s: np.percentile([r["wall"] for r in by_stage[s]], [10, 90]) / 1000 for s in order}
+    lines.append("| iteration, profiled: 10th-90th percentile | " + " | ".join(f"{spread[s][0]:.1f}-{spread[s][1]:.1f}" for s in order) + " |")
     lines.append("| iteration, production run (median) | " + " | ".join(f"{plain_ms.get(s, float('nan')):.1f}" for s in order) + " |")
     outside = [100 * (1 - sum(mean[s][k] for k in RASTERIZER) / mean[s]["wall"]) for s in order]
     lines.append("| **outside the rasterizer** | " + " | ".join(f"**{o:.0f} %**" for o in outside) + " |")
@@ -324,7 +326,8 @@ def main() -> None:
     section = "\n".join([
         f"## `{args.preset}` preset, {scene}", "",
         f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
-        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start, {load_line()} at the end; "
+        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start (the run then keeps both cores busy: "
+        f"{load_line()} at its end); "
         f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
         f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "
         f"per stage (first {WARMUP} left out): "
