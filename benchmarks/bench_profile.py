@@ -334,7 +334,8 @@ def main() -> None:
         + ", ".join(f"{s} {n}" for s, n in counts.items()) + ".", "",
         "Bucket times are the profiled run's means (main-thread self time; the rasterizer's numba kernels run on its "
         "worker threads while the main thread waits inside the rasterizer); the profiler adds its own overhead (compare "
-        "the profiled iteration with the production run's).", "",
+        "the profiled iteration with the production run's). Checkpoints are written every `checkpoint_every` iterations "
+        "(50 in `cpu` and `preview`): with fewer capped iterations the checkpoint row stays 0.", "",
         text, "",
     ])
     print(section, flush=True)
