@@ -7,9 +7,12 @@ Images are [C, H, W, 3] float32 tensors in [0, 1]; alphas and masks [C, H, W] or
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy import sparse
 
 
 def _hw(t: torch.Tensor) -> torch.Tensor:
@@ -42,8 +45,8 @@ def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> torch.Tenso
     return g / g.sum()
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM of [C, H, W, 3] images (Gaussian window, as 3DGS; zero padding at the borders)."""
+def _ssim_map(a: torch.Tensor, b: torch.Tensor, window: int, sigma: float) -> torch.Tensor:
+    """Per-pixel SSIM [C, 3, H, W] of [C, H, W, 3] images (Gaussian window, zero padding at the borders)."""
     x = a.permute(0, 3, 1, 2)
     y = b.permute(0, 3, 1, 2)
     ch = x.shape[1]
@@ -61,23 +64,108 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     syy = blur(y * y) - mu_y * mu_y
     sxy = blur(x * y) - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
-    return s.mean()
+    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2) -> torch.Tensor:
-    """L_rgb = (1 - λ) L1 + λ D-SSIM, D-SSIM = 1 - SSIM (3DGS)."""
-    l1 = (render - target).abs().mean()
-    return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(render, target))
+def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM of [C, H, W, 3] images (Gaussian window, as 3DGS; zero padding at the borders)."""
+    return _ssim_map(a, b, window, sigma).mean()
 
 
-def sh_neighbour_loss(sh: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-    """L_SH = 1/(N K) sum_i sum_{j in N(i)} ||c_i - c_j||^2 for sh [N, B, 3], neighbours [N, K] (eq. sh_smooth)."""
+def support_windows(support: torch.Tensor, margin: int) -> tuple[torch.Tensor, int, int]:
+    """One window size for all views and each view's window corner: corners [C, 2] (y0, x0), height, width.
+
+    support [C, H, W] bool. Each view's window holds its support's bounding box grown by `margin`
+    pixels (clipped to the image); all windows take the largest size so they stack into one batch.
+    A view with empty support gets a window at its top-left corner.
+    """
+    c, h, w = support.shape
+    rows, cols = support.any(2), support.any(1)
+    ar_h, ar_w = torch.arange(h), torch.arange(w)
+    big_h, big_w = torch.tensor(h), torch.tensor(w)
+    y0 = torch.where(rows, ar_h, big_h).amin(1)
+    y1 = torch.where(rows, ar_h, -1).amax(1)
+    x0 = torch.where(cols, ar_w, big_w).amin(1)
+    x1 = torch.where(cols, ar_w, -1).amax(1)
+    empty = y1 < 0
+    y0, x0 = torch.where(empty, 0, (y0 - margin).clamp_min(0)), torch.where(empty, 0, (x0 - margin).clamp_min(0))
+    y1, x1 = torch.where(empty, 0, (y1 + margin).clamp_max(h - 1)), torch.where(empty, 0, (x1 + margin).clamp_max(w - 1))
+    wh, ww = int((y1 - y0).max()) + 1, int((x1 - x0).max()) + 1
+    # A window taller or wider than a view's box slides back inside the image and still covers the box.
+    corners = torch.stack([y0.clamp_max(h - wh), x0.clamp_max(w - ww)], 1)
+    return corners, wh, ww
+
+
+def crop_windows(t: torch.Tensor, corners: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """t [C, H, W, ...] cut to each view's window: [C, height, width, ...] (one gather, one scatter back)."""
+    rows = corners[:, 0, None, None] + torch.arange(height)[None, :, None]
+    cols = corners[:, 1, None, None] + torch.arange(width)[None, None, :]
+    return t[torch.arange(len(t))[:, None, None], rows, cols]
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2,
+                     support: torch.Tensor | None = None, window: int = 11) -> torch.Tensor:
+    """L_rgb = (1 - λ) L1 + λ D-SSIM, D-SSIM = 1 - SSIM (3DGS), means over every pixel of [C, H, W, 3].
+
+    support [C, H, W] bool, optional: the pixels outside which render and target are the same colour
+    (for a render composited on the target's background: where the splats or the mask reach). Outside
+    it L1 is 0 and SSIM 1, so both are summed over a window around it and divided by the whole image's
+    pixel count: the same value and gradient, on ~1/5 of the pixels for a rig's object. The window
+    grows by two SSIM radii: one for the windows that reach the support, one for their own windows.
+    """
+    if support is None:
+        l1 = (render - target).abs().mean()
+        return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(render, target, window))
+    corners, h, w = support_windows(support, 2 * (window // 2))
+    r, t = crop_windows(render, corners, h, w), crop_windows(target, corners, h, w)
+    total = float(render.numel())
+    l1 = (r - t).abs().sum() / total
+    dssim = (1 - _ssim_map(r, t, window, 1.5)).sum() / total
+    return (1 - lambda_dssim) * l1 + lambda_dssim * dssim
+
+
+@dataclass(frozen=True)
+class NeighbourGraph:
+    """The k-NN pairs of L_SH as a graph Laplacian: sum_i sum_{j in N(i)} ||c_i - c_j||^2 = tr(C^T L C)
+    with L = D_out + D_in - A - A^T (A_ij = 1 when j in N(i)). One sparse product per step replaces
+    gathering K neighbours' coefficients, and gives the gradient 2 L C exactly."""
+
+    laplacian: sparse.csr_matrix  # [N, N] float32, symmetric
+    num_pairs: int  # N K
+
+
+def neighbour_graph(neighbours: np.ndarray) -> NeighbourGraph:
+    """The graph of neighbours [N, K] (indices into the same N points)."""
     n, k = neighbours.shape
-    if k == 0:
+    rows = np.repeat(np.arange(n), k)
+    cols = np.asarray(neighbours, np.int64).reshape(-1)
+    adj = sparse.coo_matrix((np.ones(n * k, np.float32), (rows, cols)), shape=(n, n)).tocsr()
+    degree = np.asarray(adj.sum(1)).ravel() + np.asarray(adj.sum(0)).ravel()
+    lap = (sparse.diags(degree.astype(np.float32)) - adj - adj.T).tocsr()
+    return NeighbourGraph(lap.astype(np.float32), n * k)
+
+
+class _Quadratic(torch.autograd.Function):
+    """tr(C^T L C) / pairs for a constant symmetric L; backward reuses L C."""
+
+    @staticmethod
+    def forward(ctx, c: torch.Tensor, laplacian: sparse.csr_matrix, pairs: int) -> torch.Tensor:
+        lc = torch.from_numpy(np.ascontiguousarray(laplacian @ c.detach().numpy()))
+        ctx.save_for_backward(lc)
+        ctx.pairs = pairs
+        return (c * lc).sum() / pairs
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (lc,) = ctx.saved_tensors
+        return grad * (2.0 / ctx.pairs) * lc, None, None
+
+
+def sh_neighbour_loss(sh: torch.Tensor, graph: NeighbourGraph) -> torch.Tensor:
+    """L_SH = 1/(N K) sum_i sum_{j in N(i)} ||c_i - c_j||^2 for sh [N, B, 3] (eq. sh_smooth)."""
+    if graph.num_pairs == 0:
         return sh.sum() * 0
-    c = sh.reshape(n, -1)
-    return ((c[:, None, :] - c[neighbours]) ** 2).sum(-1).mean()
+    return _Quadratic.apply(sh.reshape(len(sh), -1).float(), graph.laplacian, graph.num_pairs)
 
 
 def dropout_fraction(step: int, anneal_steps: int, p0: float = 0.5) -> float:

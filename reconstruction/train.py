@@ -32,7 +32,8 @@ from torch import nn
 
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField
-from reconstruction.losses import composite, dropout_active, dropout_fraction, fill_loss, mask_l1, photometric_loss, sh_neighbour_loss
+from reconstruction.losses import (composite, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
+                                   sh_neighbour_loss)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
@@ -276,7 +277,7 @@ def train(
     # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups
     # that are frozen in a stage have no gradient and are skipped by Adam.
     opt = torch.optim.Adam(model.param_groups(preset.lr), eps=1e-15)
-    neighbours = torch.from_numpy(knn_indices(splats.means, preset.sh_neighbours))
+    sh_graph = neighbour_graph(knn_indices(splats.means, preset.sh_neighbours))
     c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
     mask_data = views.resized(preset.mask_scale)
     if preset.lambda_consistency > 0:
@@ -350,9 +351,11 @@ def train(
                 if active is not None:
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
                     _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
-                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim)
+                # Render and target are both the background wherever no splat reaches and the mask is 0.
+                support = (alpha.detach()[..., 0] > 0) | (cov[idx] > 0)
+                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim, support=support)
                 l_mask = mask_l1(alpha, cov[idx])
-                l_sh = sh_neighbour_loss(sh, neighbours)
+                l_sh = sh_neighbour_loss(sh, sh_graph)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
                 if preset.lambda_fill:

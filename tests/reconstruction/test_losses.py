@@ -13,10 +13,13 @@ from reconstruction.losses import (
     dropout_fraction,
     fill_loss,
     mask_l1,
+    neighbour_graph,
     photometric_loss,
     sh_neighbour_loss,
     ssim,
+    support_windows,
 )
+from reconstruction.render import rasterize
 
 
 def test_dropout_schedule_values():
@@ -41,13 +44,27 @@ def test_dropout_drops_exactly_without_replacement():
 
 
 def test_sh_neighbour_loss_zero_for_equal_sh_and_matches_formula():
-    nbr = torch.tensor([[1, 2], [0, 2], [0, 1]])
+    graph = neighbour_graph(np.array([[1, 2], [0, 2], [0, 1]]))
     equal = torch.ones(3, 4, 3) * 0.7
-    assert float(sh_neighbour_loss(equal, nbr)) == 0.0
+    assert abs(float(sh_neighbour_loss(equal, graph))) < 1e-6
     sh = torch.zeros(3, 1, 3)
     sh[0, 0, 0] = 1.0
     # Pairs (0,1), (0,2), (1,0), (2,0) differ by 1: 4 / (N K = 6).
-    assert math.isclose(float(sh_neighbour_loss(sh, nbr)), 4 / 6, rel_tol=1e-6)
+    assert math.isclose(float(sh_neighbour_loss(sh, graph)), 4 / 6, rel_tol=1e-6)
+
+
+def test_sh_neighbour_loss_value_and_gradient_equal_the_pairwise_sum():
+    rng = np.random.default_rng(0)
+    n, k = 500, 7
+    nbr = rng.integers(0, n, (n, k))  # repeated and self pairs included
+    sh = torch.randn(n, 9, 3, dtype=torch.float32, requires_grad=True)
+    c = sh.reshape(n, -1)
+    pairwise = ((c[:, None, :] - c[torch.from_numpy(nbr)]) ** 2).sum(-1).mean()
+    (g_ref,) = torch.autograd.grad(pairwise, sh)
+    quadratic = sh_neighbour_loss(sh, neighbour_graph(nbr))
+    (g,) = torch.autograd.grad(quadratic, sh)
+    assert math.isclose(float(quadratic.detach()), float(pairwise.detach()), rel_tol=1e-5)
+    torch.testing.assert_close(g, g_ref, rtol=1e-4, atol=1e-7)
 
 
 def test_mask_l1_and_composite():
@@ -85,3 +102,47 @@ def test_ssim_identity_and_photometric():
     l = photometric_loss(a, b)
     l1 = float((a - b).abs().mean())
     assert float(l) > 0.8 * l1
+
+
+def test_support_windows_cover_the_support_with_a_margin_inside_the_image():
+    support = torch.zeros(3, 40, 50, dtype=torch.bool)
+    support[0, 10:15, 20:30] = True
+    support[1, 0:3, 45:50] = True  # at a corner: the window slides back inside
+    corners, h, w = support_windows(support, 4)
+    assert (h, w) == (13, 18)
+    for v in range(2):
+        ys, xs = torch.nonzero(support[v], as_tuple=True)
+        y0, x0 = corners[v].tolist()
+        assert y0 <= int(ys.min()) and int(ys.max()) < y0 + h and x0 <= int(xs.min()) and int(xs.max()) < x0 + w
+        assert 0 <= y0 <= 40 - h and 0 <= x0 <= 50 - w
+    assert corners[2].tolist() == [0, 0]  # nothing to cover
+
+
+def test_windowed_photometric_loss_equals_the_whole_image_loss_and_its_gradient():
+    """A rasterized object composited on the target's background: the loss over the windows around
+    the splats and the mask has the whole image's value and gradient."""
+    torch.manual_seed(0)
+    n, v, w, h = 60, 2, 96, 72
+    means = (torch.rand(n, 3) - 0.5) * torch.tensor([0.3, 0.3, 0.0]) + torch.tensor([0.0, 0.0, 3.0])
+    means.requires_grad_(True)
+    quats = torch.nn.functional.normalize(torch.randn(n, 4), dim=1)
+    scales = torch.full((n, 3), 0.03)
+    opac = torch.full((n,), 0.8)
+    colors = torch.rand(n, 3, requires_grad=True)
+    viewmats = torch.eye(4).repeat(v, 1, 1)
+    viewmats[1, 0, 3] = 0.2
+    ks = torch.tensor([[80.0, 0, 40], [0, 80.0, 30], [0, 0, 1]]).repeat(v, 1, 1)
+    bg = torch.rand(v, 3)
+    mask = torch.zeros(v, h, w)
+    mask[:, 25:40, 30:50] = 1.0
+    target = composite(torch.rand(v, h, w, 3), mask, bg)
+    rgb, alpha, _ = rasterize(means, quats, scales, opac, colors, viewmats, ks, w, h, backgrounds=bg)
+    support = (alpha.detach()[..., 0] > 0) | (mask > 0)
+    assert support.float().mean() < 0.5  # the window is a real crop
+    whole = photometric_loss(rgb, target)
+    windowed = photometric_loss(rgb, target, support=support)
+    g_whole = torch.autograd.grad(whole, (means, colors), retain_graph=True)
+    g_window = torch.autograd.grad(windowed, (means, colors))
+    assert math.isclose(float(windowed.detach()), float(whole.detach()), rel_tol=1e-5)
+    for a, b in zip(g_window, g_whole):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-8)
