@@ -15,6 +15,8 @@ $(STAMP): pyproject.toml
 	# torch first, pinned, so nothing later can pull a CUDA build.
 	$(PY) -m pip install --quiet "torch==2.13.0"
 	$(PY) -m pip install --quiet -e ".[test,cluster]"
+	# Compile the rasterizer's numba kernels into their on-disk cache now, not in the first reconstruction.
+	$(PY) -m reconstruction.render.warmup
 	touch $(STAMP)
 
 demo: env
