@@ -103,6 +103,25 @@ def camera(mesh, size: int, focal: float) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(viewmat, dtype=torch.float32)[None], torch.tensor(K, dtype=torch.float32)[None]
 
 
+def ring_cameras(mesh, n_cams: int, width: int, height: int, focal: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """n_cams cameras on a ring 35 degrees above the mesh centre, 4 bounding radii away, looking at it."""
+    centre = mesh.bounds.mean(axis=0)
+    radius = float(np.linalg.norm(mesh.extents)) / 2.0
+    viewmats = []
+    for k in range(n_cams):
+        az, el = 2.0 * math.pi * k / n_cams, math.radians(35.0)
+        eye = centre + 4.0 * radius * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
+        fwd = (centre - eye) / np.linalg.norm(centre - eye)
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        R = np.stack([right, np.cross(fwd, right), fwd])
+        viewmat = np.eye(4)
+        viewmat[:3, :3], viewmat[:3, 3] = R, -R @ eye
+        viewmats.append(viewmat)
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    return torch.tensor(np.stack(viewmats), dtype=torch.float32), torch.tensor(np.stack([K] * n_cams), dtype=torch.float32)
+
+
 def fit_focal(mesh, size: int) -> tuple[float, float]:
     """Focal length at which alpha > 0.5 covers ~30% of the image (returns focal, coverage)."""
     g = make_gaussians(mesh, 20_000, seed=1)
@@ -282,6 +301,71 @@ def run_one(mesh_path: Path, size: int, n: int, focal: float, torch_iters: int) 
         "n_isects": meta["n_isects"],
         "pairs": pairs,
         "max_diff": float(max((colors[0] - rgb).abs().max(), (alphas[0, ..., 0] - alpha).abs().max())),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def run_production(mesh_path: Path, sh_degree: int | None, n_cams: int, width: int, height: int, n: int, focal: float) -> dict:
+    """The `cpu` preset's per-iteration render: all training views in one batched call, forward and backward.
+
+    sh_degree None is Stage I (alpha only: a zero [N, 1] colour, loss on alpha); 2 is Stage II (SH
+    colours [N, 9, 3], a random background per view, loss on colour and alpha).
+    """
+    mesh, _ = load_mesh(mesh_path)
+    g = make_gaussians(mesh, n)
+    viewmats, Ks = ring_cameras(mesh, n_cams, width, height, focal)
+    gen = torch.Generator().manual_seed(0)
+    params = {k: g[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities")}
+    if sh_degree is None:
+        colors = torch.zeros(n, 1)
+    else:
+        sh = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=gen)
+        sh[:, 0] = (g["colors"] - 0.5) / 0.28209479177387814
+        colors = sh.requires_grad_(True)
+    target_rgb = torch.rand(n_cams, height, width, 3, generator=gen)
+    target_alpha = torch.rand(n_cams, height, width, 1, generator=gen)
+
+    def forward():
+        backgrounds = None if sh_degree is None else torch.rand(n_cams, 3, generator=gen)
+        rgb, alpha, meta = rasterize(
+            *params.values(), colors, viewmats, Ks, width, height, sh_degree=sh_degree, backgrounds=backgrounds
+        )
+        loss = (alpha - target_alpha).abs().mean()
+        if sh_degree is not None:
+            loss = loss + (rgb - target_rgb).abs().mean()
+        return loss, alpha, meta
+
+    def backward(loss):
+        for p in [*params.values(), colors]:
+            p.grad = None
+        loss.backward()
+
+    rasterize(*(v[:100] for v in params.values()), colors[:100], viewmats[:1], Ks[:1], 32, 32, sh_degree=sh_degree)
+    for _ in range(2):
+        backward(forward()[0])
+    fwd, bwd, cpu = [], [], []
+    start = time.perf_counter()
+    while len(fwd) < 50 and (len(fwd) < 10 or time.perf_counter() - start < 4.0):
+        t0, c0 = time.perf_counter(), time.process_time()
+        loss, alpha, meta = forward()
+        t1 = time.perf_counter()
+        backward(loss)
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        bwd.append(t2 - t1)
+        cpu.append(time.process_time() - c0)
+    tiles = alpha.detach()[..., 0].unfold(1, 16, 16).unfold(2, 16, 16)
+    return {
+        "stage": "I (alpha)" if sh_degree is None else f"II (SH {sh_degree})",
+        "views": n_cams,
+        "width": width,
+        "height": height,
+        "n": n,
+        "fwd_ms": 1e3 * float(np.median(fwd)),
+        "bwd_ms": 1e3 * float(np.median(bwd)),
+        "cpu_ms": 1e3 * float(np.median(cpu)),
+        "tile_coverage": float((tiles.amax(dim=(-1, -2)) > 1.0 / 255.0).float().mean()),
+        "n_isects": meta["n_isects"],
         "threads": torch.get_num_threads(),
     }
 
