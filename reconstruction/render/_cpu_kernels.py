@@ -48,6 +48,8 @@ GAUSSIAN_CHUNKS = 256
 BINNING_CHUNKS = 64
 _KEY_INDEX_MASK = 0xFFFFFFFF
 _EXP_MINUS_HALF = math.exp(-0.5)
+# A tile row's live pixels are the bits of one int64.
+MAX_TILE_SIZE = 64
 
 # Columns of the packed float record: mean2d, conic, opacity, 2 ln(255 opacity).
 SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_TWO_LOG = range(7)
@@ -589,22 +591,28 @@ def _slot(splat_i, slot_offsets, j, tx, ty) -> int:
 
 
 @njit(inline="always", **_OPTS)
-def _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
-    """Lists the pixels of tile [x0, x1] x [y0, y1] where splat j may reach alpha >= 1/255.
+def _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
+    """Lists the live pixels of tile [x0, x1] x [y0, y1] where splat j may reach alpha >= 1/255.
 
-    That is sigma <= ln(255 opacity), the ellipse inside the splat's radius box. Every box pixel is
-    evaluated and the buffer cursor advances only past those inside (branch-free compaction): with the
-    same trip count on every row this beats solving each row's span, whose square root and
-    unpredictable loop bounds cost more than the ~27% of box pixels they skip. Writes the tile-local
-    pixel index, offsets from the mean and sigma of each listed pixel; returns how many there are.
+    That is sigma <= ln(255 opacity), the ellipse inside the splat's radius box, and the pixel's bit
+    set in its row's mask live [tile rows] (bit u for column x0 + u). Rows without a live pixel in the
+    box are skipped; inside a row every box pixel is evaluated and the buffer cursor advances only past
+    those listed (branch-free compaction): with the same trip count on every row this beats solving
+    each row's span, whose square root and unpredictable loop bounds cost more than the ~27% of box
+    pixels they skip. Writes the tile-local pixel index, offsets from the mean and sigma of each listed
+    pixel; returns how many there are.
     """
     mx, my = splat_f[j, SF_MX], splat_f[j, SF_MY]
     a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
     limit = 0.5 * splat_f[j, SF_TWO_LOG] + _SIGMA_MARGIN
     col_lo = max(x0, splat_i[j, SI_U_LO])
     col_hi = min(x1, splat_i[j, SI_U_HI])
+    box = _row_mask(col_hi - col_lo + 1) << (col_lo - x0)
     m = 0
     for py in range(max(y0, splat_i[j, SI_V_LO]), min(y1, splat_i[j, SI_V_HI]) + 1):
+        bits = live[py - y0]
+        if bits & box == 0:
+            continue
         dy = py + 0.5 - my
         row = (py - y0) * tile_size - x0
         half_c_dy2 = 0.5 * cc * dy * dy
@@ -615,8 +623,21 @@ def _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_d
             buf_dx[m] = dx
             buf_dy[m] = dy
             buf_sigma[m] = sigma
-            m += sigma <= limit
+            m += (bits >> (px - x0)) & (1 if sigma <= limit else 0)
     return m
+
+
+@njit(inline="always", **_OPTS)
+def _row_mask(count: int) -> int:
+    """Bits 0..count-1 set (count <= MAX_TILE_SIZE)."""
+    return -1 if count >= 64 else (1 << count) - 1
+
+
+@njit(inline="always", **_OPTS)
+def _clear_live(live, p: int, tile_size: int) -> None:
+    """Clears tile-local pixel p's bit in the row masks."""
+    r = p // tile_size
+    live[r] &= ~(1 << (p - r * tile_size))
 
 
 @njit(inline="always", **_OPTS)
@@ -658,9 +679,10 @@ def rasterize_forward(
 
     Each pixel sees its splats in the tile's depth order, exactly as a per-pixel loop would; walking
     splats in the outer loop lets each visit only the pixels inside its own ellipse and batch their
-    exponentials. Writes out_colors [C, H, W, D], out_transmittance [C, H, W] (final T), out_last
-    [C, H, W] int64 (position in `ids` of the last contributor, -1 if none) and slot_counts [n_isect]
-    (pixels each slot shaded).
+    exponentials. Pixels whose transmittance has terminated leave their row's live mask, so splats
+    over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D], out_transmittance
+    [C, H, W] (final T), out_last [C, H, W] int64 (position in `ids` of the last contributor, -1 if
+    none) and slot_counts [n_isect] (pixels each slot shaded; zero-initialised by the caller).
     """
     depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -669,7 +691,7 @@ def rasterize_forward(
         trans = np.empty(n_px)
         acc = np.empty((n_px, depth))
         last = np.empty(n_px, np.int64)
-        done = np.empty(n_px, np.bool_)
+        live = np.empty(tile_size, np.int64)
         buf_p = np.empty(n_px, np.int64)
         buf_dx = np.empty(n_px)
         buf_dy = np.empty(n_px)
@@ -681,26 +703,30 @@ def rasterize_forward(
             trans[:] = 1.0
             acc[:] = 0.0
             last[:] = -1
-            done[:] = False
+            live[:] = _row_mask(x1 - x0 + 1)
             n_live = (x1 - x0 + 1) * (y1 - y0 + 1)
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 if n_live == 0:
                     break
                 j = ids[k]
-                m = _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma)
+                m = _ellipse_pixels(
+                    splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma
+                )
+                if m == 0:
+                    continue
                 _exp_neg(buf_sigma, buf_vis, m)
                 opacity = splat_f[j, SF_OPACITY]
                 shaded = 0
                 for i in range(m):
-                    p = buf_p[i]
-                    if done[p] or buf_sigma[i] < 0.0:
+                    if buf_sigma[i] < 0.0:
                         continue
                     alpha = min(ALPHA_MAX, opacity * buf_vis[i])
                     if alpha < ALPHA_THRESHOLD:
                         continue
+                    p = buf_p[i]
                     next_t = trans[p] * (1.0 - alpha)
                     if next_t <= TRANSMITTANCE_MIN:
-                        done[p] = True
+                        _clear_live(live, p, tile_size)
                         n_live -= 1
                         continue
                     weight = alpha * trans[p]
@@ -722,12 +748,16 @@ def rasterize_forward(
 @njit(**_OPTS)
 def rasterize_backward(
     bin_lo, bin_hi, splat_f, splat_c, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets, tile_size,
-    tiles_x, backgrounds, width, height, transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
+    tiles_x, backgrounds, width, height, out_colors, transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
 ) -> None:
-    """Back-to-front VJP of `rasterize_forward` (3DGS): T is recovered by dividing by (1 - alpha).
+    """VJP of `rasterize_forward`, walking each tile front to back again up to its pixels' last contributors.
 
-    v_out_colors [C, H, W, D] and v_out_alphas [C, H, W] come in; slot_grads [n_isect, 6 + D]
-    (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
+    The forward's out_colors [C, H, W, D], transmittance [C, H, W] and last_ids [C, H, W] come in, with
+    v_out_colors [C, H, W, D] and v_out_alphas [C, H, W]. T is recomputed by the same products as in
+    the forward (no division by 1 - alpha); the colour behind a splat is the pixel's accumulated colour
+    minus what the splats up to it added. A pixel leaves its row's live mask after its last contributor.
+    slot_grads [n_isect, 6 + D] (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c,
+    opacity, colour...).
     """
     depth = splat_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -738,6 +768,7 @@ def rasterize_backward(
         v_px = np.empty((n_px, depth))
         v_t_term = np.empty(n_px)
         last = np.empty(n_px, np.int64)
+        live = np.empty(tile_size, np.int64)
         v_color = np.empty(depth)
         buf_p = np.empty(n_px, np.int64)
         buf_dx = np.empty(n_px)
@@ -748,23 +779,35 @@ def rasterize_backward(
             tile = work[w]
             c, tx, ty, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
             k_max = -1
+            n_live = 0
+            live[:] = 0
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
-                    trans[p] = transmittance[c, py, px]
+                    t_final = transmittance[c, py, px]
+                    trans[p] = 1.0
                     last[p] = last_ids[c, py, px]
+                    if last[p] >= 0:
+                        live[py - y0] |= 1 << (px - x0)
+                        n_live += 1
                     k_max = max(k_max, last[p])
                     # alpha = 1 - T and colour += T * background both depend on every splat through
                     # T_final; d T_final / d alpha_i = -T_final / (1 - alpha_i).
                     v_t = -v_out_alphas[c, py, px]
                     for d in range(depth):
-                        behind[p, d] = 0.0
+                        behind[p, d] = out_colors[c, py, px, d] - t_final * backgrounds[c, d]
                         v_px[p, d] = v_out_colors[c, py, px, d]
                         v_t += backgrounds[c, d] * v_px[p, d]
-                    v_t_term[p] = trans[p] * v_t
-            for k in range(k_max, tile_offsets[tile] - 1, -1):
+                    v_t_term[p] = t_final * v_t
+            for k in range(tile_offsets[tile], k_max + 1):
+                if n_live == 0:
+                    break
                 j = ids[k]
-                m = _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, buf_p, buf_dx, buf_dy, buf_sigma)
+                m = _ellipse_pixels(
+                    splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma
+                )
+                if m == 0:
+                    continue
                 _exp_neg(buf_sigma, buf_vis, m)
                 opacity = splat_f[j, SF_OPACITY]
                 a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
@@ -776,24 +819,28 @@ def rasterize_backward(
                 v_opacity = 0.0
                 v_color[:] = 0.0
                 for i in range(m):
-                    p = buf_p[i]
-                    if k > last[p] or buf_sigma[i] < 0.0:
+                    if buf_sigma[i] < 0.0:
                         continue
                     vis = buf_vis[i]
                     raw_alpha = opacity * vis
                     alpha = min(ALPHA_MAX, raw_alpha)
                     if alpha < ALPHA_THRESHOLD:
                         continue
-                    inv_one_minus = 1.0 / (1.0 - alpha)
-                    trans[p] *= inv_one_minus
+                    p = buf_p[i]
+                    one_minus = 1.0 - alpha
+                    inv_one_minus = 1.0 / one_minus
                     t_here = trans[p]
                     weight = alpha * t_here
                     v_alpha = -inv_one_minus * v_t_term[p]
                     for d in range(depth):
                         col = splat_c[j, d]
+                        behind[p, d] -= col * weight
                         v_color[d] += weight * v_px[p, d]
                         v_alpha += (col * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
-                        behind[p, d] += col * weight
+                    trans[p] = t_here * one_minus
+                    if k == last[p]:
+                        _clear_live(live, p, tile_size)
+                        n_live -= 1
                     # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
                     if raw_alpha <= ALPHA_MAX:
                         dx, dy = buf_dx[i], buf_dy[i]

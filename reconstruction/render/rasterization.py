@@ -160,6 +160,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.bins = bins
         ctx.shapes = (n_cams, n, colors.shape[0], width, height)
         ctx.splat_c = splat_c
+        ctx.out_colors = out_colors
         ctx.transmittance = transmittance
         ctx.last_ids = last_ids
         render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
@@ -178,7 +179,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.splat_c), to_numpy(backgrounds),
-            width, height, ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
+            width, height, ctx.out_colors, ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
         grads = np.zeros((n_cams * n, n_cols))
         parallel_for(
@@ -259,7 +260,7 @@ def rasterize(
         near_plane, far_plane, eps2d: as gsplat.
         sh_degree: None for plain colours, else 0..3.
         backgrounds: optional [C, D] (or [D]) colour behind the Gaussians.
-        tile_size: tile edge in pixels.
+        tile_size: tile edge in pixels, at most 64 (a tile row's live pixels are one 64-bit mask).
         active: optional [N] bool; only these Gaussians are drawn and receive gradients (splat
             dropout without copying the model).
 
@@ -273,8 +274,8 @@ def rasterize(
     """
     width, height, tile_size = int(width), int(height), int(tile_size)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active)
-    if tile_size < 1:
-        raise ValueError(f"tile_size must be positive, got {tile_size}")
+    if not 1 <= tile_size <= kernels.MAX_TILE_SIZE:
+        raise ValueError(f"tile_size must be between 1 and {kernels.MAX_TILE_SIZE}, got {tile_size}")
     if not near_plane > 0.0:
         raise ValueError(f"near_plane must be positive, got {near_plane}")
     if means.is_cuda:

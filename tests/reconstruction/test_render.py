@@ -319,9 +319,11 @@ def test_odd_image_sizes(width, height):
     assert_matches(scene)
 
 
-def test_tile_size_does_not_change_the_image():
-    scene = random_scene(80, seed=11, n_cams=1, width=40, height=24)
-    assert_matches(scene, tile_size=8)
+@pytest.mark.parametrize("tile_size", [8, 64])
+def test_tile_size_does_not_change_the_image(tile_size):
+    # 64: a tile row's live-pixel mask uses all 64 bits of its int64.
+    scene = random_scene(80, seed=11, n_cams=1, width=40 if tile_size == 8 else 70, height=24)
+    assert_matches(scene, tile_size=tile_size)
 
 
 def test_per_camera_colors_and_plain_background_vector():
@@ -429,6 +431,9 @@ def test_rejects_bad_shapes():
     args[1] = args[1][:, :3]
     with pytest.raises(ValueError, match="quats"):
         rasterize(*args, 10, 10)
+    args[1] = scene["quats"]
+    with pytest.raises(ValueError, match="tile_size"):
+        rasterize(*args, 10, 10, tile_size=65)
 
 
 @pytest.mark.skipif(
