@@ -19,13 +19,13 @@ Conventions shared by all kernels:
 - A Gaussian is visible in a camera iff its radius_x > 0 (projection culls with both radii zero).
 - rects [C * N, 4] are inclusive pixel ranges (u_lo, u_hi, v_lo, v_hi) of the pixel centres inside the
   bounding box of the alpha >= 1/255 ellipse, clipped to the image; tiles follow as pixel // tile_size.
-- Compositing works on "packed splats": the visible (camera, Gaussian) pairs, ordered by first tile
-  (`perm` maps packed index j to c * N + g), each with a float64 record (SF_* columns), an int32 record
-  (SI_* columns) and its colour row, so a tile's splats sit close together in memory.
-- A "slot" is one (splat, tile) intersection, laid out splat-major: splat j owns slots
-  slot_offsets[j]:slot_offsets[j + 1], one per tile of its tile rectangle in row-major order.
-  Kernels that run per tile write per-slot partial results and a per-splat pass sums them, which
-  needs no atomics.
+- A "slot" is one (camera, Gaussian, tile) intersection. Slots are numbered k in tile order (each
+  tile's slots front to back, `tile_offsets` delimiting the tiles) and carry their own float64 record
+  (SF_* columns), int32 record (SI_* columns) and colour row, so compositing reads a tile's splats
+  from consecutive memory. `slot_at` lists the slots pair-major: pair cg = c * N + g owns
+  slot_at[slot_offsets[cg]:slot_offsets[cg + 1]], one per tile of its tile rectangle in row-major
+  order. Kernels that run per tile write per-slot partial results and a per-pair pass sums them in
+  that order, which needs no atomics.
 """
 
 from __future__ import annotations
@@ -51,12 +51,12 @@ _EXP_MINUS_HALF = math.exp(-0.5)
 # A tile row's live pixels are the bits of one int64.
 MAX_TILE_SIZE = 64
 
-# Columns of the packed float record: mean2d, conic, opacity, 2 ln(255 opacity).
-SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_TWO_LOG = range(7)
+# Columns of a slot's float record: mean2d, conic, opacity, and the sigma up to which it lists pixels.
+SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_LIMIT = range(7)
 SF_COLUMNS = 7
-# Columns of the packed int record: pixel rect, tile rect origin and width.
-SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI, SI_TX0, SI_TY0, SI_TILES_W = range(7)
-SI_COLUMNS = 7
+# Columns of a slot's int record: its splat's pixel rect clipped to the slot's tile (inclusive).
+SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI = range(4)
+SI_COLUMNS = 4
 
 # nogil: the kernels run on plain threads (see `_parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -368,14 +368,15 @@ def project_backward(
 
 
 @njit(**_OPTS)
-def pixel_rects(lo, hi, means2d, conics, opacities, radii, width, height, tile_size, rects, tile_counts) -> None:
+def pixel_rects(lo, hi, means2d, conics, two_logs, radii, width, height, tile_size, rects, tile_counts) -> None:
     """Pixel range of each visible Gaussian's alpha >= 1/255 ellipse and the number of tiles it touches.
 
     The ellipse sigma <= ln(255 opacity) spans |dx| <= sqrt(2 ln(255 opacity) cov2d_xx) (likewise y);
     that is the extent gsplat's radius rounds up, so these rects hold every pixel the radius box
     holds that could be shaded, and for small splats cover about half the pixels. A pixel u belongs
-    when its centre u + 0.5 is inside. Writes rects [C * N, 4] (u_lo, u_hi, v_lo, v_hi, clipped to the
-    image) and tile_counts [C * N] (zero for culled Gaussians and rects without a pixel centre).
+    when its centre u + 0.5 is inside. two_logs [N] is 2 ln(255 opacity). Writes rects [C * N, 4]
+    (u_lo, u_hi, v_lo, v_hi, clipped to the image) and tile_counts [C * N] (zero for culled Gaussians
+    and rects without a pixel centre).
     """
     n = radii.shape[1]
     for cg in range(lo, hi):
@@ -385,7 +386,7 @@ def pixel_rects(lo, hi, means2d, conics, opacities, radii, width, height, tile_s
         if radii[c, g, 0] <= 0:
             continue
         a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
-        two_log_over_det = 2.0 * math.log(opacities[g] / ALPHA_THRESHOLD) / (a * cc - b * b)
+        two_log_over_det = two_logs[g] / (a * cc - b * b)
         ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
         ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
         # Clip in float first so that huge extents cannot overflow the integer conversion.
@@ -404,38 +405,50 @@ def pixel_rects(lo, hi, means2d, conics, opacities, radii, width, height, tile_s
         tile_counts[cg] = (u_hi // tile_size - u_lo // tile_size + 1) * (v_hi // tile_size - v_lo // tile_size + 1)
 
 
-@njit(**_OPTS)
-def bucket_by_first_tile(rects, tile_counts, depth_bits, n_cams, n, tile_size, tiles_x, tiles_y):
-    """Keys (float32 depth bits << 32 | Gaussian index) of the visible splats, bucketed by first tile.
+@njit(inline="always", **_OPTS)
+def _slot_tile(rect, s, tile_size, tiles_x) -> int:
+    """Camera-local tile id of the s-th tile (row-major) of a pixel rect's tile rectangle."""
+    tx0 = rect[0] // tile_size
+    tiles_w = rect[1] // tile_size - tx0 + 1
+    row = s // tiles_w
+    return (rect[2] // tile_size + row) * tiles_x + tx0 + s - row * tiles_w
 
-    Returns (starts [n_tiles + 1], keys [M]); `sort_tile_keys` then orders each bucket. Packing splats
-    in that order puts a tile's splats next to each other in memory, in the order its depth-sorted
-    list visits them; in model order every tile list jumps around the whole model and, past a few
-    hundred thousand Gaussians, compositing waits on cache misses instead of computing.
+
+@njit(**_OPTS)
+def tile_histogram(chunk_lo, chunk_hi, n_chunks, rects, tile_counts, n, tile_size, tiles_x, tiles_per_cam, hist) -> None:
+    """hist[chunk, t] = number of slots of chunk's (camera, Gaussian) pairs in tile t (a counting sort's
+    first pass); chunks are fixed ranges of c * N + g."""
+    for chunk in range(chunk_lo, chunk_hi):
+        lo, hi = _chunk_bounds(chunk, n_chunks, tile_counts.shape[0])
+        for cg in range(lo, hi):
+            base = (cg // n) * tiles_per_cam
+            for s in range(tile_counts[cg]):
+                hist[chunk, base + _slot_tile(rects[cg], s, tile_size, tiles_x)] += 1
+
+
+@njit(**_OPTS)
+def scatter_tile_keys(
+    chunk_lo, chunk_hi, n_chunks, rects, tile_counts, n, depth_bits, tile_size, tiles_x, tiles_per_cam, cursor, keys,
+) -> None:
+    """Writes each slot's key (float32 depth bits << 32 | g) at its chunk's cursor for its tile.
+
+    cursor [n_chunks, n_tiles] starts at each chunk's first position inside each tile's segment, so
+    chunks scatter without atomics and a tile's keys arrive in chunk order.
     """
-    n_tiles = n_cams * tiles_x * tiles_y
-    starts = np.zeros(n_tiles + 1, np.int64)
-    first_tile = np.empty(tile_counts.shape[0], np.int64)
-    for cg in range(tile_counts.shape[0]):
-        if tile_counts[cg] > 0:
-            t = (cg // n) * tiles_x * tiles_y + (rects[cg, 2] // tile_size) * tiles_x + rects[cg, 0] // tile_size
-            first_tile[cg] = t
-            starts[t + 1] += 1
-    for t in range(n_tiles):
-        starts[t + 1] += starts[t]
-    keys = np.empty(starts[n_tiles], np.int64)
-    cursor = starts[:-1].copy()
-    for cg in range(tile_counts.shape[0]):
-        if tile_counts[cg] > 0:
-            t = first_tile[cg]
-            keys[cursor[t]] = (depth_bits[cg] << 32) | (cg - (cg // n) * n)
-            cursor[t] += 1
-    return starts, keys
+    for chunk in range(chunk_lo, chunk_hi):
+        lo, hi = _chunk_bounds(chunk, n_chunks, tile_counts.shape[0])
+        for cg in range(lo, hi):
+            c = cg // n
+            key = (depth_bits[cg] << 32) | (cg - c * n)
+            for s in range(tile_counts[cg]):
+                t = c * tiles_per_cam + _slot_tile(rects[cg], s, tile_size, tiles_x)
+                keys[cursor[chunk, t]] = key
+                cursor[chunk, t] += 1
 
 
 @njit(**_OPTS)
-def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, lookup, out) -> None:
-    """Sorts each tile's keys by depth, then Gaussian index, and writes out[k] = lookup[c * N + g].
+def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, out) -> None:
+    """Sorts each tile's keys by depth, then Gaussian index, and writes out[k] = c * N + g.
 
     Keys are float32 depth bits << 32 | g (depths are positive, so the bits order like the values), so
     one int64 sort does nearly everything; runs whose float32 depths tie are then re-sorted by the
@@ -461,82 +474,58 @@ def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, lookup, out)
                 segment[m] = key
             run = k
         for k in range(segment.shape[0]):
-            out[offsets[t] + k] = lookup[cam_base + (segment[k] & _KEY_INDEX_MASK)]
+            out[offsets[t] + k] = cam_base + (segment[k] & _KEY_INDEX_MASK)
 
 
 @njit(**_OPTS)
-def pack_splats(lo, hi, perm, n, rects, tile_size, means2d, conics, opacities, splat_f, splat_i) -> None:
-    """Float (SF_*) and int (SI_*) records of each packed splat j, gathered in one pass."""
-    for j in range(lo, hi):
-        cg = perm[j]
-        c = cg // n
-        g = cg - c * n
-        opacity = opacities[g]
-        splat_f[j, SF_MX] = means2d[c, g, 0]
-        splat_f[j, SF_MY] = means2d[c, g, 1]
-        splat_f[j, SF_A] = conics[c, g, 0]
-        splat_f[j, SF_B] = conics[c, g, 1]
-        splat_f[j, SF_C] = conics[c, g, 2]
-        splat_f[j, SF_OPACITY] = opacity
-        splat_f[j, SF_TWO_LOG] = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
-        splat_i[j, SI_U_LO] = rects[cg, 0]
-        splat_i[j, SI_U_HI] = rects[cg, 1]
-        splat_i[j, SI_V_LO] = rects[cg, 2]
-        splat_i[j, SI_V_HI] = rects[cg, 3]
-        splat_i[j, SI_TX0] = rects[cg, 0] // tile_size
-        splat_i[j, SI_TY0] = rects[cg, 2] // tile_size
-        splat_i[j, SI_TILES_W] = rects[cg, 1] // tile_size - rects[cg, 0] // tile_size + 1
-
-
-@njit(**_OPTS)
-def gather_rows(lo, hi, perm, n, values, out) -> None:
-    """out[j] = values[c, g] for packed splat j = (c, g); values [C, N, D], or [1, N, D] shared by all
-    cameras; out [M, D]."""
-    shared = values.shape[0] == 1
-    for j in range(lo, hi):
-        c = perm[j] // n
-        g = perm[j] - c * n
-        for d in range(values.shape[2]):
-            out[j, d] = values[0 if shared else c, g, d]
-
-
-@njit(**_OPTS)
-def _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam) -> int:
-    """Global tile id of packed splat j's s-th slot."""
-    tiles_w = splat_i[j, SI_TILES_W]
-    row = s // tiles_w
-    tx = splat_i[j, SI_TX0] + s - row * tiles_w
-    return (perm[j] // n) * tiles_per_cam + (splat_i[j, SI_TY0] + row) * tiles_x + tx
-
-
-@njit(**_OPTS)
-def tile_histogram(chunk_lo, chunk_hi, n_chunks, splat_i, slot_offsets, perm, n, tiles_x, tiles_per_cam, hist) -> None:
-    """hist[chunk, t] = number of slots of chunk's splats in tile t (a counting sort's first pass)."""
-    for chunk in range(chunk_lo, chunk_hi):
-        lo, hi = _chunk_bounds(chunk, n_chunks, perm.shape[0])
-        for j in range(lo, hi):
-            for s in range(slot_offsets[j + 1] - slot_offsets[j]):
-                hist[chunk, _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam)] += 1
-
-
-@njit(**_OPTS)
-def scatter_tile_keys(
-    chunk_lo, chunk_hi, n_chunks, splat_i, slot_offsets, perm, n, depth_bits, tiles_x, tiles_per_cam, cursor, keys,
+def slot_records(
+    lo, hi, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam, means2d, conics, opacities,
+    two_logs, slot_f, slot_i, slot_at,
 ) -> None:
-    """Writes each slot's key (float32 depth bits << 32 | g) at its chunk's cursor for its tile.
+    """Float (SF_*) and int (SI_*) records of every slot k, in tile order, and slot_at[s] = k.
 
-    cursor [n_chunks, n_tiles] starts at each chunk's first position inside each tile's segment, so
-    chunks scatter without atomics and a tile's keys arrive in chunk order.
+    Tiles lo..hi-1 are filled. Compositing then reads a tile's splats front to back from consecutive
+    rows instead of gathering them from the whole model, where it would wait on cache misses.
+    s = slot_offsets[cg] + (the tile's row-major place in the pair's tile rectangle) numbers the slots
+    pair-major, so that per-pair sums over slots read slot_at[slot_offsets[cg]:slot_offsets[cg + 1]].
     """
-    for chunk in range(chunk_lo, chunk_hi):
-        lo, hi = _chunk_bounds(chunk, n_chunks, perm.shape[0])
-        for j in range(lo, hi):
-            cg = perm[j]
-            key = (depth_bits[cg] << 32) | (cg - (cg // n) * n)
-            for s in range(slot_offsets[j + 1] - slot_offsets[j]):
-                t = _splat_tile(j, s, splat_i, perm, n, tiles_x, tiles_per_cam)
-                keys[cursor[chunk, t]] = key
-                cursor[chunk, t] += 1
+    for t in range(lo, hi):
+        local = t % tiles_per_cam
+        ty = local // tiles_x
+        tx = local - ty * tiles_x
+        x0 = tx * tile_size
+        y0 = ty * tile_size
+        for k in range(tile_offsets[t], tile_offsets[t + 1]):
+            cg = ids[k]
+            c = cg // n
+            g = cg - c * n
+            slot_f[k, SF_MX] = means2d[c, g, 0]
+            slot_f[k, SF_MY] = means2d[c, g, 1]
+            slot_f[k, SF_A] = conics[c, g, 0]
+            slot_f[k, SF_B] = conics[c, g, 1]
+            slot_f[k, SF_C] = conics[c, g, 2]
+            slot_f[k, SF_OPACITY] = opacities[g]
+            slot_f[k, SF_LIMIT] = 0.5 * two_logs[g] + _SIGMA_MARGIN
+            u_lo, u_hi, v_lo, v_hi = rects[cg, 0], rects[cg, 1], rects[cg, 2], rects[cg, 3]
+            slot_i[k, SI_U_LO] = max(u_lo, x0)
+            slot_i[k, SI_U_HI] = min(u_hi, x0 + tile_size - 1)
+            slot_i[k, SI_V_LO] = max(v_lo, y0)
+            slot_i[k, SI_V_HI] = min(v_hi, y0 + tile_size - 1)
+            tx0 = u_lo // tile_size
+            tiles_w = u_hi // tile_size - tx0 + 1
+            slot_at[slot_offsets[cg] + (ty - v_lo // tile_size) * tiles_w + tx - tx0] = k
+
+
+@njit(**_OPTS)
+def gather_rows(lo, hi, ids, n, values, out) -> None:
+    """out[k] = values[c, g] for slot k of pair ids[k] = c * N + g; values [C, N, D], or [1, N, D] shared
+    by all cameras; out [n_isect, D]."""
+    shared = values.shape[0] == 1
+    for k in range(lo, hi):
+        c = ids[k] // n
+        g = ids[k] - c * n
+        for d in range(values.shape[2]):
+            out[k, d] = values[0 if shared else c, g, d]
 
 
 @njit(**_OPTS)
@@ -574,42 +563,36 @@ def balance_tiles(tile_offsets, n_bins):
 
 @njit(inline="always", **_OPTS)
 def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
-    """(camera, tile x, tile y, first and last pixel column and row) of a global tile id."""
+    """(camera, first and last pixel column and row) of a global tile id."""
     c = tile // tiles_per_cam
     local = tile - c * tiles_per_cam
     ty = local // tiles_x
     tx = local - ty * tiles_x
     x0 = tx * tile_size
     y0 = ty * tile_size
-    return c, tx, ty, x0, y0, min(width, x0 + tile_size) - 1, min(height, y0 + tile_size) - 1
+    return c, x0, y0, min(width, x0 + tile_size) - 1, min(height, y0 + tile_size) - 1
 
 
 @njit(inline="always", **_OPTS)
-def _slot(splat_i, slot_offsets, j, tx, ty) -> int:
-    """Slot of packed splat j in tile (tx, ty): its first slot plus the tile's row-major offset."""
-    return slot_offsets[j] + (ty - splat_i[j, SI_TY0]) * splat_i[j, SI_TILES_W] + (tx - splat_i[j, SI_TX0])
+def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
+    """Lists the live pixels of slot k's tile (origin x0, y0) where its splat may reach alpha >= 1/255.
 
-
-@njit(inline="always", **_OPTS)
-def _ellipse_pixels(splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
-    """Lists the live pixels of tile [x0, x1] x [y0, y1] where splat j may reach alpha >= 1/255.
-
-    That is sigma <= ln(255 opacity), the ellipse inside the splat's radius box, and the pixel's bit
+    That is sigma <= ln(255 opacity), the ellipse inside the slot's pixel rect, and the pixel's bit
     set in its row's mask live [tile rows] (bit u for column x0 + u). Rows without a live pixel in the
-    box are skipped; inside a row every box pixel is evaluated and the buffer cursor advances only past
-    those listed (branch-free compaction): with the same trip count on every row this beats solving
-    each row's span, whose square root and unpredictable loop bounds cost more than the ~27% of box
-    pixels they skip. Writes the tile-local pixel index, offsets from the mean and sigma of each listed
-    pixel; returns how many there are.
+    rect are skipped; inside a row every rect pixel is evaluated and the buffer cursor advances only
+    past those listed (branch-free compaction): with the same trip count on every row this beats
+    solving each row's span, whose square root and unpredictable loop bounds cost more than the ~27%
+    of rect pixels they skip. Writes the tile-local pixel index, offsets from the mean and sigma of
+    each listed pixel; returns how many there are.
     """
-    mx, my = splat_f[j, SF_MX], splat_f[j, SF_MY]
-    a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
-    limit = 0.5 * splat_f[j, SF_TWO_LOG] + _SIGMA_MARGIN
-    col_lo = max(x0, splat_i[j, SI_U_LO])
-    col_hi = min(x1, splat_i[j, SI_U_HI])
+    mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
+    a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
+    limit = slot_f[k, SF_LIMIT]
+    col_lo = slot_i[k, SI_U_LO]
+    col_hi = slot_i[k, SI_U_HI]
     box = _row_mask(col_hi - col_lo + 1) << (col_lo - x0)
     m = 0
-    for py in range(max(y0, splat_i[j, SI_V_LO]), min(y1, splat_i[j, SI_V_HI]) + 1):
+    for py in range(slot_i[k, SI_V_LO], slot_i[k, SI_V_HI] + 1):
         bits = live[py - y0]
         if bits & box == 0:
             continue
@@ -672,7 +655,7 @@ def _exp_neg(sigma, out, m) -> None:
 
 @njit(**_OPTS)
 def rasterize_forward(
-    bin_lo, bin_hi, splat_f, splat_c, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets, tile_size,
+    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size,
     tiles_x, backgrounds, width, height, out_colors, out_transmittance, out_last, slot_counts,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
@@ -684,7 +667,7 @@ def rasterize_forward(
     [C, H, W] (final T), out_last [C, H, W] int64 (position in `ids` of the last contributor, -1 if
     none) and slot_counts [n_isect] (pixels each slot shaded; zero-initialised by the caller).
     """
-    depth = splat_c.shape[1]
+    depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
     for bin_ in range(bin_lo, bin_hi):
@@ -699,7 +682,7 @@ def rasterize_forward(
         buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
-            c, tx, ty, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
+            c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
             trans[:] = 1.0
             acc[:] = 0.0
             last[:] = -1
@@ -708,14 +691,11 @@ def rasterize_forward(
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 if n_live == 0:
                     break
-                j = ids[k]
-                m = _ellipse_pixels(
-                    splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma
-                )
+                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma)
                 if m == 0:
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
-                opacity = splat_f[j, SF_OPACITY]
+                opacity = slot_f[k, SF_OPACITY]
                 shaded = 0
                 for i in range(m):
                     if buf_sigma[i] < 0.0:
@@ -731,11 +711,11 @@ def rasterize_forward(
                         continue
                     weight = alpha * trans[p]
                     for d in range(depth):
-                        acc[p, d] += weight * splat_c[j, d]
+                        acc[p, d] += weight * slot_c[k, d]
                     trans[p] = next_t
                     last[p] = k
                     shaded += 1
-                slot_counts[_slot(splat_i, slot_offsets, j, tx, ty)] = shaded
+                slot_counts[k] = shaded
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
@@ -747,7 +727,7 @@ def rasterize_forward(
 
 @njit(**_OPTS)
 def rasterize_backward(
-    bin_lo, bin_hi, splat_f, splat_c, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets, tile_size,
+    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size,
     tiles_x, backgrounds, width, height, out_colors, transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
 ) -> None:
     """VJP of `rasterize_forward`, walking each tile front to back again up to its pixels' last contributors.
@@ -759,7 +739,7 @@ def rasterize_backward(
     slot_grads [n_isect, 6 + D] (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c,
     opacity, colour...).
     """
-    depth = splat_c.shape[1]
+    depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size * tile_size
     for bin_ in range(bin_lo, bin_hi):
@@ -777,7 +757,9 @@ def rasterize_backward(
         buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
-            c, tx, ty, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
+            if tile_offsets[tile] == tile_offsets[tile + 1]:
+                continue
+            c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
             k_max = -1
             n_live = 0
             live[:] = 0
@@ -802,15 +784,12 @@ def rasterize_backward(
             for k in range(tile_offsets[tile], k_max + 1):
                 if n_live == 0:
                     break
-                j = ids[k]
-                m = _ellipse_pixels(
-                    splat_f, splat_i, j, x0, y0, x1, y1, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma
-                )
+                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma)
                 if m == 0:
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
-                opacity = splat_f[j, SF_OPACITY]
-                a, b, cc = splat_f[j, SF_A], splat_f[j, SF_B], splat_f[j, SF_C]
+                opacity = slot_f[k, SF_OPACITY]
+                a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
                 v_mx = 0.0
                 v_my = 0.0
                 v_a = 0.0
@@ -833,7 +812,7 @@ def rasterize_backward(
                     weight = alpha * t_here
                     v_alpha = -inv_one_minus * v_t_term[p]
                     for d in range(depth):
-                        col = splat_c[j, d]
+                        col = slot_c[k, d]
                         behind[p, d] -= col * weight
                         v_color[d] += weight * v_px[p, d]
                         v_alpha += (col * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
@@ -851,31 +830,32 @@ def rasterize_backward(
                         v_mx -= v_sigma * (a * dx + b * dy)
                         v_my -= v_sigma * (b * dx + cc * dy)
                         v_opacity += vis * v_alpha
-                s = _slot(splat_i, slot_offsets, j, tx, ty)
-                slot_grads[s, 0] = v_mx
-                slot_grads[s, 1] = v_my
-                slot_grads[s, 2] = v_a
-                slot_grads[s, 3] = v_b
-                slot_grads[s, 4] = v_c
-                slot_grads[s, 5] = v_opacity
+                slot_grads[k, 0] = v_mx
+                slot_grads[k, 1] = v_my
+                slot_grads[k, 2] = v_a
+                slot_grads[k, 3] = v_b
+                slot_grads[k, 4] = v_c
+                slot_grads[k, 5] = v_opacity
                 for d in range(depth):
-                    slot_grads[s, 6 + d] = v_color[d]
+                    slot_grads[k, 6 + d] = v_color[d]
 
 
 @njit(**_OPTS)
-def sum_slot_rows(lo, hi, slot_values, slot_offsets, perm, out) -> None:
-    """out[perm[j], :] = sum of slot_values[s, :] over splat j's slots; out [C * N, K] (zeros elsewhere)."""
-    for j in range(lo, hi):
-        for s in range(slot_offsets[j], slot_offsets[j + 1]):
+def sum_slot_rows(lo, hi, slot_values, slot_offsets, slot_at, out) -> None:
+    """out[cg, :] = sum of slot_values[k, :] over pair cg's slots, in slot order; out [C * N, K] (zeros
+    elsewhere)."""
+    for cg in range(lo, hi):
+        for s in range(slot_offsets[cg], slot_offsets[cg + 1]):
+            k = slot_at[s]
             for col in range(out.shape[1]):
-                out[perm[j], col] += slot_values[s, col]
+                out[cg, col] += slot_values[k, col]
 
 
 @njit(**_OPTS)
-def sum_slot_counts(lo, hi, slot_counts, slot_offsets, perm, out) -> None:
-    """out[perm[j]] = sum of slot_counts over splat j's slots; out [C * N] (zeros elsewhere)."""
-    for j in range(lo, hi):
+def sum_slot_counts(lo, hi, slot_counts, slot_offsets, slot_at, out) -> None:
+    """out[cg] = sum of slot_counts over pair cg's slots; out [C * N]."""
+    for cg in range(lo, hi):
         total = 0
-        for s in range(slot_offsets[j], slot_offsets[j + 1]):
-            total += slot_counts[s]
-        out[perm[j]] = total
+        for s in range(slot_offsets[cg], slot_offsets[cg + 1]):
+            total += slot_counts[slot_at[s]]
+        out[cg] = total
