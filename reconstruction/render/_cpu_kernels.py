@@ -480,9 +480,10 @@ def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, out) -> None
 @njit(**_OPTS)
 def slot_records(
     lo, hi, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam, means2d, conics, opacities,
-    two_logs, slot_f, slot_i, slot_at,
+    two_logs, slot_f, slot_i, slot_at, slot_areas,
 ) -> None:
-    """Float (SF_*) and int (SI_*) records of every slot k, in tile order, and slot_at[s] = k.
+    """Float (SF_*) and int (SI_*) records of every slot k, in tile order, slot_at[s] = k and the pixel
+    count slot_areas[k] of the slot's rect.
 
     Tiles lo..hi-1 are filled. Compositing then reads a tile's splats front to back from consecutive
     rows instead of gathering them from the whole model, where it would wait on cache misses.
@@ -511,6 +512,7 @@ def slot_records(
             slot_i[k, SI_U_HI] = min(u_hi, x0 + tile_size - 1)
             slot_i[k, SI_V_LO] = max(v_lo, y0)
             slot_i[k, SI_V_HI] = min(v_hi, y0 + tile_size - 1)
+            slot_areas[k] = (slot_i[k, SI_U_HI] - slot_i[k, SI_U_LO] + 1) * (slot_i[k, SI_V_HI] - slot_i[k, SI_V_LO] + 1)
             tx0 = u_lo // tile_size
             tiles_w = u_hi // tile_size - tx0 + 1
             slot_at[slot_offsets[cg] + (ty - v_lo // tile_size) * tiles_w + tx - tx0] = k
@@ -574,7 +576,7 @@ def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
 
 
 @njit(inline="always", **_OPTS)
-def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma) -> int:
+def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_sigma) -> int:
     """Lists the live pixels of slot k's tile (origin x0, y0) where its splat may reach alpha >= 1/255.
 
     That is sigma <= ln(255 opacity), the ellipse inside the slot's pixel rect, and the pixel's bit
@@ -582,8 +584,8 @@ def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, b
     rect are skipped; inside a row every rect pixel is evaluated and the buffer cursor advances only
     past those listed (branch-free compaction): with the same trip count on every row this beats
     solving each row's span, whose square root and unpredictable loop bounds cost more than the ~27%
-    of rect pixels they skip. Writes the tile-local pixel index, offsets from the mean and sigma of
-    each listed pixel; returns how many there are.
+    of rect pixels they skip. Writes the tile-local pixel index and sigma of each listed pixel;
+    returns how many there are.
     """
     mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
     a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
@@ -603,8 +605,6 @@ def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, b
             dx = px + 0.5 - mx
             sigma = 0.5 * a * dx * dx + half_c_dy2 + b * dx * dy
             buf_p[m] = row + px
-            buf_dx[m] = dx
-            buf_dy[m] = dy
             buf_sigma[m] = sigma
             m += (bits >> (px - x0)) & (1 if sigma <= limit else 0)
     return m
@@ -655,8 +655,8 @@ def _exp_neg(sigma, out, m) -> None:
 
 @njit(**_OPTS)
 def rasterize_forward(
-    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size,
-    tiles_x, backgrounds, width, height, out_colors, out_transmittance, out_last, slot_counts,
+    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
+    height, pair_offsets, out_colors, out_transmittance, slot_counts, pair_px, pair_vis,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
 
@@ -664,8 +664,10 @@ def rasterize_forward(
     splats in the outer loop lets each visit only the pixels inside its own ellipse and batch their
     exponentials. Pixels whose transmittance has terminated leave their row's live mask, so splats
     over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D], out_transmittance
-    [C, H, W] (final T), out_last [C, H, W] int64 (position in `ids` of the last contributor, -1 if
-    none) and slot_counts [n_isect] (pixels each slot shaded; zero-initialised by the caller).
+    [C, H, W] (final T), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
+    shaded pixel of slot k at pair_offsets[k] + i (i < slot_counts[k]; pair_offsets [n_isect] has room
+    for the slot's whole pixel rect): pair_px int16 (tile row << 8 | tile column) and pair_vis
+    (exp(-sigma)).
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -673,11 +675,8 @@ def rasterize_forward(
     for bin_ in range(bin_lo, bin_hi):
         trans = np.empty(n_px)
         acc = np.empty((n_px, depth))
-        last = np.empty(n_px, np.int64)
         live = np.empty(tile_size, np.int64)
         buf_p = np.empty(n_px, np.int64)
-        buf_dx = np.empty(n_px)
-        buf_dy = np.empty(n_px)
         buf_sigma = np.empty(n_px)
         buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
@@ -685,18 +684,18 @@ def rasterize_forward(
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
             trans[:] = 1.0
             acc[:] = 0.0
-            last[:] = -1
             live[:] = _row_mask(x1 - x0 + 1)
             n_live = (x1 - x0 + 1) * (y1 - y0 + 1)
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
+                slot_counts[k] = 0
                 if n_live == 0:
-                    break
-                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma)
+                    continue
+                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_sigma)
                 if m == 0:
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
                 opacity = slot_f[k, SF_OPACITY]
-                shaded = 0
+                out = pair_offsets[k]
                 for i in range(m):
                     if buf_sigma[i] < 0.0:
                         continue
@@ -713,31 +712,32 @@ def rasterize_forward(
                     for d in range(depth):
                         acc[p, d] += weight * slot_c[k, d]
                     trans[p] = next_t
-                    last[p] = k
-                    shaded += 1
-                slot_counts[k] = shaded
+                    row = p // tile_size
+                    pair_px[out] = (row << 8) | (p - row * tile_size)
+                    pair_vis[out] = buf_vis[i]
+                    out += 1
+                slot_counts[k] = out - pair_offsets[k]
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
                     for d in range(depth):
                         out_colors[c, py, px, d] = acc[p, d] + trans[p] * backgrounds[c, d]
                     out_transmittance[c, py, px] = trans[p]
-                    out_last[c, py, px] = last[p]
 
 
 @njit(**_OPTS)
 def rasterize_backward(
-    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size,
-    tiles_x, backgrounds, width, height, out_colors, transmittance, last_ids, v_out_colors, v_out_alphas, slot_grads,
+    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
+    height, pair_offsets, out_colors, transmittance, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
+    slot_grads,
 ) -> None:
-    """VJP of `rasterize_forward`, walking each tile front to back again up to its pixels' last contributors.
+    """VJP of `rasterize_forward`: each tile's shaded pixels again, front to back, as the forward listed them.
 
-    The forward's out_colors [C, H, W, D], transmittance [C, H, W] and last_ids [C, H, W] come in, with
-    v_out_colors [C, H, W, D] and v_out_alphas [C, H, W]. T is recomputed by the same products as in
-    the forward (no division by 1 - alpha); the colour behind a splat is the pixel's accumulated colour
-    minus what the splats up to it added. A pixel leaves its row's live mask after its last contributor.
-    slot_grads [n_isect, 6 + D] (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c,
-    opacity, colour...).
+    The forward's out_colors [C, H, W, D], transmittance [C, H, W], slot_counts, pair_px and pair_vis
+    come in, with v_out_colors [C, H, W, D] and v_out_alphas [C, H, W]. T is recomputed by the same
+    products as in the forward (no division by 1 - alpha); the colour behind a splat is the pixel's
+    accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D]
+    (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -747,32 +747,17 @@ def rasterize_backward(
         behind = np.empty((n_px, depth))
         v_px = np.empty((n_px, depth))
         v_t_term = np.empty(n_px)
-        last = np.empty(n_px, np.int64)
-        live = np.empty(tile_size, np.int64)
         v_color = np.empty(depth)
-        buf_p = np.empty(n_px, np.int64)
-        buf_dx = np.empty(n_px)
-        buf_dy = np.empty(n_px)
-        buf_sigma = np.empty(n_px)
-        buf_vis = np.empty(n_px)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
             if tile_offsets[tile] == tile_offsets[tile + 1]:
                 continue
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
-            k_max = -1
-            n_live = 0
-            live[:] = 0
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = (py - y0) * tile_size + (px - x0)
                     t_final = transmittance[c, py, px]
                     trans[p] = 1.0
-                    last[p] = last_ids[c, py, px]
-                    if last[p] >= 0:
-                        live[py - y0] |= 1 << (px - x0)
-                        n_live += 1
-                    k_max = max(k_max, last[p])
                     # alpha = 1 - T and colour += T * background both depend on every splat through
                     # T_final; d T_final / d alpha_i = -T_final / (1 - alpha_i).
                     v_t = -v_out_alphas[c, py, px]
@@ -781,14 +766,12 @@ def rasterize_backward(
                         v_px[p, d] = v_out_colors[c, py, px, d]
                         v_t += backgrounds[c, d] * v_px[p, d]
                     v_t_term[p] = t_final * v_t
-            for k in range(tile_offsets[tile], k_max + 1):
-                if n_live == 0:
-                    break
-                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_dx, buf_dy, buf_sigma)
-                if m == 0:
+            for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
+                count = slot_counts[k]
+                if count == 0:
                     continue
-                _exp_neg(buf_sigma, buf_vis, m)
                 opacity = slot_f[k, SF_OPACITY]
+                mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
                 a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
                 v_mx = 0.0
                 v_my = 0.0
@@ -797,32 +780,29 @@ def rasterize_backward(
                 v_c = 0.0
                 v_opacity = 0.0
                 v_color[:] = 0.0
-                for i in range(m):
-                    if buf_sigma[i] < 0.0:
-                        continue
-                    vis = buf_vis[i]
+                for i in range(pair_offsets[k], pair_offsets[k] + count):
+                    row = pair_px[i] >> 8
+                    col = pair_px[i] & 0xFF
+                    p = row * tile_size + col
+                    vis = pair_vis[i]
                     raw_alpha = opacity * vis
                     alpha = min(ALPHA_MAX, raw_alpha)
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
-                    p = buf_p[i]
                     one_minus = 1.0 - alpha
                     inv_one_minus = 1.0 / one_minus
                     t_here = trans[p]
                     weight = alpha * t_here
                     v_alpha = -inv_one_minus * v_t_term[p]
                     for d in range(depth):
-                        col = slot_c[k, d]
-                        behind[p, d] -= col * weight
+                        col_d = slot_c[k, d]
+                        behind[p, d] -= col_d * weight
                         v_color[d] += weight * v_px[p, d]
-                        v_alpha += (col * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
+                        v_alpha += (col_d * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
                     trans[p] = t_here * one_minus
-                    if k == last[p]:
-                        _clear_live(live, p, tile_size)
-                        n_live -= 1
                     # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
                     if raw_alpha <= ALPHA_MAX:
-                        dx, dy = buf_dx[i], buf_dy[i]
+                        # The forward's offsets, by the same operations.
+                        dx = (x0 + col) + 0.5 - mx
+                        dy = (y0 + row) + 0.5 - my
                         v_sigma = -raw_alpha * v_alpha
                         v_a += 0.5 * v_sigma * dx * dx
                         v_b += v_sigma * dx * dy

@@ -35,6 +35,7 @@ class TileBins:
     slot_i: np.ndarray  # [n_isect, SI_COLUMNS] int32 records (pixel rect within the tile)
     slot_offsets: np.ndarray  # [C * N + 1] int64, pair cg owns slot_at[slot_offsets[cg]:slot_offsets[cg + 1]]
     slot_at: np.ndarray  # [n_isect] int64 slots listed pair-major
+    pair_offsets: np.ndarray  # [n_isect + 1] int64, slot k's shaded pixels go from pair_offsets[k] (room for its rect)
     tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
     work: np.ndarray  # [C * tiles_y * tiles_x] tile ids grouped into per-thread bins
     work_offsets: np.ndarray  # [n_bins + 1]
@@ -125,13 +126,17 @@ def bin_gaussians(
     slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
     slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
     slot_at = np.empty(n_isects, np.int64)
+    slot_areas = np.empty(n_isects, np.int64)
     parallel_for(
         kernels.slot_records, n_tiles, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam,
-        means2d_np, conics_np, opacities_np, two_logs, slot_f, slot_i, slot_at,
+        means2d_np, conics_np, opacities_np, two_logs, slot_f, slot_i, slot_at, slot_areas,
     )
+    pair_offsets = np.zeros(n_isects + 1, np.int64)
+    np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
-        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_offsets, slot_at, tile_offsets, work, work_offsets
+        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_offsets, slot_at, pair_offsets, tile_offsets, work,
+        work_offsets,
     )
 
 
@@ -149,11 +154,13 @@ class _RasterizeToPixels(torch.autograd.Function):
         slot_c = bins.gather(colors)
         out_colors = np.empty((n_cams, height, width, depth))
         transmittance = np.empty((n_cams, height, width))
-        last_ids = np.empty((n_cams, height, width), np.int64)
-        slot_counts = np.zeros(bins.n_isects, np.int64)
+        slot_counts = np.empty(bins.n_isects, np.int64)
+        # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
+        pair_px = np.empty(bins.pair_offsets[-1], np.int16)
+        pair_vis = np.empty(bins.pair_offsets[-1])
         parallel_for(
             kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
-            width, height, out_colors, transmittance, last_ids, slot_counts,
+            width, height, bins.pair_offsets, out_colors, transmittance, slot_counts, pair_px, pair_vis,
         )
         counts = bins.sum_slots(kernels.sum_slot_counts, slot_counts, np.empty(n_cams * n, np.int64))
 
@@ -163,7 +170,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.slot_c = slot_c
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
-        ctx.last_ids = last_ids
+        ctx.pairs = (slot_counts, pair_px, pair_vis)
         render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
@@ -180,7 +187,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
-            width, height, ctx.out_colors, ctx.transmittance, ctx.last_ids, v_colors_np,
+            width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, *ctx.pairs, v_colors_np,
             to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
         grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.zeros((n_cams * n, n_cols)))
