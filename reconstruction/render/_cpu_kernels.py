@@ -736,8 +736,8 @@ def rasterize_backward(
     The forward's out_colors [C, H, W, D], transmittance [C, H, W], slot_counts, pair_px and pair_vis
     come in, with v_out_colors [C, H, W, D] and v_out_alphas [C, H, W]. T is recomputed by the same
     products as in the forward (no division by 1 - alpha); the colour behind a splat is the pixel's
-    accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D]
-    (zero-initialised) receives per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
+    accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D] receives
+    per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -769,6 +769,7 @@ def rasterize_backward(
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 count = slot_counts[k]
                 if count == 0:
+                    slot_grads[k, :] = 0.0
                     continue
                 opacity = slot_f[k, SF_OPACITY]
                 mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
@@ -822,9 +823,10 @@ def rasterize_backward(
 
 @njit(**_OPTS)
 def sum_slot_rows(lo, hi, slot_values, slot_offsets, slot_at, out) -> None:
-    """out[cg, :] = sum of slot_values[k, :] over pair cg's slots, in slot order; out [C * N, K] (zeros
-    elsewhere)."""
+    """out[cg, :] = sum of slot_values[k, :] over pair cg's slots, in slot order; out [C * N, K]."""
     for cg in range(lo, hi):
+        for col in range(out.shape[1]):
+            out[cg, col] = 0.0
         for s in range(slot_offsets[cg], slot_offsets[cg + 1]):
             k = slot_at[s]
             for col in range(out.shape[1]):

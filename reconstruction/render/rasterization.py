@@ -66,7 +66,7 @@ class TileBins:
         return out
 
     def sum_slots(self, kernel, slot_values: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """out [C * N, ...] (zero-initialised) += per-pair sums of slot_values [n_isect, ...] by `kernel`."""
+        """out [C * N, ...] = per-pair sums of slot_values [n_isect, ...] by `kernel`."""
         parallel_for(kernel, self.n_pairs, slot_values, self.slot_offsets, self.slot_at, out, grain=_GRAIN)
         return out
 
@@ -183,19 +183,21 @@ class _RasterizeToPixels(torch.autograd.Function):
         bins: TileBins = ctx.bins
         n_cams, n, color_cams, width, height = ctx.shapes
         n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
-        slot_grads = np.zeros((bins.n_isects, n_cols))
+        slot_grads = np.empty((bins.n_isects, n_cols))
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
             width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, *ctx.pairs, v_colors_np,
             to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
-        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.zeros((n_cams * n, n_cols)))
+        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols)))
         grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
         v_colors = grads_t[..., N_GRAD_GEOMETRY:]
         if color_cams == 1:
             v_colors = v_colors.sum(0, keepdim=True)
-        v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
+        v_backgrounds = None
+        if ctx.needs_input_grad[4]:
+            v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
         return grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None
 
 
