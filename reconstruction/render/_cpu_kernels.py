@@ -216,13 +216,14 @@ def project_forward(
 @njit(**_OPTS)
 def project_backward(
     chunk_lo, chunk_hi, means, quats, scales, viewmats, Ks, width, height, radii, conics, v_means2d, v_conics,
-    v_means, v_quats, v_scales, v_viewmats_chunks,
+    want_viewmats, v_means, v_quats, v_scales, v_viewmats_chunks,
 ) -> None:
     """VJP of `project_forward` for the visible entries.
 
     v_means2d [C, N, 2] and v_conics [C, N, 3] (gradients w.r.t. (a, b, c)) come in; v_means [N, 3],
-    v_quats [N, 4], v_scales [N, 3] are written (zero-initialised by the caller) and per-chunk viewmat
-    gradients are accumulated into v_viewmats_chunks [n_chunks, C, 3, 4] (the caller sums the chunks).
+    v_quats [N, 4], v_scales [N, 3] are written (zero-initialised by the caller) and, if want_viewmats,
+    per-chunk viewmat gradients are accumulated into v_viewmats_chunks [n_chunks, C, 3, 4] (the caller
+    sums the chunks).
     """
     n = means.shape[0]
     n_cams = viewmats.shape[0]
@@ -313,17 +314,16 @@ def project_backward(
                 for i in range(3):
                     for j in range(3):
                         v_cov[i, j] += rw[i, 0] * vm[0, j] + rw[i, 1] * vm[1, j] + rw[i, 2] * vm[2, j]
-                for i in range(3):
-                    for j in range(3):
-                        tmp[i, j] = vm[i, 0] * cov[0, j] + vm[i, 1] * cov[1, j] + vm[i, 2] * cov[2, j]
-                vmc = (vmx, vmy, vmz)
-                for i in range(3):
-                    for j in range(3):
-                        v_viewmats_chunks[chunk, c, i, j] += (
-                            2.0 * (v_w[i, 0] * tmp[0, j] + v_w[i, 1] * tmp[1, j] + v_w[i, 2] * tmp[2, j])
-                            + vmc[i] * means[g, j]
-                        )
-                    v_viewmats_chunks[chunk, c, i, 3] += vmc[i]
+                if want_viewmats:
+                    # tmp still holds R cov from `_to_camera`.
+                    vmc = (vmx, vmy, vmz)
+                    for i in range(3):
+                        for j in range(3):
+                            v_viewmats_chunks[chunk, c, i, j] += (
+                                2.0 * (v_w[i, 0] * tmp[0, j] + v_w[i, 1] * tmp[1, j] + v_w[i, 2] * tmp[2, j])
+                                + vmc[i] * means[g, j]
+                            )
+                        v_viewmats_chunks[chunk, c, i, 3] += vmc[i]
                 vmx_w += vm[0, 0] * vmx + vm[1, 0] * vmy + vm[2, 0] * vmz
                 vmy_w += vm[0, 1] * vmx + vm[1, 1] * vmy + vm[2, 1] * vmz
                 vmz_w += vm[0, 2] * vmx + vm[1, 2] * vmy + vm[2, 2] * vmz
