@@ -45,7 +45,6 @@ _SIGMA_MARGIN = 1e-9
 _EXTENT_MARGIN = 1e-9
 # Fixed chunk counts make the order of floating-point sums independent of the thread count.
 GAUSSIAN_CHUNKS = 256
-BINNING_CHUNKS = 64
 _KEY_INDEX_MASK = 0xFFFFFFFF
 _EXP_MINUS_HALF = math.exp(-0.5)
 # A tile row's live pixels are the bits of one int64.

@@ -103,8 +103,9 @@ def bin_gaussians(
     n_isects = int(slot_offsets[-1])
 
     # Counting sort of all slots by tile: per-chunk histograms, then each chunk scatters from its own
-    # cursors, then every tile's keys are sorted by (depth, index).
-    n_chunks = max(1, min(kernels.BINNING_CHUNKS, n_pairs))
+    # cursors, then every tile's keys are sorted by (depth, index). Keys are unique within a tile, so
+    # the chunking (one per part of the parallel loop) does not change the result.
+    n_chunks = max(1, min(num_threads() * PARTS_PER_THREAD, n_pairs))
     tile_args = (rects, tile_counts, n)
     hist = np.zeros((n_chunks, n_tiles), np.int64)
     parallel_for(kernels.tile_histogram, n_chunks, n_chunks, *tile_args, tile_size, tiles_x, tiles_per_cam, hist)
