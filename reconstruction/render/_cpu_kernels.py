@@ -49,6 +49,8 @@ _KEY_INDEX_MASK = 0xFFFFFFFF
 _EXP_MINUS_HALF = math.exp(-0.5)
 # A tile row's live pixels are the bits of one int64.
 MAX_TILE_SIZE = 64
+# Tile-local pixel index p = row << _ROW_SHIFT | column, so that no kernel divides by the tile size.
+_ROW_SHIFT = 6
 
 # Columns of a slot's float record: mean2d, conic, opacity, and the sigma up to which it lists pixels.
 SF_MX, SF_MY, SF_A, SF_B, SF_C, SF_OPACITY, SF_LIMIT = range(7)
@@ -575,7 +577,7 @@ def _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height):
 
 
 @njit(inline="always", **_OPTS)
-def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_sigma) -> int:
+def _ellipse_pixels(slot_f, slot_i, k, x0, y0, live, buf_p, buf_sigma) -> int:
     """Lists the live pixels of slot k's tile (origin x0, y0) where its splat may reach alpha >= 1/255.
 
     That is sigma <= ln(255 opacity), the ellipse inside the slot's pixel rect, and the pixel's bit
@@ -598,7 +600,7 @@ def _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_sigma
         if bits & box == 0:
             continue
         dy = py + 0.5 - my
-        row = (py - y0) * tile_size - x0
+        row = ((py - y0) << _ROW_SHIFT) - x0
         half_c_dy2 = 0.5 * cc * dy * dy
         for px in range(col_lo, col_hi + 1):
             dx = px + 0.5 - mx
@@ -616,10 +618,9 @@ def _row_mask(count: int) -> int:
 
 
 @njit(inline="always", **_OPTS)
-def _clear_live(live, p: int, tile_size: int) -> None:
+def _clear_live(live, p: int) -> None:
     """Clears tile-local pixel p's bit in the row masks."""
-    r = p // tile_size
-    live[r] &= ~(1 << (p - r * tile_size))
+    live[p >> _ROW_SHIFT] &= ~(1 << (p & (MAX_TILE_SIZE - 1)))
 
 
 @njit(inline="always", **_OPTS)
@@ -665,31 +666,40 @@ def rasterize_forward(
     over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D], out_transmittance
     [C, H, W] (final T), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
     shaded pixel of slot k at pair_offsets[k] + i (i < slot_counts[k]; pair_offsets [n_isect] has room
-    for the slot's whole pixel rect): pair_px int16 (tile row << 8 | tile column) and pair_vis
-    (exp(-sigma)).
+    for the slot's whole pixel rect): pair_px int16 (tile-local p) and pair_vis (exp(-sigma)).
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
-    n_px = tile_size * tile_size
+    n_px = tile_size << _ROW_SHIFT
+    n_list = tile_size * tile_size
     for bin_ in range(bin_lo, bin_hi):
         trans = np.empty(n_px)
         acc = np.empty((n_px, depth))
         live = np.empty(tile_size, np.int64)
-        buf_p = np.empty(n_px, np.int64)
-        buf_sigma = np.empty(n_px)
-        buf_vis = np.empty(n_px)
+        buf_p = np.empty(n_list, np.int64)
+        buf_sigma = np.empty(n_list)
+        buf_vis = np.empty(n_list)
         for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
             tile = work[w]
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
-            trans[:] = 1.0
-            acc[:] = 0.0
+            if tile_offsets[tile] == tile_offsets[tile + 1]:
+                # Nothing covers the tile (most of an image whose object is small): background, T = 1.
+                for py in range(y0, y1 + 1):
+                    for px in range(x0, x1 + 1):
+                        for d in range(depth):
+                            out_colors[c, py, px, d] = backgrounds[c, d]
+                        out_transmittance[c, py, px] = 1.0
+                continue
+            used = (y1 - y0 + 1) << _ROW_SHIFT
+            trans[:used] = 1.0
+            acc[:used] = 0.0
             live[:] = _row_mask(x1 - x0 + 1)
             n_live = (x1 - x0 + 1) * (y1 - y0 + 1)
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 slot_counts[k] = 0
                 if n_live == 0:
                     continue
-                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, tile_size, live, buf_p, buf_sigma)
+                m = _ellipse_pixels(slot_f, slot_i, k, x0, y0, live, buf_p, buf_sigma)
                 if m == 0:
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
@@ -704,21 +714,20 @@ def rasterize_forward(
                     p = buf_p[i]
                     next_t = trans[p] * (1.0 - alpha)
                     if next_t <= TRANSMITTANCE_MIN:
-                        _clear_live(live, p, tile_size)
+                        _clear_live(live, p)
                         n_live -= 1
                         continue
                     weight = alpha * trans[p]
                     for d in range(depth):
                         acc[p, d] += weight * slot_c[k, d]
                     trans[p] = next_t
-                    row = p // tile_size
-                    pair_px[out] = (row << 8) | (p - row * tile_size)
+                    pair_px[out] = p
                     pair_vis[out] = buf_vis[i]
                     out += 1
                 slot_counts[k] = out - pair_offsets[k]
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
-                    p = (py - y0) * tile_size + (px - x0)
+                    p = ((py - y0) << _ROW_SHIFT) + (px - x0)
                     for d in range(depth):
                         out_colors[c, py, px, d] = acc[p, d] + trans[p] * backgrounds[c, d]
                     out_transmittance[c, py, px] = trans[p]
@@ -740,7 +749,7 @@ def rasterize_backward(
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
-    n_px = tile_size * tile_size
+    n_px = tile_size << _ROW_SHIFT
     for bin_ in range(bin_lo, bin_hi):
         trans = np.empty(n_px)
         behind = np.empty((n_px, depth))
@@ -754,7 +763,7 @@ def rasterize_backward(
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
-                    p = (py - y0) * tile_size + (px - x0)
+                    p = ((py - y0) << _ROW_SHIFT) + (px - x0)
                     t_final = transmittance[c, py, px]
                     trans[p] = 1.0
                     # alpha = 1 - T and colour += T * background both depend on every splat through
@@ -781,9 +790,9 @@ def rasterize_backward(
                 v_opacity = 0.0
                 v_color[:] = 0.0
                 for i in range(pair_offsets[k], pair_offsets[k] + count):
-                    row = pair_px[i] >> 8
-                    col = pair_px[i] & 0xFF
-                    p = row * tile_size + col
+                    p = pair_px[i]
+                    row = p >> _ROW_SHIFT
+                    col = p & (MAX_TILE_SIZE - 1)
                     vis = pair_vis[i]
                     raw_alpha = opacity * vis
                     alpha = min(ALPHA_MAX, raw_alpha)
