@@ -215,6 +215,15 @@ def test_random_scene_matches_reference(sh_degree):
     assert meta["visibility_counts"].shape == (2, 150) and meta["visibility_counts"].sum() > 0
 
 
+def test_batched_views_with_empty_tiles_match_reference():
+    # The production shape in small: several views in one call, SH colours, a background per view, an
+    # object on a few tiles of each image (empty tiles take the background path).
+    scene = random_scene(120, seed=21, n_cams=3, width=96, height=64, sh_degree=2, spread=0.25)
+    _, alphas, _, _ = assert_matches(scene)
+    tiles = alphas[..., 0].unfold(1, 16, 16).unfold(2, 16, 16).amax(dim=(-1, -2))
+    assert (tiles == 0).any(dim=(1, 2)).all() and (tiles > 0.5).any(dim=(1, 2)).all()
+
+
 def test_dense_scene_terminates_early_like_reference():
     scene = random_scene(300, seed=3, n_cams=1, width=33, height=29, spread=0.8)
     scene["opacities"] = torch.full((300,), 0.97)
