@@ -656,7 +656,7 @@ def _exp_neg(sigma, out, m) -> None:
 @njit(**_OPTS)
 def rasterize_forward(
     bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, pair_offsets, out_colors, out_transmittance, slot_counts, pair_px, pair_vis,
+    height, pair_offsets, out_colors, out_transmittance, render_colors, render_alphas, slot_counts, pair_px, pair_vis,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
 
@@ -664,7 +664,8 @@ def rasterize_forward(
     splats in the outer loop lets each visit only the pixels inside its own ellipse and batch their
     exponentials. Pixels whose transmittance has terminated leave their row's live mask, so splats
     over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D], out_transmittance
-    [C, H, W] (final T), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
+    [C, H, W] (final T), the same colours and alpha = 1 - T in the caller's dtype (render_colors
+    [C, H, W, D], render_alphas [C, H, W], so that no cast follows), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
     shaded pixel of slot k at pair_offsets[k] + i (i < slot_counts[k]; pair_offsets [n_isect] has room
     for the slot's whole pixel rect): pair_px int16 (tile-local p) and pair_vis (exp(-sigma)).
     """
@@ -688,7 +689,9 @@ def rasterize_forward(
                     for px in range(x0, x1 + 1):
                         for d in range(depth):
                             out_colors[c, py, px, d] = backgrounds[c, d]
+                            render_colors[c, py, px, d] = backgrounds[c, d]
                         out_transmittance[c, py, px] = 1.0
+                        render_alphas[c, py, px] = 0.0
                 continue
             used = (y1 - y0 + 1) << _ROW_SHIFT
             trans[:used] = 1.0
@@ -729,8 +732,11 @@ def rasterize_forward(
                 for px in range(x0, x1 + 1):
                     p = ((py - y0) << _ROW_SHIFT) + (px - x0)
                     for d in range(depth):
-                        out_colors[c, py, px, d] = acc[p, d] + trans[p] * backgrounds[c, d]
+                        value = acc[p, d] + trans[p] * backgrounds[c, d]
+                        out_colors[c, py, px, d] = value
+                        render_colors[c, py, px, d] = value
                     out_transmittance[c, py, px] = trans[p]
+                    render_alphas[c, py, px] = 1.0 - trans[p]
 
 
 @njit(**_OPTS)
@@ -742,7 +748,7 @@ def rasterize_backward(
     """VJP of `rasterize_forward`: each tile's shaded pixels again, front to back, as the forward listed them.
 
     The forward's out_colors [C, H, W, D], transmittance [C, H, W], slot_counts, pair_px and pair_vis
-    come in, with v_out_colors [C, H, W, D] and v_out_alphas [C, H, W]. T is recomputed by the same
+    come in, with v_out_colors [C, H, W, D] and v_out_alphas [C, H, W] (in the caller's dtype). T is recomputed by the same
     products as in the forward (no division by 1 - alpha); the colour behind a splat is the pixel's
     accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D] receives
     per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).

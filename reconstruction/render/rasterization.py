@@ -149,19 +149,22 @@ class _RasterizeToPixels(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype):
         n_cams, n = means2d.shape[:2]
         depth = colors.shape[2]
         slot_c = bins.gather(colors)
         out_colors = np.empty((n_cams, height, width, depth))
         transmittance = np.empty((n_cams, height, width))
+        render_colors = torch.empty((n_cams, height, width, depth), dtype=dtype)
+        render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
         slot_counts = np.empty(bins.n_isects, np.int64)
         # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
         pair_px = np.empty(bins.pair_offsets[-1], np.int16)
         pair_vis = np.empty(bins.pair_offsets[-1])
         parallel_for(
             kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
-            width, height, bins.pair_offsets, out_colors, transmittance, slot_counts, pair_px, pair_vis,
+            width, height, bins.pair_offsets, out_colors, transmittance, render_colors.numpy(),
+            render_alphas.numpy()[..., 0], slot_counts, pair_px, pair_vis,
         )
         counts = bins.sum_slots(kernels.sum_slot_counts, slot_counts, np.empty(n_cams * n, np.int64))
 
@@ -172,10 +175,9 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
         ctx.pairs = (slot_counts, pair_px, pair_vis)
-        render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
-        return torch.from_numpy(out_colors), render_alphas, counts_t
+        return render_colors, render_alphas, counts_t
 
     @staticmethod
     @once_differentiable
@@ -198,8 +200,12 @@ class _RasterizeToPixels(torch.autograd.Function):
             v_colors = v_colors.sum(0, keepdim=True)
         v_backgrounds = None
         if ctx.needs_input_grad[4]:
-            v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
-        return grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None
+            v_backgrounds = torch.einsum(
+                "chw,chwd->cd", torch.from_numpy(ctx.transmittance), v_render_colors.to(torch.float64)
+            )
+        return (
+            grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None, None
+        )
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active):
@@ -319,8 +325,10 @@ def rasterize(
     backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
 
     bins = bin_gaussians(proj.means2d, proj.conics, opacities, proj.radii, proj.depths, width, height, tile_size)
+    # The images come out of the kernel in the caller's dtype (float64 for any other than float32).
+    out_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float64
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype
     )
     meta = {
         "radii": proj.radii,
