@@ -6,8 +6,10 @@ layout) ran within 4% of this one (8.1 vs 8.0 ms at 20k Gaussians / 256^2, 110 v
 and a build in CI; NVIDIA Warp runs CPU kernels on one thread with no SIMD (NVIDIA/warp#1309).
 numba's `cache=True` keeps the one-off compile (~20 s for all kernels) out of every later process.
 
-Every float array is float64 (callers cast): a float32 pixel-space mean near x = 500 px is off by up
-to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the rasterizer promises.
+Every float array is float64 (callers cast), except the rendered images the compositing kernels hand
+back and their gradients, which are in the caller's dtype: a float32 pixel-space mean near x = 500 px
+is off by up to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the rasterizer
+promises.
 Kernels take numpy arrays and write into preallocated outputs. Those that run in parallel take a
 leading (lo, hi) range of their parallel index and are driven by `_parallel.parallel_for`; they write
 disjoint outputs per index, and sums run over fixed chunks (of Gaussians) or per slot, so results
