@@ -64,15 +64,18 @@ class _ProjectGaussians(torch.autograd.Function):
         v_means = np.zeros((n, 3))
         v_quats = np.zeros((n, 4))
         v_scales = np.zeros((n, 3))
+        want_viewmats = ctx.needs_input_grad[3]
         v_view_chunks = np.zeros((n_chunks, n_cams, 3, 4))
         parallel_for(
             kernels.project_backward, n_chunks, to_numpy(means), to_numpy(quats), to_numpy(scales),
             to_numpy(viewmats), to_numpy(Ks), *ctx.image_size, to_numpy(radii), to_numpy(conics),
-            to_numpy(v_means2d), to_numpy(v_conics),
+            to_numpy(v_means2d), to_numpy(v_conics), want_viewmats,
             v_means, v_quats, v_scales, v_view_chunks,
         )
-        v_viewmats = torch.zeros(viewmats.shape, dtype=torch.float64)
-        v_viewmats[:, :3, :] = torch.from_numpy(v_view_chunks.sum(axis=0))
+        v_viewmats = None
+        if want_viewmats:
+            v_viewmats = torch.zeros(viewmats.shape, dtype=torch.float64)
+            v_viewmats[:, :3, :] = torch.from_numpy(v_view_chunks.sum(axis=0))
         return (
             torch.from_numpy(v_means), torch.from_numpy(v_quats), torch.from_numpy(v_scales), v_viewmats,
             *(None,) * 8,

@@ -25,17 +25,18 @@ N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mea
 
 @dataclass(frozen=True)
 class TileBins:
-    """Packed visible splats of C cameras and their depth-sorted per-tile lists (see `_cpu_kernels`)."""
+    """Depth-sorted per-tile lists of C cameras' visible splats, as slot records (see `_cpu_kernels`)."""
 
     tile_size: int
     tiles_x: int
     tiles_y: int
-    perm: np.ndarray  # [M] int64, packed splat j -> flat c * N + g
-    splat_f: np.ndarray  # [M, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
-    splat_i: np.ndarray  # [M, SI_COLUMNS] int32 records (pixel and tile rects)
-    slot_offsets: np.ndarray  # [M + 1] int64, splat j owns slots slot_offsets[j]:slot_offsets[j + 1]
+    ids: np.ndarray  # [n_isect] int64 pair c * N + g of each slot, depth-sorted within each tile
+    slot_f: np.ndarray  # [n_isect, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
+    slot_i: np.ndarray  # [n_isect, SI_COLUMNS] int32 records (pixel rect within the tile)
+    slot_offsets: np.ndarray  # [C * N + 1] int64, pair cg owns slot_at[slot_offsets[cg]:slot_offsets[cg + 1]]
+    slot_at: np.ndarray  # [n_isect] int64 slots listed pair-major
+    pair_offsets: np.ndarray  # [n_isect + 1] int64, slot k's shaded pixels go from pair_offsets[k] (room for its rect)
     tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
-    ids: np.ndarray  # [n_isect] int64 packed splat indices, depth-sorted within each tile
     work: np.ndarray  # [C * tiles_y * tiles_x] tile ids grouped into per-thread bins
     work_offsets: np.ndarray  # [n_bins + 1]
 
@@ -48,20 +49,25 @@ class TileBins:
         return int(self.work_offsets.shape[0] - 1)
 
     @property
-    def n_splats(self) -> int:
-        return int(self.perm.shape[0])
+    def n_pairs(self) -> int:
+        return int(self.slot_offsets.shape[0] - 1)
 
-    def compositing_args(self, splat_c: np.ndarray) -> tuple:
-        """Leading arguments of the compositing kernels, with the packed colours splat_c [M, D]."""
+    def compositing_args(self, slot_c: np.ndarray) -> tuple:
+        """Leading arguments of the compositing kernels, with the slots' colours slot_c [n_isect, D]."""
         return (
-            self.splat_f, splat_c, self.splat_i, self.slot_offsets, self.tile_offsets, self.ids, self.work,
-            self.work_offsets, self.tile_size, self.tiles_x,
+            self.slot_f, slot_c, self.slot_i, self.tile_offsets, self.work, self.work_offsets, self.tile_size,
+            self.tiles_x,
         )
 
     def gather(self, values: Tensor) -> np.ndarray:
-        """[C, N, D] (or [1, N, D] shared by the cameras) per Gaussian -> [M, D] per packed splat."""
-        out = np.empty((self.perm.shape[0], values.shape[2]))
-        parallel_for(kernels.gather_rows, out.shape[0], self.perm, values.shape[1], to_numpy(values), out, grain=_GRAIN)
+        """[C, N, D] (or [1, N, D] shared by the cameras) per Gaussian -> [n_isect, D] per slot."""
+        out = np.empty((self.n_isects, values.shape[2]))
+        parallel_for(kernels.gather_rows, out.shape[0], self.ids, values.shape[1], to_numpy(values), out, grain=_GRAIN)
+        return out
+
+    def sum_slots(self, kernel, slot_values: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """out [C * N, ...] = per-pair sums of slot_values [n_isect, ...] by `kernel`."""
+        parallel_for(kernel, self.n_pairs, slot_values, self.slot_offsets, self.slot_at, out, grain=_GRAIN)
         return out
 
 
@@ -69,7 +75,7 @@ def bin_gaussians(
     means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
     tile_size: int,
 ) -> TileBins:
-    """Packs the visible Gaussians and sorts each tile's list by depth, ties by Gaussian index.
+    """Lists each tile's splats sorted by depth, ties by Gaussian index, and gathers their slot records.
 
     Args:
         means2d: [C, N, 2], conics: [C, N, 3], opacities: [N], depths: [C, N] (float64, from
@@ -78,94 +84,100 @@ def bin_gaussians(
     Depths are compared in float64 (gsplat compares float32 depths, which merges near ties).
     """
     n_cams, n = radii.shape[:2]
+    n_pairs = n_cams * n
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
     tiles_per_cam = tiles_x * tiles_y
     n_tiles = n_cams * tiles_per_cam
-    rects = np.zeros((n_cams * n, 4), np.int32)
-    tile_counts = np.zeros(n_cams * n, np.int64)
+    means2d_np, conics_np, opacities_np = to_numpy(means2d), to_numpy(conics), to_numpy(opacities)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        two_logs = 2.0 * np.log(opacities_np / kernels.ALPHA_THRESHOLD)
+    rects = np.empty((n_pairs, 4), np.int32)
+    tile_counts = np.empty(n_pairs, np.int64)
     parallel_for(
-        kernels.pixel_rects, n_cams * n, to_numpy(means2d), to_numpy(conics), to_numpy(opacities), to_numpy(radii),
-        width, height, tile_size, rects, tile_counts, grain=_GRAIN,
+        kernels.pixel_rects, n_pairs, means2d_np, conics_np, two_logs, to_numpy(radii), width, height, tile_size,
+        rects, tile_counts, grain=_GRAIN,
     )
-    # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
-    depth_bits = to_numpy(depths).astype(np.float32).view(np.int32).astype(np.int64).reshape(-1)
-    starts, keys = kernels.bucket_by_first_tile(rects, tile_counts, depth_bits, n_cams, n, tile_size, tiles_x, tiles_y)
-    perm = np.empty(keys.shape[0], np.int64)
-    depths_flat = to_numpy(depths).reshape(-1)
-    identity = np.arange(n_cams * n)
-    parallel_for(kernels.sort_tile_keys, n_tiles, starts, keys, depths_flat, n, tiles_per_cam, identity, perm)
+    slot_offsets = np.zeros(n_pairs + 1, np.int64)
+    np.cumsum(tile_counts, out=slot_offsets[1:])
+    n_isects = int(slot_offsets[-1])
 
-    n_splats = perm.shape[0]
-    slot_offsets = np.zeros(n_splats + 1, np.int64)
-    np.cumsum(tile_counts[perm], out=slot_offsets[1:])
-    splat_f = np.empty((n_splats, kernels.SF_COLUMNS))
-    splat_i = np.empty((n_splats, kernels.SI_COLUMNS), np.int32)
-    parallel_for(
-        kernels.pack_splats, n_splats, perm, n, rects, tile_size, to_numpy(means2d), to_numpy(conics),
-        to_numpy(opacities), splat_f, splat_i, grain=_GRAIN,
-    )
-
-    # Counting sort of all (splat, tile) slots by tile: per-chunk histograms, then each chunk scatters
-    # from its own cursors, then every tile's keys are sorted by (depth, index).
-    n_chunks = max(1, min(kernels.BINNING_CHUNKS, n_splats))
-    tile_args = (splat_i, slot_offsets, perm, n)
+    # Counting sort of all slots by tile: per-chunk histograms, then each chunk scatters from its own
+    # cursors, then every tile's keys are sorted by (depth, index). Keys are unique within a tile, so
+    # the chunking (one per part of the parallel loop) does not change the result.
+    n_chunks = max(1, min(num_threads() * PARTS_PER_THREAD, n_pairs))
+    tile_args = (rects, tile_counts, n)
     hist = np.zeros((n_chunks, n_tiles), np.int64)
-    parallel_for(kernels.tile_histogram, n_chunks, n_chunks, *tile_args, tiles_x, tiles_per_cam, hist)
+    parallel_for(kernels.tile_histogram, n_chunks, n_chunks, *tile_args, tile_size, tiles_x, tiles_per_cam, hist)
     cursor = np.zeros(n_chunks * n_tiles, np.int64)
     np.cumsum(hist.T.reshape(-1)[:-1], out=cursor[1:])
-    tile_offsets = np.append(cursor[::n_chunks], slot_offsets[-1])
+    tile_offsets = np.append(cursor[::n_chunks], n_isects)
     cursor = np.ascontiguousarray(cursor.reshape(n_tiles, n_chunks).T)
-    keys = np.empty(slot_offsets[-1], np.int64)
+    # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
+    depths_np = to_numpy(depths).reshape(-1)
+    depth_bits = depths_np.astype(np.float32).view(np.int32).astype(np.int64)
+    keys = np.empty(n_isects, np.int64)
     parallel_for(
-        kernels.scatter_tile_keys, n_chunks, n_chunks, *tile_args, depth_bits, tiles_x, tiles_per_cam, cursor, keys
+        kernels.scatter_tile_keys, n_chunks, n_chunks, *tile_args, depth_bits, tile_size, tiles_x, tiles_per_cam,
+        cursor, keys,
     )
-    packed_index = np.empty(n_cams * n, np.int64)
-    packed_index[perm] = np.arange(n_splats)
     ids = np.empty_like(keys)
-    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, depths_flat, n, tiles_per_cam, packed_index, ids)
+    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, depths_np, n, tiles_per_cam, ids)
 
+    slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
+    slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
+    slot_at = np.empty(n_isects, np.int64)
+    slot_areas = np.empty(n_isects, np.int64)
+    parallel_for(
+        kernels.slot_records, n_tiles, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam,
+        means2d_np, conics_np, opacities_np, two_logs, slot_f, slot_i, slot_at, slot_areas,
+    )
+    pair_offsets = np.zeros(n_isects + 1, np.int64)
+    np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
-        tile_size, tiles_x, tiles_y, perm, splat_f, splat_i, slot_offsets, tile_offsets, ids, work, work_offsets
+        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_offsets, slot_at, pair_offsets, tile_offsets, work,
+        work_offsets,
     )
 
 
 class _RasterizeToPixels(torch.autograd.Function):
-    """Compositing of the splats packed in `bins`.
+    """Compositing of the slots listed in `bins`.
 
     means2d, conics and opacities are the tensors the bins were built from, taken as inputs so that
     autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype):
         n_cams, n = means2d.shape[:2]
         depth = colors.shape[2]
-        splat_c = bins.gather(colors)
+        slot_c = bins.gather(colors)
         out_colors = np.empty((n_cams, height, width, depth))
         transmittance = np.empty((n_cams, height, width))
-        last_ids = np.empty((n_cams, height, width), np.int64)
-        slot_counts = np.zeros(bins.n_isects, np.int64)
+        render_colors = torch.empty((n_cams, height, width, depth), dtype=dtype)
+        render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
+        slot_counts = np.empty(bins.n_isects, np.int64)
+        # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
+        pair_px = np.empty(bins.pair_offsets[-1], np.int16)
+        pair_vis = np.empty(bins.pair_offsets[-1])
         parallel_for(
-            kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(splat_c), to_numpy(backgrounds),
-            width, height, out_colors, transmittance, last_ids, slot_counts,
+            kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
+            width, height, bins.pair_offsets, out_colors, transmittance, render_colors.numpy(),
+            render_alphas.numpy()[..., 0], slot_counts, pair_px, pair_vis,
         )
-        counts = np.zeros(n_cams * n, np.int64)
-        parallel_for(
-            kernels.sum_slot_counts, bins.n_splats, slot_counts, bins.slot_offsets, bins.perm, counts, grain=_GRAIN
-        )
+        counts = bins.sum_slots(kernels.sum_slot_counts, slot_counts, np.empty(n_cams * n, np.int64))
 
         ctx.save_for_backward(backgrounds)
         ctx.bins = bins
         ctx.shapes = (n_cams, n, colors.shape[0], width, height)
-        ctx.splat_c = splat_c
+        ctx.slot_c = slot_c
+        ctx.out_colors = out_colors
         ctx.transmittance = transmittance
-        ctx.last_ids = last_ids
-        render_alphas = torch.from_numpy(1.0 - transmittance).unsqueeze(-1)
+        ctx.pairs = (slot_counts, pair_px, pair_vis)
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
-        return torch.from_numpy(out_colors), render_alphas, counts_t
+        return render_colors, render_alphas, counts_t
 
     @staticmethod
     @once_differentiable
@@ -173,23 +185,27 @@ class _RasterizeToPixels(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins: TileBins = ctx.bins
         n_cams, n, color_cams, width, height = ctx.shapes
-        n_cols = N_GRAD_GEOMETRY + ctx.splat_c.shape[1]
-        slot_grads = np.zeros((bins.n_isects, n_cols))
+        n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
+        slot_grads = np.empty((bins.n_isects, n_cols))
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
-            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.splat_c), to_numpy(backgrounds),
-            width, height, ctx.transmittance, ctx.last_ids, v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
+            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
+            width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, *ctx.pairs, v_colors_np,
+            to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
-        grads = np.zeros((n_cams * n, n_cols))
-        parallel_for(
-            kernels.sum_slot_rows, bins.n_splats, slot_grads, bins.slot_offsets, bins.perm, grads, grain=_GRAIN
-        )
+        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols)))
         grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
         v_colors = grads_t[..., N_GRAD_GEOMETRY:]
         if color_cams == 1:
             v_colors = v_colors.sum(0, keepdim=True)
-        v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_colors_np))
-        return grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None
+        v_backgrounds = None
+        if ctx.needs_input_grad[4]:
+            v_backgrounds = torch.einsum(
+                "chw,chwd->cd", torch.from_numpy(ctx.transmittance), v_render_colors.to(torch.float64)
+            )
+        return (
+            grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None, None
+        )
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active):
@@ -259,7 +275,7 @@ def rasterize(
         near_plane, far_plane, eps2d: as gsplat.
         sh_degree: None for plain colours, else 0..3.
         backgrounds: optional [C, D] (or [D]) colour behind the Gaussians.
-        tile_size: tile edge in pixels.
+        tile_size: tile edge in pixels, at most 64 (a tile row's live pixels are one 64-bit mask).
         active: optional [N] bool; only these Gaussians are drawn and receive gradients (splat
             dropout without copying the model).
 
@@ -273,8 +289,8 @@ def rasterize(
     """
     width, height, tile_size = int(width), int(height), int(tile_size)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active)
-    if tile_size < 1:
-        raise ValueError(f"tile_size must be positive, got {tile_size}")
+    if not 1 <= tile_size <= kernels.MAX_TILE_SIZE:
+        raise ValueError(f"tile_size must be between 1 and {kernels.MAX_TILE_SIZE}, got {tile_size}")
     if not near_plane > 0.0:
         raise ValueError(f"near_plane must be positive, got {near_plane}")
     if means.is_cuda:
@@ -309,8 +325,10 @@ def rasterize(
     backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
 
     bins = bin_gaussians(proj.means2d, proj.conics, opacities, proj.radii, proj.depths, width, height, tile_size)
+    # The images come out of the kernel in the caller's dtype (float64 for any other than float32).
+    out_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float64
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype
     )
     meta = {
         "radii": proj.radii,

@@ -215,6 +215,15 @@ def test_random_scene_matches_reference(sh_degree):
     assert meta["visibility_counts"].shape == (2, 150) and meta["visibility_counts"].sum() > 0
 
 
+def test_batched_views_with_empty_tiles_match_reference():
+    # The production shape in small: several views in one call, SH colours, a background per view, an
+    # object on a few tiles of each image (empty tiles take the background path).
+    scene = random_scene(120, seed=21, n_cams=3, width=96, height=64, sh_degree=2, spread=0.25)
+    _, alphas, _, _ = assert_matches(scene)
+    tiles = alphas[..., 0].unfold(1, 16, 16).unfold(2, 16, 16).amax(dim=(-1, -2))
+    assert (tiles == 0).any(dim=(1, 2)).all() and (tiles > 0.5).any(dim=(1, 2)).all()
+
+
 def test_dense_scene_terminates_early_like_reference():
     scene = random_scene(300, seed=3, n_cams=1, width=33, height=29, spread=0.8)
     scene["opacities"] = torch.full((300,), 0.97)
@@ -319,9 +328,11 @@ def test_odd_image_sizes(width, height):
     assert_matches(scene)
 
 
-def test_tile_size_does_not_change_the_image():
-    scene = random_scene(80, seed=11, n_cams=1, width=40, height=24)
-    assert_matches(scene, tile_size=8)
+@pytest.mark.parametrize("tile_size", [8, 64])
+def test_tile_size_does_not_change_the_image(tile_size):
+    # 64: a tile row's live-pixel mask uses all 64 bits of its int64.
+    scene = random_scene(80, seed=11, n_cams=1, width=40 if tile_size == 8 else 70, height=24)
+    assert_matches(scene, tile_size=tile_size)
 
 
 def test_per_camera_colors_and_plain_background_vector():
@@ -429,6 +440,9 @@ def test_rejects_bad_shapes():
     args[1] = args[1][:, :3]
     with pytest.raises(ValueError, match="quats"):
         rasterize(*args, 10, 10)
+    args[1] = scene["quats"]
+    with pytest.raises(ValueError, match="tile_size"):
+        rasterize(*args, 10, 10, tile_size=65)
 
 
 @pytest.mark.skipif(
