@@ -72,10 +72,12 @@ class DecompositionOptions:
     tolerance the next threshold is scaled by tolerance / error (at most `rounds` runs, not below
     `min_threshold`), so the piece count follows the error. `max_convex_hull` caps the pieces of a
     run (-1: no cap); `timeout_s` caps the wall clock of all runs for one part (past it the best so
-    far, or the convex hull, is used and noted)."""
+    far, or the convex hull, is used and noted). The floor is low enough for thin parts: the
+    rig_scenes spatula twin (a 305 mm part, blade a few mm thick) stopped at +17.7 % with 99
+    pieces at 0.01, and reaches +8.4 % (427 pieces) at 0.005."""
 
     threshold: float = 0.05
-    min_threshold: float = 0.01
+    min_threshold: float = 0.005
     rounds: int = 4
     max_convex_hull: int = -1
     timeout_s: float = 300.0

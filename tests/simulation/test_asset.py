@@ -60,6 +60,17 @@ def test_open_mesh_is_closed():
     assert closed_volume(v, f) == pytest.approx(1.0) and rep.boundary_edges == 4 and rep.faces_added == 2
 
 
+def test_thin_open_plate_is_closed_at_its_own_thickness():
+    """A 2 mm plate (a scissor blade, a spatula) with a hole in its face: the fill is flat, neither
+    collapsing the plate nor bulging it (the rig_scenes twins' thin parts lose no volume here)."""
+    plate = trimesh.creation.box(extents=[0.1, 0.05, 0.002]).subdivide().subdivide().subdivide()
+    top = np.flatnonzero(plate.face_normals[:, 2] > 0.9)
+    hole = top[np.argsort(np.linalg.norm(plate.triangles_center[top, :2] - [0.02, 0.0], axis=1))[:6]]
+    v, f, _, rep = repair_mesh(plate.vertices, np.delete(plate.faces, hole, axis=0))
+    assert rep.boundary_edges > 0 and rep.faces_added == len(hole)
+    assert closed_volume(v, f) == pytest.approx(0.1 * 0.05 * 0.002, rel=1e-9)
+
+
 def test_flipped_and_inside_out_faces_point_outwards():
     box = unit_box()
     faces = box.faces.copy()
@@ -194,3 +205,19 @@ def test_open_cad_variant_is_closed_without_changing_its_volume():
     v, f, _, rep = repair_mesh(mesh.vertices, mesh.faces)
     assert rep.nonmanifold_edges > 0 and rep.changed
     assert closed_volume(v, f) == pytest.approx(2.09e-5, rel=0.01)
+
+
+RIG_SCENE_OBJECTS = ["011_banana", "033_spatula", "037_scissors", "043_phillips_screwdriver", "050_medium_clamp", "061_foam_brick",
+                     "072-c_toy_airplane", "077_rubiks_cube"]
+
+
+@pytest.mark.parametrize("scene", RIG_SCENE_OBJECTS)
+def test_rig_scenes_cad_variant_keeps_its_volume_through_repair(scene):
+    """The shared YCB objects' CAD variants, four of them with non-manifold edges and slivers from the
+    decimation: the repair closes them and changes the volume their intact surface encloses by under 0.1 %
+    (the twins' missing mass is not lost here; see benchmarks/results/twin_physics.md)."""
+    mesh = trimesh.load(require_shared("rig_scenes", "library", f"{scene}.obj"), force="mesh", process=False)
+    mesh.merge_vertices()
+    v, f, _, rep = repair_mesh(mesh.vertices, mesh.faces)
+    assert closed_volume(v, f) == pytest.approx(mesh.volume, rel=1e-3)
+    assert rep.volume_after == pytest.approx(rep.volume_before, rel=1e-3)
