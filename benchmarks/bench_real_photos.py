@@ -65,7 +65,8 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     from calibration.fileio import atomic_write_json
     from reconstruction.evaluation import run_protocol
 
-    cache = work / "folds" / capture_dir.name / f"{args.preset}-r{args.refine_steps}-{held:02d}.json"
+    tag = args.preset + "".join(f"-{k}{v}" for k, v in sorted(args.override.items()))
+    cache = work / "folds" / capture_dir.name / f"{tag}-r{args.refine_steps}-{held:02d}.json"
     if cache.exists():
         return json.loads(cache.read_text())
     capture = read_capture(capture_dir)
@@ -74,9 +75,12 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     sizes = [(f.camera.width, f.camera.height) for f in capture.frames]
     common = max(set(sizes), key=sizes.count)
     train_idx = [i for i in range(len(capture)) if i != held and sizes[i] == common]
-    run = run_protocol(capture_dir, capture_dir, None, work / "twins" / capture_dir.name / f"{args.preset}-{held:02d}",
+    kw = engine_kwargs("sphere-init", args.preset, torch.cuda.is_available())
+    if args.override:
+        kw["overrides"] = kw.get("overrides", {}) | args.override
+    run = run_protocol(capture_dir, capture_dir, None, work / "twins" / capture_dir.name / f"{tag}-{held:02d}",
                        preset=args.preset, views=train_idx, heldout_views=[held], refine_steps=args.refine_steps, reuse=True,
-                       overwrite=True, **engine_kwargs("sphere-init", args.preset, torch.cuda.is_available()))
+                       overwrite=True, **kw)
     doc = {"held": held, "train_views": train_idx, "skipped_sizes": [i for i in range(len(capture)) if sizes[i] != common], "pose_mode": run.twin.pose_mode, "num_splats": run.twin.num_splats,
            "train_s": run.timings_s["reconstruct"], "mean": run.mean, "mean_refined": run.mean_refined,
            "refine": run.report["views"][0].get("refine", {}), "train_fit": training_fit(capture, run.twin, train_idx)}
@@ -94,7 +98,13 @@ def main() -> None:
     ap.add_argument("--folds", default=None, help="score only the first N leave-one-out folds: N for every set, or per set as car=8,espresso=3")
     ap.add_argument("--sets", default="car,espresso", help="comma-separated: car, espresso")
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-real-photos"))
+    ap.add_argument("--override", action="append", default=[], metavar="FIELD=INT",
+                    help="set an integer preset field after the preset is sized, e.g. iters_deform=400 (repeatable)")
     args = ap.parse_args()
+    try:
+        args.override = {k: int(v) for k, v in (o.split("=", 1) for o in args.override)}
+    except ValueError:
+        sys.exit(f"--override takes FIELD=INTEGER, got {args.override}")
     if not NERS.exists():
         sys.exit(f"needs the shared data folder ({NERS} is absent)")
     args.preset = args.preset or ("preview" if args.quick else "cpu")
@@ -110,7 +120,7 @@ def main() -> None:
         "# Real photographs: NeRS MVMC car 7246694387 and NeRS espresso (python -m benchmarks.bench_real_photos)",
         "",
         f"Leave-one-out over the photos{f' (folds scored: {args.folds})' if args.folds else ''}: train on the others with the "
-        f"`{args.preset}` preset, sphere initialisation (no CAD model of these objects here) and per-camera pose correction; "
+        f"`{args.preset}` preset{''.join(f', {k}={v}' for k, v in args.override.items())}, sphere initialisation (no CAD model of these objects here) and per-camera pose correction; "
         f"score the held-out photo with NeRS's object-crop protocol after {args.refine_steps} test-time refinement steps. "
         "**One car is not the 20-car MVMC average**: the published rows are averages over 20 cars and are shown for scale only.",
         "",
@@ -159,7 +169,8 @@ def main() -> None:
     lines += ["", f"2 shared CPU cores (load 2-4 from other benchmarks during these runs). Folds are cached; this invocation took "
               f"{(time.perf_counter() - t0) / 60:.1f} min.", ""]
     text = "\n".join(lines)
-    (RESULTS / f"real_photos{'' if args.preset == 'cpu' and not args.folds else '_' + args.preset}.md").write_text(text)
+    suffix = "" if args.preset == "cpu" and not args.folds and not args.override else "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
+    (RESULTS / f"real_photos{suffix}.md").write_text(text)
     print(text)
 
 
