@@ -2,9 +2,10 @@
 
     python -m benchmarks.bench_real_photos [--quick] [--preset cpu] [--refine-steps N] [--work DIR]
 
-Each set is converted to a capture (calibration.import_ners: the car's `camera_optimized`
-PyTorch3D cameras; the espresso machine's rough azimuth/elevation made into look-at poses), both
-flagged `pose_source: rough`, so the engine learns an independent pose correction per camera.
+Each set is converted to a capture (calibration.import_ners): the car's `camera_optimized`
+PyTorch3D cameras, NeRS's fitted cameras that agree with the masks (`pose_source: optimized`: one
+global correction, as NeRS's "fixed optimized cameras"), and the espresso machine's rough
+azimuth/elevation made into look-at poses (`pose_source: rough`: a pose correction per camera).
 There is no car or espresso CAD model here, so the engine starts from the sphere initialisation
 (`baselines.sphere_mesh_for_views`, paper 4.4.2). Leave-one-out: every photo in turn is held out,
 the twin is trained on the others, and the held-out photo is scored with NeRS's object-crop
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -120,7 +122,9 @@ def main() -> None:
         "# Real photographs: NeRS MVMC car 7246694387 and NeRS espresso (python -m benchmarks.bench_real_photos)",
         "",
         f"Leave-one-out over the photos{f' (folds scored: {args.folds})' if args.folds else ''}: train on the others with the "
-        f"`{args.preset}` preset{''.join(f', {k}={v}' for k, v in args.override.items())}, sphere initialisation (no CAD model of these objects here) and per-camera pose correction; "
+        f"`{args.preset}` preset{''.join(f', {k}={v}' for k, v in args.override.items())}, sphere initialisation (no CAD "
+        "model of these objects here) and the pose correction the capture's provenance selects (car: one global correction "
+        "of NeRS's fitted cameras; espresso: one per camera); "
         f"score the held-out photo with NeRS's object-crop protocol after {args.refine_steps} test-time refinement steps. "
         "**One car is not the 20-car MVMC average**: the published rows are averages over 20 cars and are shown for scale only.",
         "",
@@ -166,8 +170,8 @@ def main() -> None:
     for name, (p, s, lp) in PUBLISHED.items():
         lines.append(f"| {name} | published | - | {p} | {s:.3f} | {lp:.3f} | - | - |")
     lines += per_fold
-    lines += ["", f"2 shared CPU cores (load 2-4 from other benchmarks during these runs). Folds are cached; this invocation took "
-              f"{(time.perf_counter() - t0) / 60:.1f} min.", ""]
+    lines += ["", f"2 shared CPU cores (15-minute load average {os.getloadavg()[2]:.1f} when this table was written). Folds are "
+              f"cached; this invocation took {(time.perf_counter() - t0) / 60:.1f} min.", ""]
     text = "\n".join(lines)
     suffix = "" if args.preset == "cpu" and not args.folds and not args.override else "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
     (RESULTS / f"real_photos{suffix}.md").write_text(text)
