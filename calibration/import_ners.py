@@ -3,7 +3,11 @@
 NeRS stores PyTorch3D cameras: row-vector world-to-view `X_view = X_world @ R + T` with view axes
 +X left, +Y up, +Z forward, and a field of view that spans the image's longer side around the
 image centre (NeRS's crop cameras with the full image as the crop). Masks are COCO-style
-uncompressed RLE (column-major). The NeRS "misc" objects only have rough azimuth/elevation, so their
+uncompressed RLE (column-major). The MVMC cars' `camera_optimized` are NeRS's cameras after its
+joint fit of shape and cameras: the masks' visual hull re-projects onto every mask (car 7246694387:
+IoU 0.987-1.0 per view), so they are marked `pose_source: optimized` and the engine applies one global
+correction, as NeRS's "fixed optimized cameras" setting does; `camera_initial` (PoseFromShape
+estimates, hull IoU down to 0.85) stay `rough`. The NeRS "misc" objects only have rough azimuth/elevation, so their
 poses are built on a sphere (PyTorch3D's look_at_view_transform, world +Y up) with each view's
 distance set from its mask size, and the capture is marked `pose_source: rough` so the engine
 corrects every camera independently.
@@ -48,7 +52,8 @@ def pytorch3d_camera(rotation: np.ndarray, translation: np.ndarray, fov_deg: flo
 
 
 def import_ners_mvmc(src: str | Path, out: str | Path, *, cameras: str = "camera_optimized") -> Capture:
-    """One NeRS MVMC car (`annotations.json` + `images/`) -> a capture with masks; poses per camera are rough."""
+    """One NeRS MVMC car (`annotations.json` + `images/`) -> a capture with masks and the chosen cameras
+    (`camera_optimized`: NeRS's fitted cameras, marked optimized; `camera_initial`: marked rough)."""
     src = Path(src)
     doc = json.loads((src / "annotations.json").read_text())
     frames = []
@@ -61,7 +66,8 @@ def import_ners_mvmc(src: str | Path, out: str | Path, *, cameras: str = "camera
         cam = ann[cameras]
         name = Path(ann["filename"]).stem
         frames.append(FrameData(name, img, pytorch3d_camera(np.array(cam["R"]), np.array(cam["T"]), float(cam["fov"]), w, h), name, None, mask))
-    meta = {"rig_id": f"ners-mvmc-{doc['id']}", "calibration_id": f"ners:{cameras}", "pose_source": "rough", "object": doc.get("car_model", "")}
+    source = "optimized" if cameras == "camera_optimized" else "rough"
+    meta = {"rig_id": f"ners-mvmc-{doc['id']}", "calibration_id": f"ners:{cameras}", "pose_source": source, "object": doc.get("car_model", "")}
     return write_capture(out, frames, meta=meta)
 
 
