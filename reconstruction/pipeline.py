@@ -28,7 +28,7 @@ from reconstruction.gaussians import Gaussians, camera_batch, render, straight_r
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult, check_fits
-from reconstruction.splats import CanonicalSplats, init_splats, project_colors
+from reconstruction.splats import CanonicalSplats, init_splats, project_colors, silhouette_surface
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
 
@@ -282,7 +282,11 @@ def reconstruct(
     )
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
                for c in twin_cams}
-    deformed = MeshParts(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, parts.face_part, parts.part_names)
+    deformed = MeshParts(silhouette_surface(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, twin.gaussians),
+                         parts.faces, parts.face_part, parts.part_names)
+    twin.choices["surface"] = {"value": "alpha 1/2", "why": "the deformed mesh moved out along its normals by the splats' reach "
+                               "to alpha 1/2 (splats.silhouette_surface): the fit leaves their centres that far inside the object "
+                               "(rig scenes: geometry median 0.70 -> 0.56 % of the diameter, volume -11..-39 % -> -9..+13 %)"}
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     twin.choices["registration"] = {"value": reg.to_dict(), "source": "given" if registration is not None else "computed",

@@ -241,3 +241,37 @@ def init_splats(
         barycentrics=bary.astype(np.float32),
         part_label=part[face_index],
     )
+
+
+def alpha_half_reach(gaussians: Gaussians) -> np.ndarray:
+    """How far [N] beyond its centre, in its own plane, each splat's alpha stays >= 1/2.
+
+    alpha(d) = opacity * exp(-d^2 / (2 sigma^2)) crosses 1/2 at d = sigma * sqrt(2 ln(2 opacity)), with
+    sigma the geometric mean of the two in-plane scales; a splat below opacity 1/2 never reaches it (0).
+    """
+    scales = np.sort(np.exp(np.asarray(gaussians.log_scales, np.float64)), axis=1)
+    opacity = 1.0 / (1.0 + np.exp(-np.asarray(gaussians.opacity_logits, np.float64).reshape(-1)))
+    sigma = np.sqrt(scales[:, 1] * scales[:, 2])
+    return sigma * np.sqrt(2.0 * np.log(np.maximum(2.0 * opacity, 1.0)))
+
+
+def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gaussians, k: int = 8) -> np.ndarray:
+    """Vertices [V, 3] of a mesh whose splats sit on it, moved out along their normals to where the splats'
+    alpha falls to 1/2: the surface the silhouettes and images were fitted to. Splats centred on a
+    surface render it larger by that reach, so the fit pulls their centres (and the mesh through them)
+    inside the object by as much (rig scenes: 0.4-1.35 mm, 11-39 % of the volume).
+
+    faces [F, 3]; gaussians: the fitted splats (object frame); each vertex moves by the median reach of
+    its k nearest splats.
+    """
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    normals = np.asarray(mesh.vertex_normals, np.float64)
+    # Face winding gives the normals' side; a consistently wound mesh with negative volume points inward.
+    if mesh.is_winding_consistent and mesh.volume < 0:
+        normals = -normals
+    reach = alpha_half_reach(gaussians)
+    idx = cKDTree(np.asarray(gaussians.means, np.float64)).query(vertices, k=min(k, len(reach)))[1]
+    shift = np.median(reach[idx.reshape(len(vertices), -1)], axis=1)
+    return np.asarray(vertices, np.float64) + normals * shift[:, None]

@@ -165,3 +165,35 @@ def test_initial_opacity_is_stored_as_a_logit():
     for bad in (0.0, 1.0, 1.5):
         with pytest.raises(ValueError, match="opacity"):
             init_splats(v, f, 10, sh_degree=0, opacity=bad)
+
+
+def test_alpha_half_reach_follows_the_gaussian_falloff():
+    from reconstruction.gaussians import Gaussians
+    from reconstruction.splats import alpha_half_reach
+
+    sigma = 0.002
+    log_scales = np.log(np.array([[sigma, sigma, 1e-5], [sigma, sigma, 1e-5]]))
+    logits = np.log(np.array([0.9 / 0.1, 0.4 / 0.6]))  # opacities 0.9 and 0.4
+    g = Gaussians.from_arrays(np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), log_scales, logits, np.zeros((2, 1, 3)))
+    reach = alpha_half_reach(g)
+    assert np.isclose(reach[0], sigma * np.sqrt(2 * np.log(1.8)), rtol=1e-6)
+    # Exactly where alpha is 1/2:
+    assert np.isclose(0.9 * np.exp(-reach[0] ** 2 / (2 * sigma**2)), 0.5, rtol=1e-6)
+    assert reach[1] == 0.0  # never reaches alpha 1/2
+
+
+def test_silhouette_surface_moves_a_sphere_out_by_the_reach_whatever_its_winding():
+    import trimesh
+
+    from reconstruction.gaussians import Gaussians
+    from reconstruction.splats import alpha_half_reach, silhouette_surface
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    pts = np.asarray(sphere.vertices)
+    n = len(pts)
+    log_scales = np.log(np.tile([0.001, 0.001, 1e-5], (n, 1)))
+    g = Gaussians.from_arrays(pts, np.tile([1.0, 0, 0, 0], (n, 1)), log_scales, np.full(n, np.log(9.0)), np.zeros((n, 1, 3)))
+    reach = float(alpha_half_reach(g)[0])
+    for faces in (sphere.faces, sphere.faces[:, ::-1]):
+        moved = silhouette_surface(pts, faces, g)
+        np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 0.05 + reach, rtol=1e-3)
