@@ -110,8 +110,9 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     support [C, H, W] bool, optional: the pixels outside which render and target are the same colour
     (for a render composited on the target's background: where the splats or the mask reach). Outside
     it L1 is 0 and SSIM 1, so both are summed over a window around it and divided by the whole image's
-    pixel count: the same value and gradient, on ~1/5 of the pixels for a rig's object. The window
-    grows by two SSIM radii: one for the windows that reach the support, one for their own windows.
+    pixel count: the same value and gradient on fewer pixels (every view takes the largest view's window;
+    rig scene clamp, 10 views: SSIM 87 -> 50 ms per iteration). The window grows by two SSIM radii: one
+    for the windows that reach the support, one for their own windows.
     """
     if support is None:
         l1 = (render - target).abs().mean()
