@@ -216,7 +216,10 @@ def reconstruct(
         unknown = sorted(set(overrides) - set(cfg.to_dict()))
         if unknown:
             raise ValueError(f"unknown preset field {unknown[0]!r} in overrides")
-        cfg = replace(cfg, **overrides)
+        # Nested preset fields (the deformation field's config, the learning rates) merge into what was resolved.
+        merged = {k: v if not isinstance(v, Mapping) else replace(cfg.field, **v) if k == "field" else {**cfg.lr, **v} if k == "lr" else v
+                  for k, v in overrides.items()}
+        cfg = replace(cfg, **merged)
         choices["overrides"] = {"value": dict(overrides), "why": "set by the caller after the preset was resolved"}
     if cfg.field.project_similarity:
         cfg = replace(cfg, field=replace(cfg.field, projection_keeps_scale=metric is not None))

@@ -197,6 +197,8 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
     import shutil
     from pathlib import Path
 
+    import torch
+
     from reconstruction.evaluation import METRIC_KEYS, run_protocol
     from reconstruction.library import build_library
 
@@ -209,9 +211,13 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
     gt = json.loads((sample / "gt.json").read_text())
     scored: list[tuple[int, int]] = []
     run = run_protocol(sample / "train", sample / "heldout", tmp_path / "library", tmp_path / "twin", preset="preview",
-                       overrides={"num_splats": 1000, "iters_pose": 5, "iters_deform": 3, "iters_photo": 5, "dropout_anneal": 3},
+                       overrides={"num_splats": 1000, "iters_pose": 5, "iters_deform": 3, "iters_photo": 5, "dropout_anneal": 3,
+                                  "field": {"num_anchors": 256}, "lr": {"pose": 1e-3}},
                        heldout_views=2, refine_steps=3, gt=gt, heldout_progress=lambda done, n: scored.append((done, n)))
     assert run.twin.model_id == run.registration.model_id == "medium_clamp_cad"
+    # Nested overrides merge into the resolved preset: the rest of the field and of the rates stay.
+    field = torch.load(tmp_path / "twin" / "deformation.pt", weights_only=False)["config"]
+    assert field["num_anchors"] == 256 and field["project_similarity"]
     assert run.heldout_views == [0, 35] and scored == [(0, 2), (1, 2), (2, 2)]
     assert [v["name"] for v in run.report["views"]] == ["orbit00", "orbit35"]
     assert set(run.mean) == set(run.mean_refined) == set(METRIC_KEYS) and run.mean["iou"] > 0.7
