@@ -20,6 +20,22 @@ def load_line() -> str:
     return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
 
 
+def symmetric_surface_distance(a_v: np.ndarray, a_f: np.ndarray, b_v: np.ndarray, b_f: np.ndarray, n: int,
+                               seed: int = 0) -> tuple[float, float]:
+    """Mean and p95 of closest-point distances (pooled over both directions) from `n` area-uniform samples
+    of each mesh (vertices [V, 3], faces [F, 3]) to the other mesh's surface, exact point-to-triangle.
+    Against the other mesh's samples instead, two samplings of one surface would already lie 0.3-0.5 % of
+    the diameter apart at 20k samples (rig scenes' clamp and cube), a floor under every figure."""
+    from reconstruction.inspect import surface_distance
+    from reconstruction.splats import sample_surface
+
+    rng = np.random.default_rng(seed)
+    pa, _, _ = sample_surface(a_v, a_f, n, rng)
+    pb, _, _ = sample_surface(b_v, b_f, n, rng)
+    d = np.concatenate([surface_distance(pa, b_v, b_f), surface_distance(pb, a_v, a_f)])
+    return float(d.mean()), float(np.percentile(d, 95))
+
+
 def decimate(mesh: trimesh.Trimesh, keep: float) -> trimesh.Trimesh:
     """`mesh` simplified to the fraction `keep` of its faces."""
     import fast_simplification

@@ -24,22 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, load_line
+from benchmarks._common import RESULTS, SHARED, load_line, symmetric_surface_distance
 
 DATA = SHARED / "rig_scenes"
 SAMPLES = 20_000
-
-
-def symmetric_distance(a_v, a_f, b_v, b_f, n: int, seed: int = 0) -> tuple[float, float]:
-    """Mean and p95 of closest-point distances from `n` area-uniform samples of each mesh to the other (pooled)."""
-    from reconstruction.inspect import surface_distance
-    from reconstruction.splats import sample_surface
-
-    rng = np.random.default_rng(seed)
-    pa, _, _ = sample_surface(a_v, a_f, n, rng)
-    pb, _, _ = sample_surface(b_v, b_f, n, rng)
-    d = np.concatenate([surface_distance(pa, b_v, b_f), surface_distance(pb, a_v, a_f)])
-    return float(d.mean()), float(np.percentile(d, 95))
 
 
 def true_deviation(cad_v: np.ndarray, cad_f: np.ndarray, true_v: np.ndarray, true_f: np.ndarray, diameter: float) -> np.ndarray:
@@ -89,7 +77,7 @@ def scene_row(scene: str, twin_dir: Path) -> dict:
     row["unseen_pct"] = insp.unseen_pct()
     cad_file_v, cad_file_f = load_mesh(DATA / "library" / f"{scene}.obj")
     for name, (v, f) in {"twin": (deformed.vertices, deformed.faces), "cad": (cad_file_v, cad_file_f)}.items():
-        mean, p95 = symmetric_distance(v, f, true_v, true_f, SAMPLES)
+        mean, p95 = symmetric_surface_distance(v, f, true_v, true_f, SAMPLES)
         row[f"{name}_mean_pct"], row[f"{name}_p95_pct"] = 100.0 * mean / diameter, 100.0 * p95 / diameter
     row["twin_vs_cad_gain_pct"] = 100.0 * (1.0 - row["twin_mean_pct"] / row["cad_mean_pct"])
     row["figure"] = figure_tile(scene, cad.vertices, cad.faces, insp, truth_mm, twin.cameras[0].camera)
