@@ -15,6 +15,25 @@ RESULTS = REPO / "benchmarks" / "results"
 SHARED = Path(os.environ.get("CADSPLAT_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
+def gltf_validator() -> tuple[str, Path] | None:
+    """(node, the node_modules directory holding the Khronos gltf-validator) or None when either is absent.
+    Looked for in CADSPLAT_GLTF_VALIDATOR, then where `make env` installs it (.venv/node), then npm's global root."""
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        return None
+    roots = [os.environ.get("CADSPLAT_GLTF_VALIDATOR", ""), str(REPO / ".venv" / "node")]
+    if shutil.which("npm"):
+        roots.append(subprocess.run(["npm", "root", "-g"], capture_output=True, text=True).stdout.strip())
+    for root in filter(None, roots):
+        mods = Path(root) if Path(root).name == "node_modules" else Path(root) / "node_modules"
+        if (mods / "gltf-validator").is_dir():
+            return node, mods
+    return None
+
+
 def load_line() -> str:
     """'load average 3.2 on 2 cores': the 1-minute load, to read timings taken on a shared machine."""
     return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"

@@ -11,7 +11,7 @@ one per scene name), at one density (ABS, 1050 kg/m^3; every ratio below is dens
   density x the true mesh, and against the twin's own repaired mesh (what the exporter can be held to);
 - the collision geometry: kind, hulls, volume error, Hausdorff to the twin surface, seconds;
 - the GLB export in the Khronos glTF validator (errors; "n/a" when it is not installed — set
-  CADSPLAT_GLTF_VALIDATOR to a directory holding node_modules/gltf-validator), and the USD export
+  CADSPLAT_GLTF_VALIDATOR to a directory holding node_modules/gltf-validator; `make env` installs it), and the USD export
   read back by pxr (`check_usd`) with its mass against MuJoCo's.
 
 Frames: the twin's object frame is its CAD's (twin.json `model_id`); gt_mesh.ply is in the frame of
@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import tempfile
 import time
@@ -40,7 +39,7 @@ import trimesh
 from pxr import Usd, UsdPhysics
 from scipy.spatial.transform import Rotation
 
-from benchmarks._common import REPO, RESULTS, SHARED, load_line
+from benchmarks._common import REPO, RESULTS, SHARED, gltf_validator, load_line
 from reconstruction.mesh_io import read_mesh_parts
 from simulation.asset import repair_mesh
 from simulation.collision import DecompositionOptions
@@ -115,13 +114,10 @@ def worst(deviation: np.ndarray) -> float:
 
 def gltf_errors(glb: Path) -> str:
     """Error count of the Khronos glTF validator on `glb`, or "n/a" when node or the validator is absent."""
-    node = shutil.which("node")
-    root = os.environ.get("CADSPLAT_GLTF_VALIDATOR", "")
-    if not root and shutil.which("npm"):
-        root = subprocess.run(["npm", "root", "-g"], capture_output=True, text=True).stdout.strip()
-    mods = Path(root) if Path(root).name == "node_modules" else Path(root) / "node_modules"
-    if node is None or not root or not (mods / "gltf-validator").is_dir():
+    found = gltf_validator()
+    if found is None:
         return "n/a"
+    node, mods = found
     js = ("const fs=require('fs');require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
           ".then(r=>console.log(JSON.stringify(r.issues)))")
     res = subprocess.run([node, "-e", js, str(glb)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=300)

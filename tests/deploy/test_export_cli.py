@@ -2,8 +2,8 @@
 
 - ply: read the way Inria's 3DGS loader reads it (no --sh_degree flag: it expects degree 3).
 - glb: +Y up, the part standing as on the rig; 0 errors in the Khronos glTF validator when it is
-  installed (`npm install gltf-validator` in a directory named by CADSPLAT_GLTF_VALIDATOR, or
-  globally; skipped otherwise).
+  installed (`make env` puts it in .venv/node when npm reaches its registry; CADSPLAT_GLTF_VALIDATOR
+  or npm's global root also count; skipped otherwise).
 - usd: pxr reads it back as a rigid body with the MJCF's mass and mesh, and collision prims.
 - mjcf: density from the flag, rig.toml's [simulation] table or the default, said in the manifest;
   a mesh that cannot be closed is refused in one sentence.
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from benchmarks._common import gltf_validator
 from deploy.cli import main
 from reconstruction.mesh_io import MeshParts
 from reconstruction.twin import load_twin, read_splats_ply
@@ -48,22 +48,6 @@ def test_ply_reads_in_inrias_loader_without_flags(twin_dir, tmp_path):
     assert not rest[:, :, 3:].any()  # degrees 2 and 3: zero padding, renders identically
     np.testing.assert_allclose(np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1), twin.gaussians.sh[:, 0], atol=1e-6)
     assert read_splats_ply(tmp_path / "s.ply").sh_degree == 1  # our reader drops the padding again
-
-
-def gltf_validator() -> tuple[str, Path] | None:
-    """(node, a node_modules directory holding gltf-validator) or None."""
-    node = shutil.which("node")
-    if node is None:
-        return None
-    roots = [os.environ.get("CADSPLAT_GLTF_VALIDATOR", "")]
-    npm = shutil.which("npm")
-    if npm:
-        roots.append(subprocess.run([npm, "root", "-g"], capture_output=True, text=True).stdout.strip())
-    for root in filter(None, roots):
-        mods = Path(root) if Path(root).name == "node_modules" else Path(root) / "node_modules"
-        if (mods / "gltf-validator").is_dir():
-            return node, mods
-    return None
 
 
 VALIDATE_JS = """
