@@ -253,24 +253,3 @@ def alpha_half_reach(gaussians: Gaussians) -> np.ndarray:
     opacity = 1.0 / (1.0 + np.exp(-np.asarray(gaussians.opacity_logits, np.float64).reshape(-1)))
     sigma = np.sqrt(scales[:, 1] * scales[:, 2])
     return sigma * np.sqrt(2.0 * np.log(np.maximum(2.0 * opacity, 1.0)))
-
-
-def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gaussians) -> np.ndarray:
-    """Vertices [V, 3] of a mesh whose splats sit on it, moved out along their normals to where the splats'
-    alpha falls to 1/2: the surface the silhouettes and images were fitted to. Splats centred on a
-    surface render it larger by that reach, so the fit pulls their centres (and the mesh through them)
-    inside the object by as much (rig scenes: 0.4-1.35 mm, 11-39 % of the volume).
-
-    faces [F, 3]; gaussians: the fitted splats (object frame). Every vertex moves by the splats' median
-    reach: a neighbourhood's median follows single large splats at thin edges outwards (rig scenes,
-    8 nearest splats: the toy airplane 0.72 -> 0.92 % of the diameter from the truth) and makes
-    spikes an inspection reads as defects.
-    """
-    import trimesh
-
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
-    normals = np.asarray(mesh.vertex_normals, np.float64)
-    # Face winding gives the normals' side; a consistently wound mesh with negative volume points inward.
-    if mesh.is_winding_consistent and mesh.volume < 0:
-        normals = -normals
-    return np.asarray(vertices, np.float64) + normals * float(np.median(alpha_half_reach(gaussians)))

@@ -180,20 +180,3 @@ def test_alpha_half_reach_follows_the_gaussian_falloff():
     # Exactly where alpha is 1/2:
     assert np.isclose(0.9 * np.exp(-reach[0] ** 2 / (2 * sigma**2)), 0.5, rtol=1e-6)
     assert reach[1] == 0.0  # never reaches alpha 1/2
-
-
-def test_silhouette_surface_moves_a_sphere_out_by_the_reach_whatever_its_winding():
-    import trimesh
-
-    from reconstruction.gaussians import Gaussians
-    from reconstruction.splats import alpha_half_reach, silhouette_surface
-
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
-    pts = np.asarray(sphere.vertices)
-    n = len(pts)
-    log_scales = np.log(np.tile([0.001, 0.001, 1e-5], (n, 1)))
-    g = Gaussians.from_arrays(pts, np.tile([1.0, 0, 0, 0], (n, 1)), log_scales, np.full(n, np.log(9.0)), np.zeros((n, 1, 3)))
-    reach = float(alpha_half_reach(g)[0])
-    for faces in (sphere.faces, sphere.faces[:, ::-1]):
-        moved = silhouette_surface(pts, faces, g)
-        np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 0.05 + reach, rtol=1e-3)

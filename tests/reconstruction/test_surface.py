@@ -1,0 +1,61 @@
+"""The twin's surface: out to the splats' alpha-1/2 reach, and no face folded through another."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from reconstruction.gaussians import Gaussians
+from reconstruction.splats import alpha_half_reach
+from reconstruction.surface import self_intersecting_faces, silhouette_surface, untangle
+
+
+def test_silhouette_surface_moves_a_sphere_out_by_the_reach_whatever_its_winding():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    pts = np.asarray(sphere.vertices)
+    n = len(pts)
+    log_scales = np.log(np.tile([0.001, 0.001, 1e-5], (n, 1)))
+    g = Gaussians.from_arrays(pts, np.tile([1.0, 0, 0, 0], (n, 1)), log_scales, np.full(n, np.log(9.0)), np.zeros((n, 1, 3)))
+    reach = float(alpha_half_reach(g)[0])
+    for faces in (sphere.faces, sphere.faces[:, ::-1]):
+        moved = silhouette_surface(pts, faces, g)
+        np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 0.05 + reach, rtol=1e-3)
+
+
+def test_crossing_faces_are_found_and_touching_ones_are_not():
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    assert not self_intersecting_faces(ball.vertices, ball.faces).any()  # neighbours share edges only
+    box = trimesh.creation.box()
+    two = np.vstack([box.vertices, box.vertices + 0.3]), np.vstack([box.faces, box.faces + 8])
+    crossing = self_intersecting_faces(*two)
+    assert crossing.any() and not crossing.all()  # the far faces of each box cross nothing
+    assert not self_intersecting_faces(np.zeros((0, 3)), np.zeros((0, 3), np.int64)).any()
+
+
+def slab(thickness: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """A finely triangulated 1 x 1 x thickness box: vertices [V, 3], faces [F, 3]."""
+    box = trimesh.creation.box((1.0, 1.0, thickness))
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.1)
+    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+
+def test_a_patch_pushed_through_the_far_wall_is_pulled_back_and_the_rest_keeps_its_move():
+    rest, faces = slab()
+    moved = rest + [0.0, 0.0, 0.001]  # everything moves a little
+    top = rest[:, 2] > 0
+    patch = top & (np.linalg.norm(rest[:, :2], axis=1) < 0.2)
+    moved[patch, 2] -= 0.05  # the top pushed through the bottom: a fold
+    assert (self_intersecting_faces(moved, faces)).any()
+    out, kept = untangle(rest, moved, faces)
+    assert not self_intersecting_faces(out, faces).any()
+    far = np.linalg.norm(rest[:, :2], axis=1) > 0.4
+    assert np.all(kept[far] == 1.0) and np.allclose(out[far], moved[far])  # nothing far from the fold moved back
+    assert np.all(kept[patch] < 1.0)
+
+
+def test_a_rest_surface_that_crosses_itself_is_not_blamed_on_the_move():
+    box = trimesh.creation.box()
+    rest = np.vstack([box.vertices, box.vertices + 0.3])
+    faces = np.vstack([box.faces, box.faces + 8])
+    out, kept = untangle(rest, rest * 1.01, faces)
+    assert np.all(kept == 1.0) and np.allclose(out, rest * 1.01)
