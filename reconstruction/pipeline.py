@@ -285,7 +285,7 @@ def reconstruct(
     )
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
                for c in twin_cams}
-    deformed = MeshParts(silhouette_surface(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, twin.gaussians),
+    deformed = MeshParts(silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, twin.gaussians),
                          parts.faces, parts.face_part, parts.part_names)
     twin.choices["surface"] = {"value": "alpha 1/2", "why": "the deformed mesh moved out along its normals by the splats' median reach "
                                "to alpha 1/2 (splats.silhouette_surface): the fit leaves their centres that far inside the object "
