@@ -162,11 +162,16 @@ class _Quadratic(torch.autograd.Function):
         return grad * (2.0 / ctx.pairs) * lc, None, None
 
 
-def sh_neighbour_loss(sh: torch.Tensor, graph: NeighbourGraph) -> torch.Tensor:
-    """L_SH = 1/(N K) sum_i sum_{j in N(i)} ||c_i - c_j||^2 for sh [N, B, 3] (eq. sh_smooth)."""
+def neighbour_smoothness(values: torch.Tensor, graph: NeighbourGraph) -> torch.Tensor:
+    """1/(N K) sum_i sum_{j in N(i)} ||v_i - v_j||^2 for values [N, ...] on the graph's N points."""
     if graph.num_pairs == 0:
-        return sh.sum() * 0
-    return _Quadratic.apply(sh.reshape(len(sh), -1).float(), graph.laplacian, graph.num_pairs)
+        return values.sum() * 0
+    return _Quadratic.apply(values.reshape(len(values), -1).float(), graph.laplacian, graph.num_pairs)
+
+
+def sh_neighbour_loss(sh: torch.Tensor, graph: NeighbourGraph) -> torch.Tensor:
+    """L_SH (eq. sh_smooth): the neighbour smoothness of sh [N, B, 3]."""
+    return neighbour_smoothness(sh, graph)
 
 
 def dropout_fraction(step: int, anneal_steps: int, p0: float = 0.5) -> float:

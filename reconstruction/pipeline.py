@@ -286,7 +286,7 @@ def reconstruct(
     )
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
                for c in twin_cams}
-    surface = silhouette_surface(parts.vertices + model.field.offsets_at(parts.vertices), parts.faces, twin.gaussians)
+    surface = silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, twin.gaussians)
     surface, kept = untangle(parts.vertices, surface, parts.faces)
     deformed = MeshParts(surface, parts.faces, parts.face_part, parts.part_names)
     twin.choices["surface"] = {"value": "alpha 1/2", "pulled_back_vertices": int(np.sum(kept < 1.0)),

@@ -31,9 +31,9 @@ import torch
 from torch import nn
 
 from calibration.fileio import atomic_write_bytes
-from reconstruction.deformation import DeformationField
+from reconstruction.deformation import DeformationField, idw_weights
 from reconstruction.losses import (composite, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
-                                   sh_neighbour_loss)
+                                   neighbour_smoothness, sh_neighbour_loss)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
@@ -85,6 +85,9 @@ class SplatModel(nn.Module):
         self.register_buffer("means_canonical", torch.tensor(g.means, dtype=torch.float32))
         self.register_buffer("quats", torch.tensor(g.quats, dtype=torch.float32))
         self.field = DeformationField(splats.means, preset.field, seed=seed)
+        # Fine geometry below the field's resolution: each splat moves along its CAD normal (in object radii).
+        self.register_buffer("normals_canonical", torch.tensor(splats.normals, dtype=torch.float32))
+        self.displacement = nn.Parameter(torch.zeros(len(g.means), dtype=torch.float32))
         self.pose = PoseCorrection(num_cameras, pose_mode, pivot=self.field.center.double().numpy(),
                                    unit=float(self.field.radius))
         self.log_scales = nn.Parameter(torch.tensor(g.log_scales, dtype=torch.float32))
@@ -98,8 +101,19 @@ class SplatModel(nn.Module):
         self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
 
     def means(self) -> torch.Tensor:
-        """Deformed means [N, 3] = μ + D(γ(μ))."""
-        return self.means_canonical + self.field()
+        """Deformed means [N, 3] = μ + D(γ(μ)) + d n: the field, then each splat's move along its normal."""
+        return self.means_canonical + self.field() + self.displacement_offsets()
+
+    def displacement_offsets(self) -> torch.Tensor:
+        """[N, 3] each splat's own move along its canonical normal, metres."""
+        return (self.displacement * self.field.radius)[:, None] * self.normals_canonical
+
+    @torch.no_grad()
+    def offsets_at(self, points: np.ndarray, k: int = 4) -> np.ndarray:
+        """Δ [P, 3] at canonical points (e.g. CAD vertices): the field there plus the inverse-distance blend
+        of the k nearest splats' own moves, so a mesh through them follows the splats."""
+        idx, w = idw_weights(np.asarray(points, np.float64), self.means_canonical.numpy().astype(np.float64), k)
+        return self.field.offsets_at(points) + np.einsum("nk,nkd->nd", w, self.displacement_offsets().numpy()[idx])
 
     def sh(self) -> torch.Tensor:
         return torch.cat([self.sh0, self.shN], 1)
@@ -119,6 +133,7 @@ class SplatModel(nn.Module):
             {"name": "pose", "params": self.pose.rig_parameters(), "lr": lr["pose"]},
             *([{"name": "pose_camera", "params": camera, "lr": lr.get("pose_camera", lr["pose"])}] if camera else []),
             {"name": "deformation", "params": list(self.field.parameters()), "lr": lr["deformation"]},
+            {"name": "displacement", "params": [self.displacement], "lr": lr.get("displacement", 0.0)},
             {"name": "scales", "params": [self.log_scales], "lr": lr["scales"]},
             {"name": "opacities", "params": [self.opacity_logits], "lr": lr["opacities"]},
             {"name": "sh0", "params": [self.sh0], "lr": lr["sh0"]},
@@ -133,8 +148,8 @@ class SplatModel(nn.Module):
 
 TRAINABLE = {
     "pose": ("pose", "pose_camera"),
-    "deform": ("pose", "pose_camera", "deformation"),
-    "photo": ("pose", "pose_camera", "deformation", "scales", "opacities", "sh0", "shN"),
+    "deform": ("pose", "pose_camera", "deformation", "displacement"),
+    "photo": ("pose", "pose_camera", "deformation", "displacement", "scales", "opacities", "sh0", "shN"),
 }
 
 
@@ -362,6 +377,10 @@ def train(
                     l_fill = fill_loss(alpha, cov[idx])
                     loss = loss + preset.lambda_fill * l_fill
                     last["fill"] = l_fill
+            if preset.lambda_displacement and stage != "pose":
+                l_disp = neighbour_smoothness(model.displacement, sh_graph)
+                loss = loss + preset.lambda_displacement * l_disp
+                last["displacement"] = l_disp
             opt.zero_grad(set_to_none=True)
             value = float(loss.detach())
             if math.isfinite(value):

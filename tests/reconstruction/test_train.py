@@ -165,3 +165,29 @@ def test_stage_without_iterations_reports_null_loss_not_nan():
     json.dumps(res.losses, allow_nan=False)
     assert finite_model(res.model)
 
+
+
+def test_splats_move_along_their_normals_and_the_mesh_follows_them():
+    from reconstruction.losses import neighbour_graph, neighbour_smoothness
+    from reconstruction.splats import knn_indices
+    from reconstruction.train import SplatModel
+
+    _, parts, _ = sample_scene()
+    splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
+    model = SplatModel(splats, replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128)), 3, "global")
+    with torch.no_grad():
+        still = model.means().clone()
+        model.displacement.fill_(0.01)  # a hundredth of the object's radius, outwards along every normal
+        moved = model.means()
+    step = float(model.field.radius) * 0.01
+    np.testing.assert_allclose((moved - still).numpy(), step * splats.normals, atol=1e-7)
+    # A point on a splat takes that splat's move (and the field's offset there).
+    np.testing.assert_allclose(model.offsets_at(splats.means[:50]), (moved - model.means_canonical).numpy()[:50], atol=1e-6)
+    # The smoothness of the moves costs nothing for a uniform move and pulls an outlier back to its neighbours.
+    graph = neighbour_graph(knn_indices(splats.means, 8))
+    assert float(neighbour_smoothness(model.displacement.detach(), graph)) < 1e-9  # float32 rounding of 0.01
+    with torch.no_grad():
+        model.displacement[7] = 0.05
+    loss = neighbour_smoothness(model.displacement, graph)
+    loss.backward()
+    assert float(loss.detach()) > 0 and model.displacement.grad[7] > 0 and model.displacement.grad.abs().argmax() == 7
