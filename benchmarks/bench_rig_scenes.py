@@ -230,7 +230,8 @@ def write_report(work: Path, refine_steps: int) -> str:
                     f"{np.median([d['geometry_deformed']['p95_pct'] for d in cad]):.3f}"]
             known = [d for d in cad if "crossing_faces" in d["geometry_cad"]]
             row += [f"{sum(d['geometry_cad']['crossing_faces'] for d in known)} / {sum(d['geometry_deformed']['crossing_faces'] for d in known)}",
-                    f"{sum(d['geometry_deformed']['watertight'] for d in known)} / {sum(d['geometry_cad']['watertight'] for d in known)}"]
+                    f"{sum(d['geometry_deformed']['watertight'] for d in known)} / {sum(d['geometry_cad']['watertight'] for d in known)}"] \
+                if known else ["-", "-"]
         else:
             row += ["-"] * 11
         lines.append("| " + " | ".join(row) + " |")
