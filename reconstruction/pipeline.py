@@ -29,7 +29,7 @@ from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult, check_fits
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
-from reconstruction.surface import silhouette_surface, untangle
+from reconstruction.surface import mask_area_offset, offset_along_normals, silhouette_surface, untangle
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
 
@@ -287,12 +287,15 @@ def reconstruct(
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
                for c in twin_cams}
     surface = silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, twin.gaussians)
-    surface, kept = untangle(parts.vertices, surface, parts.faces)
+    # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step.
+    step = mask_area_offset(surface, parts.faces, [c.camera for c in twin_cams], masks, bracket=0.02 * float(model.field.radius))
+    surface, kept = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
     deformed = MeshParts(surface, parts.faces, parts.face_part, parts.part_names)
-    twin.choices["surface"] = {"value": "alpha 1/2", "pulled_back_vertices": int(np.sum(kept < 1.0)),
+    twin.choices["surface"] = {"value": "alpha 1/2, then the masks' area", "mask_step_mm": round(1000.0 * step, 3),
+                               "pulled_back_vertices": int(np.sum(kept < 1.0)),
                                "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
-                                      "(surface.silhouette_surface): the fit leaves their centres that far inside the object "
-                                      "(rig scenes: geometry median 0.62 -> 0.43 % of the diameter against the CAD's 0.72 %); "
+                                      "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
+                                      "then by the step at which its silhouettes cover the masks' pixels (surface.mask_area_offset); "
                                       "then pulled back towards the CAD wherever a face came to cross another (surface.untangle)"}
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all

@@ -59,3 +59,18 @@ def test_a_rest_surface_that_crosses_itself_is_not_blamed_on_the_move():
     faces = np.vstack([box.faces, box.faces + 8])
     out, kept = untangle(rest, rest * 1.01, faces)
     assert np.all(kept == 1.0) and np.allclose(out, rest * 1.01)
+
+
+def test_the_mask_area_step_finds_how_far_the_masks_reach_past_the_mesh():
+    from calibration.camera import Camera, look_at_c2w
+    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.surface import mask_area_offset
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
+    K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
+    cams = [Camera(K, 320, 240, c2w=look_at_c2w(np.array(eye, float), np.zeros(3))) for eye in ([0.3, 0, 0.05], [0, 0.3, -0.05], [-0.2, -0.2, 0.1])]
+    masks = np.stack([rasterize_mesh(v * 1.04, f, cam)[1] >= 0 for cam in cams])  # the object is 2 mm larger all round
+    step = mask_area_offset(v, f, cams, masks, bracket=0.005)
+    assert abs(step - 0.002) < 0.0002  # a tenth of a millimetre: a fraction of the 0.7 mm pixel there
+    assert mask_area_offset(v, f, cams, np.ones_like(masks), bracket=0.005) > 0.0049  # masks that cover everything: the bracket
