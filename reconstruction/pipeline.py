@@ -286,8 +286,10 @@ def reconstruct(
     )
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0]
                for c in twin_cams}
-    surface = silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, twin.gaussians)
-    # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step.
+    surface, _ = untangle(parts.vertices, silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces,
+                                                             twin.gaussians), parts.faces)
+    # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step, measured on
+    # the surface as it will be written (untangling moves folded faces back towards the CAD, outwards or in).
     step = mask_area_offset(surface, parts.faces, [c.camera for c in twin_cams], masks, bracket=0.02 * float(model.field.radius))
     surface, kept = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
     deformed = MeshParts(surface, parts.faces, parts.face_part, parts.part_names)
