@@ -83,6 +83,15 @@ def similarity_basis(points: torch.Tensor, with_scale: bool = True) -> torch.Ten
     return cols.reshape(p * 3, -1)
 
 
+def normal_similarity_basis(points: np.ndarray, normals: np.ndarray, center: np.ndarray, radius: float,
+                            with_scale: bool = True) -> np.ndarray:
+    """[P, 7] (or [P, 6] without scale) normal components n . b of the infinitesimal similarities at points
+    [P, 3] with unit normals [P, 3]: the moves along the normals (in units of `radius`) that a pose makes."""
+    x = (np.asarray(points, np.float64) - np.asarray(center, np.float64)) / float(radius)
+    basis = similarity_basis(torch.from_numpy(x), with_scale=with_scale).numpy().reshape(len(x), 3, -1)
+    return np.einsum("pd,pdk->pk", np.asarray(normals, np.float64), basis)
+
+
 def remove_similarity(offsets: torch.Tensor, basis: torch.Tensor, pinv: torch.Tensor) -> torch.Tensor:
     """offsets [P, 3] minus their least-squares fit by `basis` [P * 3, 7] (pinv = its pseudo-inverse [7, P * 3])."""
     flat = offsets.reshape(-1)

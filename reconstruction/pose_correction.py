@@ -128,6 +128,20 @@ def extrinsics_error_px(uncertainty: dict, focal_px: np.ndarray, distance_m: np.
     return float(px.max()) if px.size else 0.0
 
 
+ROUGH_POSE_SOURCES = ("rough", "approximate", "estimated", "phone")
+
+
+def rough_poses(meta: dict) -> bool:
+    """Whether a capture's provenance (`capture.meta`) marks its poses as rough (degrees off, not a calibration)."""
+    return str(meta.get("pose_source", "")).lower() in ROUGH_POSE_SOURCES
+
+
+def rough_pose_rates(lr: dict) -> dict:
+    """Learning rates for rough poses: per-camera residuals move at the rig's rate in the second Stage-I stage
+    (degrees to travel, carved by the silhouettes) and stay in Stage II, instead of a calibration's fine rate."""
+    return {**lr, "pose_camera_deform": lr.get("pose_deform", lr["pose"]), "pose_camera_photo": 0.0}
+
+
 def choose_pose_mode(meta: dict, override: str | None = None, *, calibration_error_px: float | None = None) -> tuple[str, str]:
     """(mode, why) from a capture's calibration provenance (`capture.meta`), unless overridden.
 
@@ -137,9 +151,8 @@ def choose_pose_mode(meta: dict, override: str | None = None, *, calibration_err
         if override not in POSE_MODES:
             raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {override!r}")
         return override, "set by the caller"
-    source = str(meta.get("pose_source", "")).lower()
-    if source in ("rough", "approximate", "estimated", "phone"):
-        return "per_camera", f"capture poses are marked pose_source={source!r}: each view gets its own SE(3) correction"
+    if rough_poses(meta):
+        return "per_camera", f"capture poses are marked pose_source={meta['pose_source']!r}: each view gets its own SE(3) correction"
     calibration = meta.get("calibration_id")
     if calibration_error_px is not None and calibration_error_px > PER_CAMERA_ABOVE_PX:
         return "per_camera", (f"rig calibration {calibration!r} is good to {calibration_error_px:.1f} px per camera at the object; "
@@ -148,7 +161,11 @@ def choose_pose_mode(meta: dict, override: str | None = None, *, calibration_err
     if calibration:
         good = f" (good to {calibration_error_px:.2f} px at the object)" if calibration_error_px is not None else ""
         return "global", f"rig calibration {calibration!r}{good}: one global Sim(3) correction for all cameras"
-    return "global", "no provenance says the poses are rough: one global Sim(3) correction (the paper's default)"
+    # Poses of unknown provenance (no calibration named, e.g. an imported transforms.json) are not assumed exact:
+    # fine per-camera residuals take the last pixel the photographs show (rig scenes, 0.1 deg / 1 mm unstated,
+    # global -> per-camera: held-out fgPSNR 25.72 -> 26.80 dB, IoU 0.967 -> 0.974, camera ADD-S 0.95 -> 0.78 %).
+    return "per_camera", ("no calibration is named, so its accuracy is unknown: the rig's Sim(3) correction, and per camera a "
+                          "small SE(3) residual learnt from the photographs")
 
 
 def corrected_c2w_numpy(correction: PoseCorrection, c2w: np.ndarray) -> np.ndarray:

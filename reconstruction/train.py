@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from calibration.fileio import atomic_write_bytes
-from reconstruction.deformation import DeformationField, idw_weights
+from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
 from reconstruction.losses import (composite, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
                                    neighbour_smoothness, sh_neighbour_loss)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
@@ -90,6 +90,12 @@ class SplatModel(nn.Module):
         self.displacement = nn.Parameter(torch.zeros(len(g.means), dtype=torch.float32))
         self.pose = PoseCorrection(num_cameras, pose_mode, pivot=self.field.center.double().numpy(),
                                    unit=float(self.field.radius))
+        # Normal moves that amount to a motion of the pose's (rigid, and with pose_scale similarity) would let
+        # the splats and the cameras drift together: that component is projected out, as for the field.
+        basis = normal_similarity_basis(splats.means, splats.normals, self.field.center.double().numpy(),
+                                        float(self.field.radius), with_scale=preset.pose_scale)
+        self.register_buffer("displacement_basis", torch.tensor(basis, dtype=torch.float32))
+        self.register_buffer("displacement_pinv", torch.tensor(np.linalg.pinv(basis), dtype=torch.float32))
         self.log_scales = nn.Parameter(torch.tensor(g.log_scales, dtype=torch.float32))
         self.opacity_logits = nn.Parameter(torch.tensor(g.opacity_logits, dtype=torch.float32))
         sh = torch.tensor(g.sh, dtype=torch.float32)
@@ -104,9 +110,13 @@ class SplatModel(nn.Module):
         """Deformed means [N, 3] = μ + D(γ(μ)) + d n: the field, then each splat's move along its normal."""
         return self.means_canonical + self.field() + self.displacement_offsets()
 
+    def normal_moves(self) -> torch.Tensor:
+        """[N] each splat's own move along its canonical normal (object radii), without the part a pose could make."""
+        return self.displacement - self.displacement_basis @ (self.displacement_pinv @ self.displacement)
+
     def displacement_offsets(self) -> torch.Tensor:
         """[N, 3] each splat's own move along its canonical normal, metres."""
-        return (self.displacement * self.field.radius)[:, None] * self.normals_canonical
+        return (self.normal_moves() * self.field.radius)[:, None] * self.normals_canonical
 
     @torch.no_grad()
     def offsets_at(self, points: np.ndarray, k: int = 4) -> np.ndarray:
@@ -378,7 +388,7 @@ def train(
                     loss = loss + preset.lambda_fill * l_fill
                     last["fill"] = l_fill
             if preset.lambda_displacement and stage != "pose":
-                l_disp = neighbour_smoothness(model.displacement, sh_graph)
+                l_disp = neighbour_smoothness(model.normal_moves(), sh_graph)
                 loss = loss + preset.lambda_displacement * l_disp
                 last["displacement"] = l_disp
             opt.zero_grad(set_to_none=True)

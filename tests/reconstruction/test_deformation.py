@@ -120,7 +120,7 @@ def test_projected_field_has_no_similarity_component(anchors):
     with torch.no_grad():
         f.mlp.head.weight.normal_(0, 0.1)
     at = f.anchors if anchors else f.points
-    d = f._mlp_at(at)
+    d = f._mlp_at(at).detach()
     dp = f._project(d)
     basis = similarity_basis(((at - f.center) / f.radius).double())
     coef = torch.linalg.lstsq(basis, dp.double().reshape(-1, 1)).solution

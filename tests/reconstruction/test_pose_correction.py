@@ -98,7 +98,7 @@ def test_per_camera_residuals_sit_on_the_rigs_sim3():
 def test_mode_from_provenance():
     assert choose_pose_mode({"calibration_id": "cal-7"})[0] == "global"
     assert choose_pose_mode({"pose_source": "rough"})[0] == "per_camera"
-    assert choose_pose_mode({})[0] == "global"
+    assert choose_pose_mode({})[0] == "per_camera"  # nothing says how good the poses are
     assert choose_pose_mode({"pose_source": "rough"}, "global") == ("global", "set by the caller")
     with pytest.raises(ValueError, match="pose mode"):
         choose_pose_mode({}, "bogus")

@@ -17,7 +17,7 @@ def test_each_ablation_switches_off_only_its_ingredient():
     p, _ = apply_ablations(cpu, ["no-deformation"])
     assert p.lr["deformation"] == 0.0 and p.iters_deform == 0 and p.lr["pose"] == cpu.lr["pose"]
     p, _ = apply_ablations(cpu, ["no-pose"])
-    assert all(p.lr[k] == 0.0 for k in ("pose", "pose_deform", "pose_photo")) and p.iters_pose == 0
+    assert all(p.lr[k] == 0.0 for k in ("pose", "pose_deform", "pose_photo", "pose_camera")) and p.iters_pose == 0
     assert p.lr["deformation"] == cpu.lr["deformation"]
     p, _ = apply_ablations(PAPER, ["no-sh-smoothness", "no-dropout"])
     assert p.lambda_sh == 0.0 and p.dropout_p0 == 0.0 and p.num_splats == PAPER.num_splats
@@ -38,3 +38,16 @@ def test_the_cli_lists_every_ablation():
     from deploy.commands.reconstruct import ABLATION_NAMES
 
     assert set(ABLATION_NAMES) == set(ABLATIONS)
+
+
+def test_per_camera_residuals_learn_finely_through_stage_two_unless_the_poses_are_rough():
+    from reconstruction.pose_correction import rough_pose_rates, rough_poses
+    from reconstruction.train import pose_stage_lr
+
+    cpu, _ = resolve_preset("cpu", STATS)
+    rates = {stage: pose_stage_lr(cpu.lr, "pose_camera", stage) for stage in ("pose", "deform", "photo")}
+    assert rates["pose"] == 0.0 and 0 < rates["deform"] == rates["photo"] <= cpu.lr["pose"] / 50
+    assert pose_stage_lr(cpu.lr, "pose", "photo") == 0.0  # the rig's Sim(3) stays where Stage I left it
+    rough = rough_pose_rates(cpu.lr)
+    assert rough_poses({"pose_source": "Phone"}) and not rough_poses({"pose_source": "optimized"}) and not rough_poses({})
+    assert pose_stage_lr(rough, "pose_camera", "deform") == cpu.lr["pose_deform"] and pose_stage_lr(rough, "pose_camera", "photo") == 0.0

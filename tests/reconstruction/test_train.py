@@ -174,20 +174,43 @@ def test_splats_move_along_their_normals_and_the_mesh_follows_them():
 
     _, parts, _ = sample_scene()
     splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
-    model = SplatModel(splats, replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128)), 3, "global")
+    model = SplatModel(splats, replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128), pose_scale=False), 3, "global")
     with torch.no_grad():
         still = model.means().clone()
         model.displacement.fill_(0.01)  # a hundredth of the object's radius, outwards along every normal
         moved = model.means()
     step = float(model.field.radius) * 0.01
-    np.testing.assert_allclose((moved - still).numpy(), step * splats.normals, atol=1e-7)
+    # An outward move is not a rigid motion: it survives the projection, less the small rigid part that the splats'
+    # uneven spacing gives it, along the normals.
+    along = np.einsum("nd,nd->n", (moved - still).numpy(), splats.normals)
+    np.testing.assert_allclose((moved - still).numpy(), along[:, None] * splats.normals, atol=1e-7)
+    assert abs(along.mean() - step) < 0.02 * step and np.abs(along - step).max() < 0.25 * step
     # A point on a splat takes that splat's move (and the field's offset there).
     np.testing.assert_allclose(model.offsets_at(splats.means[:50]), (moved - model.means_canonical).numpy()[:50], atol=1e-6)
     # The smoothness of the moves costs nothing for a uniform move and pulls an outlier back to its neighbours.
     graph = neighbour_graph(knn_indices(splats.means, 8))
-    assert float(neighbour_smoothness(model.displacement.detach(), graph)) < 1e-9  # float32 rounding of 0.01
+    assert float(neighbour_smoothness(model.normal_moves().detach(), graph)) < 1e-6
     with torch.no_grad():
         model.displacement[7] = 0.05
-    loss = neighbour_smoothness(model.displacement, graph)
+    loss = neighbour_smoothness(model.normal_moves(), graph)
     loss.backward()
     assert float(loss.detach()) > 0 and model.displacement.grad[7] > 0 and model.displacement.grad.abs().argmax() == 7
+
+
+def test_normal_moves_that_a_pose_could_make_are_projected_out():
+    """A translation or a rotation of the whole part written as moves along the normals is the pose's to make:
+    left in, the splats and the cameras drift together (per-camera rig scenes: screwdriver held-out IoU 0.852)."""
+    from reconstruction.train import SplatModel
+
+    _, parts, _ = sample_scene()
+    splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
+    for pose_scale in (False, True):
+        model = SplatModel(splats, replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128), pose_scale=pose_scale), 3, "global")
+        radius, center = float(model.field.radius), model.field.center.double().numpy()
+        x = splats.means - center
+        rigid = np.array([0.003, -0.002, 0.001]) + np.cross([0.01, 0.02, -0.01], x)  # infinitesimal: t + w x (x - c)
+        moves = [rigid] + ([0.02 * x] if pose_scale else [])
+        for move in moves:
+            with torch.no_grad():
+                model.displacement.copy_(torch.tensor(np.einsum("nd,nd->n", move, splats.normals) / radius))
+                assert float(model.displacement_offsets().abs().max()) < 1e-3 * float(model.displacement.abs().max()) * radius
