@@ -23,7 +23,7 @@ from calibration.camera import Camera
 from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
 from calibration.sim3 import Sim3
 from reconstruction.mesh_io import MeshParts, read_mesh_parts
-from reconstruction.pose_correction import choose_pose_mode, extrinsics_error_px, rough_pose_rates, rough_poses
+from reconstruction.pose_correction import PER_CAMERA_ABOVE_PX, choose_pose_mode, extrinsics_error_px, residual_rates
 from reconstruction.gaussians import Gaussians, camera_batch, render, straight_rgba
 from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
@@ -231,10 +231,12 @@ def reconstruct(
     error_px = calibration_error_px(capture.meta, cams, reg.sim3_rig_to_object.inverse().apply(centre[None])[0])
     mode, why = choose_pose_mode(capture.meta, pose_mode, calibration_error_px=error_px)
     choices["pose_mode"] = {"value": mode, "why": why}
-    if mode == "per_camera" and rough_poses(capture.meta):
-        cfg = replace(cfg, lr=rough_pose_rates(cfg.lr))
-        choices["learning_rates"] = {"value": cfg.lr, "why": choices["learning_rates"]["why"] + "; rough poses: per-camera "
-                                     "residuals at the rig's rate in the second Stage-I stage, kept in Stage II"}
+    lr, coarse = residual_rates(cfg.lr, capture.meta, error_px)
+    if mode == "per_camera" and coarse:
+        cfg = replace(cfg, lr=lr)
+        choices["learning_rates"] = {"value": cfg.lr, "why": choices["learning_rates"]["why"] + "; poses rough or stated to be "
+                                     f"off by more than {PER_CAMERA_ABOVE_PX:g} px: per-camera residuals at the rig's rate in the "
+                                     "second Stage-I stage, kept in Stage II"}
     choices["masks"] = {"value": mask_source, "why": "computed once before reconstruct and handed to it" if mask_source == "given"
                         else "capture masks when present, else background subtraction"}
     Ks = np.stack([c.K for c in cams])

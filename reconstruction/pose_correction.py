@@ -136,10 +136,14 @@ def rough_poses(meta: dict) -> bool:
     return str(meta.get("pose_source", "")).lower() in ROUGH_POSE_SOURCES
 
 
-def rough_pose_rates(lr: dict) -> dict:
-    """Learning rates for rough poses: per-camera residuals move at the rig's rate in the second Stage-I stage
-    (degrees to travel, carved by the silhouettes) and stay in Stage II, instead of a calibration's fine rate."""
-    return {**lr, "pose_camera_deform": lr.get("pose_deform", lr["pose"]), "pose_camera_photo": 0.0}
+def residual_rates(lr: dict, meta: dict, calibration_error_px: float | None) -> tuple[dict, bool]:
+    """(learning rates, whether they changed) for per-camera residuals. A preset's residuals learn at a fine rate
+    for a last pixel; rough poses, or a calibration stated to be off by more than `PER_CAMERA_ABOVE_PX`, have
+    degrees to travel: their residuals move at the rig's rate in the second Stage-I stage, carved by the
+    silhouettes, and stay in Stage II (the rates the noisy synthetic rig, 0.3 deg / 2 mm stated, was measured at)."""
+    if not (rough_poses(meta) or (calibration_error_px or 0.0) > PER_CAMERA_ABOVE_PX):
+        return lr, False
+    return {**lr, "pose_camera_deform": lr.get("pose_deform", lr["pose"]), "pose_camera_photo": 0.0}, True
 
 
 def choose_pose_mode(meta: dict, override: str | None = None, *, calibration_error_px: float | None = None) -> tuple[str, str]:

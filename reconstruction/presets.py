@@ -180,7 +180,8 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     # and learn through Stage II at 1/60 of the rig's rate (at most ~0.2 deg of travel): the photographs' texture
     # says what a calibration got wrong per camera. At the rig's rate they took up the CAD model's misfit
     # instead (rig scenes, per-camera mode, screwdriver: held-out IoU 0.852 at 2e-3, 0.972 at 3e-5).
-    # Rough poses (pose_source) move more: the pipeline gives them the rig's rate (`rough_pose_rates`).
+    # Rough poses, or a calibration stated to be off by more than a pixel, move more: the pipeline gives them
+    # the rig's rate (`pose_correction.residual_rates`).
     lr["pose_camera_pose"] = 0.0
     lr["pose_camera"] = 3e-5
     # Each splat also moves along its CAD normal, smoothed over its neighbours: the field (a smooth MLP at

@@ -41,13 +41,17 @@ def test_the_cli_lists_every_ablation():
 
 
 def test_per_camera_residuals_learn_finely_through_stage_two_unless_the_poses_are_rough():
-    from reconstruction.pose_correction import rough_pose_rates, rough_poses
+    from reconstruction.pose_correction import residual_rates, rough_poses
     from reconstruction.train import pose_stage_lr
 
     cpu, _ = resolve_preset("cpu", STATS)
     rates = {stage: pose_stage_lr(cpu.lr, "pose_camera", stage) for stage in ("pose", "deform", "photo")}
     assert rates["pose"] == 0.0 and 0 < rates["deform"] == rates["photo"] <= cpu.lr["pose"] / 50
     assert pose_stage_lr(cpu.lr, "pose", "photo") == 0.0  # the rig's Sim(3) stays where Stage I left it
-    rough = rough_pose_rates(cpu.lr)
     assert rough_poses({"pose_source": "Phone"}) and not rough_poses({"pose_source": "optimized"}) and not rough_poses({})
-    assert pose_stage_lr(rough, "pose_camera", "deform") == cpu.lr["pose_deform"] and pose_stage_lr(rough, "pose_camera", "photo") == 0.0
+    assert residual_rates(cpu.lr, {}, None) == (cpu.lr, False)
+    assert residual_rates(cpu.lr, {"calibration_id": "c"}, 0.6) == (cpu.lr, False)
+    for meta, px in (({"pose_source": "rough"}, None), ({"calibration_id": "c"}, 3.9)):
+        rough, changed = residual_rates(cpu.lr, meta, px)
+        assert changed and pose_stage_lr(rough, "pose_camera", "deform") == cpu.lr["pose_deform"]
+        assert pose_stage_lr(rough, "pose_camera", "photo") == 0.0
