@@ -177,7 +177,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     # joint 1.38 %).
     lr["pose_deform"] = lr["pose"]
     # Per-camera residuals start once the rig's Sim(3) has taken the common motion in the pose-only stage,
-    # and learn through Stage II at 1/60 of the rig's rate (at most ~0.2 deg of travel): the photographs' texture
+    # and learn through Stage II at 3e-5, a 67th of the rig's rate (at most ~0.2 deg of travel): the photographs' texture
     # says what a calibration got wrong per camera. At the rig's rate they took up the CAD model's misfit
     # instead (rig scenes, per-camera mode, screwdriver: held-out IoU 0.852 at 2e-3, 0.972 at 3e-5).
     # Rough poses, or a calibration stated to be off by more than a pixel, move more: the pipeline gives them
@@ -191,7 +191,7 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     choices["learning_rates"] = _choice(lr, "pose rate 4x the paper's (translation in object radii, decayed 10x per Stage-I stage); deformation and "
                                             "higher-SH rates raised for ~100x fewer iterations; sh0 up, opacities down for "
                                             "full-batch steps; the rig's pose learns in both Stage-I stages and is frozen in Stage II; "
-                                            "per-camera residuals learn from the second Stage-I stage on, at 1/60 of its rate")
+                                            "per-camera residuals learn from the second Stage-I stage on, at a 67th of its rate")
     anneal = 0
     # Neighbour colour differences of a given texture grow with splat spacing (~N^-1/2), so their
     # squares grow ~1/N: scaling λ_SH by N / 600k keeps the paper's smoothing strength per surface.
