@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_rig_scenes [--scenes A,B] [--variant NAME] [--preset cpu]
         [--views all|5|3] [--pose-mode global|per_camera] [--override KEY=JSON ...] [--vanilla ITERS ...]
-        [--refine-steps N] [--work DIR] [--report-only] [--rescore]
+        [--refine-steps N] [--work DIR] [--report-only] [--plot VARIANT] [--rescore]
 
 Each scene (8 YCB objects, 9-13 training views at 320x240, a metric rig frame, 0.1 deg / 1 mm
 calibration noise the capture does not state, a deformed and decimated CAD variant among 110
@@ -21,7 +21,8 @@ and is scored against the scene's ground truth:
 `--vanilla ITERS` also trains masked vanilla 3DGS (`baselines.train_vanilla_3dgs`) on the same
 views for each iteration count given. Every run is cached as JSON under the work directory, keyed
 by variant, so interrupted sweeps resume and variants are compared paired, per scene.
-Writes benchmarks/results/rig_scenes.md.
+Writes benchmarks/results/rig_scenes.md and rig_scenes.png (the engine variant against vanilla 3DGS per
+scene and view count, and each variant's quality against its training time).
 """
 
 from __future__ import annotations
@@ -193,11 +194,52 @@ def _m(doc: dict, key: str, refined: bool = False) -> float:
     return float("nan") if not m or m.get(key) is None else float(m[key])
 
 
-def write_report(work: Path, refine_steps: int) -> str:
+def plot_against_vanilla(runs: dict[str, dict[str, dict]], engine: str, out: Path) -> bool:
+    """Per view count, each scene's held-out fgPSNR of the engine variant `engine` and of every vanilla 3DGS run on
+    the same views; last panel, each variant's mean fgPSNR against its mean training time. False: nothing to plot."""
+    views = [v for v in ("all", "5", "3") if any(k.startswith(f"{engine}-") and k.endswith(f"-v{v}") for k in runs)]
+    if not views:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(views) + 1, figsize=(4.2 * (len(views) + 1), 3.8))
+    x = np.arange(len(SCENES))
+    colours = {"all": "C0", "5": "C1", "3": "C2"}
+    for ax, v in zip(axes, views):
+        for variant, by in runs.items():
+            if not variant.endswith(f"-v{v}") or not (variant.startswith(f"{engine}-") or variant.startswith("vanilla-")):
+                continue
+            y = [_m(by[s], "fgpsnr") if s in by else np.nan for s in SCENES]
+            twin = variant.startswith(f"{engine}-")
+            ax.plot(x, y, "o-" if twin else "s--", mfc=None if twin else "none", label=variant.rsplit("-v", 1)[0])
+            axes[-1].plot(np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y), "o" if twin else "s",
+                          color=colours[v], mfc=None if twin else "none")
+            axes[-1].annotate(f"{variant.rsplit('-v', 1)[0].replace('-cpu', '')} ({v})",
+                              (np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y)), fontsize=7,
+                              xytext=(3, 3), textcoords="offset points")
+        ax.set_xticks(x, [s.split("_", 1)[1][:10] for s in SCENES], rotation=60, fontsize=7)
+        ax.set_title(f"{'all' if v == 'all' else v} training views")
+        ax.set_ylabel("held-out fgPSNR (dB)")
+        ax.legend(fontsize=7)
+    axes[-1].set_xlabel("train s per scene (2 CPU cores)")
+    axes[-1].set_ylabel("mean held-out fgPSNR (dB)")
+    axes[-1].set_title("speed against quality (o twin, s vanilla)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def write_report(work: Path, refine_steps: int, plot_variant: str | None = None) -> str:
     runs: dict[str, dict[str, dict]] = {}
     for path in sorted((work / "runs").glob(f"*/*-r{refine_steps}.json")):
         doc = json.loads(path.read_text())
         runs.setdefault(doc["variant"], {})[doc["scene"]] = doc
+    if plot_variant:
+        plot_against_vanilla(runs, plot_variant, RESULTS / "rig_scenes.png")
     lines = ["# Reference benchmark: path-traced rig captures (`python -m benchmarks.bench_rig_scenes`)", "",
              "`shared/data/rig_scenes`: 8 YCB objects, 9-13 training views at 320x240, metric rig, 0.1 deg / 1 mm "
              "calibration noise not stated by the capture, deformed+decimated CAD among 110 distractors; 12 held-out views "
@@ -271,6 +313,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-rig-scenes"))
     ap.add_argument("--library", type=Path, default=None, help="built index of rig_scenes/library (built into --work when absent)")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--plot", default=None, help="engine variant drawn against vanilla in rig_scenes.png (default: --variant)")
     ap.add_argument("--rescore", action="store_true", help="score the pose and geometry of cached runs' twins again")
     args = ap.parse_args()
     if not RIG_SCENES.is_dir():
@@ -294,7 +337,7 @@ def main() -> None:
                 doc = run_vanilla(scene, iters, args.work, args)
                 print(f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} "
                       f"({doc['train_wall_s']:.0f} s)", flush=True)
-    print(write_report(args.work, args.refine_steps))
+    print(write_report(args.work, args.refine_steps, args.plot or args.variant))
 
 
 if __name__ == "__main__":
