@@ -220,7 +220,7 @@ def plot_against_vanilla(runs: dict[str, dict[str, dict]], engine: str, out: Pat
             axes[-1].annotate(f"{variant.rsplit('-v', 1)[0].replace('-cpu', '')} ({v})",
                               (np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y)), fontsize=7,
                               xytext=(3, 3), textcoords="offset points")
-        ax.set_xticks(x, [s.split("_", 1)[1][:10] for s in SCENES], rotation=60, fontsize=7)
+        ax.set_xticks(x, [s.split("_", 1)[1] for s in SCENES], rotation=60, fontsize=7)
         ax.set_title(f"{'all' if v == 'all' else v} training views")
         ax.set_ylabel("held-out fgPSNR (dB)")
         ax.legend(fontsize=7)
