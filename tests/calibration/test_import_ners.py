@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from calibration.capture import read_capture
-from calibration.import_ners import decode_coco_rle, import_ners_misc, import_ners_mvmc, pytorch3d_camera
+from calibration.import_ners import decode_coco_rle, import_ners_misc, import_ners_mvmc, mask_from_png, pytorch3d_camera
 from tests.conftest import require_shared
 
 
@@ -88,6 +88,20 @@ def test_espresso_rough_poses(tmp_path):
     src = require_shared("real", "ners", "espresso")
     cap = import_ners_misc(src, tmp_path / "espresso")
     assert len(cap) == 7 and cap.meta["pose_source"] == "rough"
+    # The mask PNGs are white-on-black RGB with an opaque alpha: each is a silhouette, not the whole photo.
+    covers = [cap.mask(i).mean() for i in range(7)]
+    assert 0.05 < min(covers) and max(covers) < 0.6
     ious = visual_hull_iou([cap.camera(i) for i in range(7)], [cap.mask(i) for i in range(7)])
     # Azimuth/elevation alone are rough, yet the hull still explains most of every mask.
     assert np.median(ious) > 0.8
+
+
+def test_mask_png_channels():
+    """Alpha is the mask where it varies; an opaque alpha leaves the colour to say it; gray is itself."""
+    silhouette = np.zeros((4, 5), bool)
+    silhouette[1:3, 2:4] = True
+    white_on_black = np.repeat(silhouette[..., None].astype(np.float32), 3, axis=2)
+    opaque = np.concatenate([white_on_black, np.ones((4, 5, 1), np.float32)], axis=2)
+    cut_out = np.concatenate([np.full((4, 5, 3), 0.3, np.float32), silhouette[..., None].astype(np.float32)], axis=2)
+    for m in (silhouette.astype(np.float32), white_on_black, opaque, cut_out):
+        np.testing.assert_array_equal(mask_from_png(m), silhouette)
