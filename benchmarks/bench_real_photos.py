@@ -72,18 +72,15 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     if cache.exists():
         return json.loads(cache.read_text())
     capture = read_capture(capture_dir)
-    # The engine trains on views of one image size; a photo taken in the other orientation (the
-    # espresso set has one portrait shot) is held out for scoring but never trained on.
-    sizes = [(f.camera.width, f.camera.height) for f in capture.frames]
-    common = max(set(sizes), key=sizes.count)
-    train_idx = [i for i in range(len(capture)) if i != held and sizes[i] == common]
+    # Photos of mixed sizes train together (the espresso set has one portrait shot among landscape ones).
+    train_idx = [i for i in range(len(capture)) if i != held]
     kw = engine_kwargs("sphere-init", args.preset, torch.cuda.is_available())
     if args.override:
         kw["overrides"] = kw.get("overrides", {}) | args.override
     run = run_protocol(capture_dir, capture_dir, None, work / "twins" / capture_dir.name / f"{tag}-{held:02d}",
                        preset=args.preset, views=train_idx, heldout_views=[held], refine_steps=args.refine_steps, reuse=True,
                        overwrite=True, **kw)
-    doc = {"held": held, "train_views": train_idx, "skipped_sizes": [i for i in range(len(capture)) if sizes[i] != common], "pose_mode": run.twin.pose_mode, "num_splats": run.twin.num_splats,
+    doc = {"held": held, "train_views": train_idx, "pose_mode": run.twin.pose_mode, "num_splats": run.twin.num_splats,
            "train_s": run.timings_s["reconstruct"], "mean": run.mean, "mean_refined": run.mean_refined,
            "refine": run.report["views"][0].get("refine", {}), "train_fit": training_fit(capture, run.twin, train_idx)}
     doc["refine"].pop("c2w_object", None)
@@ -92,12 +89,19 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     return doc
 
 
+def fold_range(spec: str) -> tuple[int, int]:
+    """Held-out photos [first, stop) of a --folds value: "N" is the first N, "A-B" photos A to B inclusive."""
+    first, _, last = spec.partition("-")
+    return (int(first), int(last) + 1) if last else (0, int(first))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="preview preset, 3 folds per set, 50 refinement steps")
     ap.add_argument("--preset", default=None)
     ap.add_argument("--refine-steps", type=int, default=None)
-    ap.add_argument("--folds", default=None, help="score only the first N leave-one-out folds: N for every set, or per set as car=8,espresso=3")
+    ap.add_argument("--folds", default=None, help="score only some leave-one-out folds: the first N for every set, or per set as car=8,espresso=3, "
+                         "or a range of held-out photos as car=1-7")
     ap.add_argument("--sets", default="car,espresso", help="comma-separated: car, espresso")
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-real-photos"))
     ap.add_argument("--override", action="append", default=[], metavar="FIELD=INT",
@@ -112,8 +116,11 @@ def main() -> None:
     args.preset = args.preset or ("preview" if args.quick else "cpu")
     args.refine_steps = args.refine_steps if args.refine_steps is not None else (50 if args.quick else 400)
     args.folds = args.folds or ("3" if args.quick else None)
-    caps = ({k: int(v) for k, v in (p.split("=") for p in args.folds.split(","))} if args.folds and "=" in args.folds
-            else {name: int(args.folds) for name in ("car", "espresso")} if args.folds else {})
+    try:
+        caps = ({k: fold_range(v) for k, v in (p.split("=") for p in args.folds.split(","))} if args.folds and "=" in args.folds
+                else {name: fold_range(args.folds) for name in ("car", "espresso")} if args.folds else {})
+    except ValueError:
+        sys.exit(f"--folds takes N, SET=N or SET=FIRST-LAST (held-out photo indices), got {args.folds!r}")
     args.work.mkdir(parents=True, exist_ok=True)
     from calibration.capture import read_capture
 
@@ -142,7 +149,9 @@ def main() -> None:
             continue
         n = len(read_capture(cap))
         folds = []
-        for held in range(min(n, caps.get(cap.name, n))):
+        for held in range(*caps.get(cap.name, (0, n))):
+            if held >= n:
+                break
             try:
                 folds.append(fold(cap, held, args.work, args))
             except Exception as e:  # one failed fold is reported, the others still count

@@ -150,6 +150,11 @@ class Camera:
         k[1] *= sy
         return replace(self, K=k, width=int(width), height=int(height))
 
+    def crop(self, canvas: np.ndarray) -> np.ndarray:
+        """This view's pixels [height, width, ...] of an image or mask [H, W, ...] on a canvas at least its size,
+        where views of mixed sizes sit top-left (`load_views`): K needs no shift."""
+        return canvas[: self.height, : self.width]
+
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points [N, 3] -> pixel coordinates [N, 2] (pixel centres at +0.5) and depths [N].
 

@@ -394,17 +394,26 @@ def capture_fingerprint(capture: Capture) -> str:
 def load_views(capture: Capture, indices: Sequence[int] | None = None, *, with_masks: bool = True) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
     """Undistorted images [V, H, W, 3] float32, masks [V, H, W] bool (None without masks, or not
     `with_masks`) and pinhole cameras, each file decoded once: what a caller decodes here it hands
-    forward (to `capture_masks`, `reconstruct`) instead of decoding it again."""
+    forward (to `capture_masks`, `reconstruct`) instead of decoding it again.
+
+    Views of different sizes (a photo taken in portrait among landscape ones) share one canvas of the
+    largest width and height, each at its top-left corner so its K holds; the rest of its canvas is
+    black and outside its mask, and `Camera.crop` takes the view's own pixels back.
+    """
     idx = list(range(len(capture))) if indices is None else list(indices)
     for i in idx:
         if not 0 <= i < len(capture):
             raise CaptureError(f"{capture.root}: view {i} does not exist (capture has {len(capture)} views)")
-    sizes = sorted({(capture.frames[i].camera.width, capture.frames[i].camera.height) for i in idx})
-    if len(sizes) > 1:
-        # Batched training and scoring need one image size; the caller picks views of one size.
-        listed = ", ".join(f"{w}x{h}" for w, h in sizes)
-        raise CaptureError(f"{capture.root}: the chosen views have different image sizes ({listed}); choose views of one size")
     decoded = [capture.view(i) if with_masks else (capture.image(i), None) for i in idx]
-    images = np.stack([image for image, _ in decoded])
-    masks = None if any(m is None for _, m in decoded) else np.stack([m for _, m in decoded])
+    images = on_canvas([image for image, _ in decoded])
+    masks = None if any(m is None for _, m in decoded) else on_canvas([m for _, m in decoded])
     return images, masks, [capture.camera(i) for i in idx]
+
+
+def on_canvas(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """[V, H, W, ...] of arrays [h_i, w_i, ...] placed top-left on zeros of the largest h and w."""
+    h, w = max(a.shape[0] for a in arrays), max(a.shape[1] for a in arrays)
+    out = np.zeros((len(arrays), h, w, *arrays[0].shape[2:]), dtype=arrays[0].dtype)
+    for o, a in zip(out, arrays):
+        o[: a.shape[0], : a.shape[1]] = a
+    return out

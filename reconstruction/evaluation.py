@@ -175,6 +175,7 @@ def evaluate_views(
     names = [str(i) for i in range(len(cameras))] if names is None else list(names)
     views, t_render, t_refine, t_metrics = [], 0.0, 0.0, 0.0
     for i, (cam, img, msk) in enumerate(zip(cameras, images, masks)):
+        img, msk = cam.crop(img), cam.crop(msk)
         if not np.any(msk):
             raise ValueError(f"held-out view {names[i]} has an empty mask: the object is not in it")
         entry: dict = {"name": names[i]}

@@ -19,9 +19,13 @@ def _hw(t: torch.Tensor) -> torch.Tensor:
     return t[..., 0] if t.dim() == 4 else t
 
 
-def mask_l1(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """L_mask = mean |A - M| over pixels (eq. mask)."""
-    return (_hw(alpha) - _hw(mask).to(alpha.dtype)).abs().mean()
+def mask_l1(alpha: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """L_mask = mean |A - M| over pixels (eq. mask); with valid [C, H, W] bool, over the pixels each
+    photograph has (views of mixed sizes on one canvas), so a splat beyond a photo's edge is not pushed away."""
+    diff = (_hw(alpha) - _hw(mask).to(alpha.dtype)).abs()
+    if valid is None:
+        return diff.mean()
+    return diff[valid].sum() / valid.sum().clamp_min(1)
 
 
 def fill_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -104,7 +108,7 @@ def crop_windows(t: torch.Tensor, corners: torch.Tensor, height: int, width: int
 
 
 def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2,
-                     support: torch.Tensor | None = None, window: int = 11) -> torch.Tensor:
+                     support: torch.Tensor | None = None, window: int = 11, valid: torch.Tensor | None = None) -> torch.Tensor:
     """L_rgb = (1 - λ) L1 + λ D-SSIM, D-SSIM = 1 - SSIM (3DGS), means over every pixel of [C, H, W, 3].
 
     support [C, H, W] bool, optional: the pixels outside which render and target are the same colour
@@ -113,7 +117,13 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     pixel count: the same value and gradient on fewer pixels (every view takes the largest view's window;
     rig scene clamp, 10 views: SSIM 87 -> 50 ms per iteration). The window grows by two SSIM radii: one
     for the windows that reach the support, one for their own windows.
+
+    valid [C, H, W] bool, optional: the pixels each photograph has (views of mixed sizes on one canvas);
+    elsewhere the render counts as equal to the target, so nothing there pulls on it.
     """
+    if valid is not None:
+        render = torch.where(valid[..., None], render, target)
+        support = None if support is None else support & valid
     if support is None:
         l1 = (render - target).abs().mean()
         return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(render, target, window))

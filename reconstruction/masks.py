@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.capture import Capture, CaptureError
+from calibration.capture import Capture, CaptureError, on_canvas
 
 
 def subtract_background(image: np.ndarray, background: np.ndarray, *, min_diff: float = 0.08, noise_k: float = 6.0, min_area_frac: float = 0.002) -> np.ndarray:
@@ -86,6 +86,8 @@ def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | 
     """Undistorted bool masks [V, H, W] of the views `indices` (default all) and where they came from
     ("masks" or "background").
 
+    Views of mixed sizes come on one canvas, as `load_views` gives them.
+
     `images`: those views' undistorted images ([V, H, W, 3], or one [H, W, 3] each) when the caller
     already decoded them (`load_views`), so background subtraction decodes none again; each empty-rig
     frame is decoded once. Raises CaptureError when the capture has neither masks/ nor background/
@@ -93,7 +95,7 @@ def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | 
     """
     idx = list(range(len(capture))) if indices is None else list(indices)
     if capture.has_masks:
-        return np.stack([capture.mask(i) for i in idx]), "masks"
+        return on_canvas([capture.mask(i) for i in idx]), "masks"
     backgrounds = capture.meta.get("background", {})
     missing = sorted({f.camera_id for f in capture.frames} - set(backgrounds))
     if not backgrounds:
@@ -103,7 +105,7 @@ def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | 
     out, decoded = [], {}
     for j, i in enumerate(idx):
         frame = capture.frames[i]
-        image = capture.image(i) if images is None else images[j]
+        image = capture.image(i) if images is None else capture.camera(i).crop(images[j])
         if frame.camera_id not in decoded:
             decoded[frame.camera_id] = capture.background(frame.camera_id)
         background = decoded[frame.camera_id]
@@ -115,4 +117,4 @@ def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | 
         if quality.problem:
             raise CaptureError(f"{capture.root}: view {i} ({frame.camera_id}) refused: {quality.problem}")
         out.append(mask)
-    return np.stack(out), "background"
+    return on_canvas(out), "background"

@@ -186,7 +186,7 @@ def reconstruct(
         check_fits(registration, capture)
     idx = list(range(len(capture))) if views is None else list(views)
     images, masks, cams, mask_source = _views(capture, idx, images, masks)
-    check_masks(masks, names=[f"view {i} ({capture.frames[i].camera_id})" for i in idx])
+    check_masks([c.crop(m) for c, m in zip(cams, masks)], names=[f"view {i} ({capture.frames[i].camera_id})" for i in idx])
     library = load_library(library_path) if init == "cad" else None
     timings["load"] = time.perf_counter() - t
 
@@ -251,7 +251,9 @@ def reconstruct(
 
     ckpt = out.parent / f".{out.name}.checkpoint.pt"
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = train(Views(images, masks, Ks, c2w_init), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
+    sizes = np.array([(c.width, c.height) for c in cams])
+    mixed = bool(np.any(sizes != [masks.shape[2], masks.shape[1]]))
+    result = train(Views(images, masks, Ks, c2w_init, sizes if mixed else None), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
     for stage, secs in result.timings_s.items():
         timings[f"train_{stage}"] = secs
     choices["stage2_start"] = {"value": result.stage2_start.get("start"), "why": "Stage II starts from whichever of the Stage-I "

@@ -32,8 +32,8 @@ class MaskGate:
 
 
 def mask_cover(masks: np.ndarray) -> np.ndarray:
-    """Fraction of each image [V] a bool mask [V, H, W] covers."""
-    return np.asarray(masks, bool).reshape(len(masks), -1).mean(axis=1)
+    """Fraction of each image [V] a bool mask [V, H, W] (or V masks of their own sizes) covers."""
+    return np.array([np.asarray(m, bool).mean() for m in masks])
 
 
 def bbox_fill(mask: np.ndarray) -> float:

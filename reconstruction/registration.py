@@ -517,7 +517,7 @@ class Scorer:
             s = min(1.0, max_px / max(cam.width, cam.height))
             w, h = max(1, round(cam.width * s)), max(1, round(cam.height * s))
             c = cam.scaled(w, h)
-            small.append(cv2.resize(m.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5)
+            small.append(cv2.resize(cam.crop(m).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5)
             ks.append(c.K)
             vms.append(c.viewmat)
             sizes.append((h, w))
@@ -798,7 +798,8 @@ def _check_inputs(masks: np.ndarray, cameras_rig: list[Camera]) -> np.ndarray:
     if masks.ndim != 3 or len(masks) != len(cameras_rig) or len(masks) == 0:
         raise RegistrationError(f"register needs one [H, W] mask per camera, got masks {masks.shape} for {len(cameras_rig)} cameras")
     for i, (m, c) in enumerate(zip(masks, cameras_rig)):
-        if m.shape != (c.height, c.width):
+        # Views of mixed sizes share a canvas, each top-left, with nothing of its mask outside its camera.
+        if m.shape[0] < c.height or m.shape[1] < c.width or m.sum() != c.crop(m).sum():
             raise RegistrationError(f"mask {i} is {m.shape[1]}x{m.shape[0]} but its camera is {c.width}x{c.height}")
     if not masks.any():
         raise RegistrationError("every mask is empty; there is no object to register")

@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -45,34 +46,57 @@ STAGES = ("pose", "deform", "photo")
 ProgressFn = Callable[[str, int, int, float], None]
 
 
+class ViewBatch(NamedTuple):
+    """The training views at one scale: images [V, h, w, 3], mask coverage [V, h, w] in [0, 1], the pixels
+    each photograph has `valid` [V, h, w] bool (None when every photo fills the canvas), Ks [V, 3, 3]."""
+
+    images: torch.Tensor
+    coverage: torch.Tensor
+    valid: torch.Tensor | None
+    Ks: torch.Tensor
+    width: int
+    height: int
+
+
 @dataclass
 class Views:
     """Training views at capture resolution: images [V, H, W, 3] float32, masks [V, H, W] bool,
-    Ks [V, 3, 3], camera-to-object poses c2w [V, 4, 4] (float64, OpenCV) from the registration."""
+    Ks [V, 3, 3], camera-to-object poses c2w [V, 4, 4] (float64, OpenCV) from the registration.
+
+    sizes [V, 2] (width, height): each photo's own size when views of mixed sizes share the canvas
+    top-left (`load_views`); None when every photo fills it.
+    """
 
     images: np.ndarray
     masks: np.ndarray
     Ks: np.ndarray
     c2w: np.ndarray
+    sizes: np.ndarray | None = None
 
-    def resized(self, scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
-        """(images [V, h, w, 3], mask coverage [V, h, w] in [0, 1], Ks [V, 3, 3], w, h) at `scale`.
-
-        Area resampling keeps the fraction of each low-res pixel the object covers; K scales with
-        the continuous pixel coordinates (pixel edges at integers map onto pixel edges).
-        """
+    def resized(self, scale: float) -> ViewBatch:
+        """The views at `scale`. Area resampling keeps the fraction of each low-res pixel the object
+        covers; K scales with the continuous pixel coordinates (pixel edges at integers map onto pixel
+        edges). A low-res pixel is valid when all of it lies on its photo."""
         v, h, w = self.masks.shape
         w2, h2 = max(1, round(w * scale)), max(1, round(h * scale))
-        if (w2, h2) == (w, h):
-            imgs, cov = self.images, self.masks.astype(np.float32)
-        else:
-            imgs = np.stack([cv2.resize(im, (w2, h2), interpolation=cv2.INTER_AREA) for im in self.images])
-            cov = np.stack([cv2.resize(m.astype(np.float32), (w2, h2), interpolation=cv2.INTER_AREA) for m in self.masks])
+
+        def area(stack: np.ndarray) -> np.ndarray:
+            if (w2, h2) == (w, h):
+                return stack
+            return np.stack([cv2.resize(a, (w2, h2), interpolation=cv2.INTER_AREA) for a in stack])
+
+        imgs, cov = area(self.images), area(self.masks.astype(np.float32))
+        valid = None
+        if self.sizes is not None:
+            on_photo = np.zeros((v, h, w), np.float32)
+            for o, (pw, ph) in zip(on_photo, np.asarray(self.sizes)):
+                o[:ph, :pw] = 1.0
+            valid = torch.from_numpy(area(on_photo) > 1.0 - 1e-6)
         ks = self.Ks.copy()
         ks[:, 0] *= w2 / w
         ks[:, 1] *= h2 / h
-        return (torch.tensor(imgs, dtype=torch.float32), torch.tensor(cov, dtype=torch.float32),
-                torch.tensor(ks, dtype=torch.float32), w2, h2)
+        return ViewBatch(torch.tensor(imgs, dtype=torch.float32), torch.tensor(cov, dtype=torch.float32), valid,
+                         torch.tensor(ks, dtype=torch.float32), w2, h2)
 
 
 class SplatModel(nn.Module):
@@ -250,11 +274,12 @@ def _consistency_weights(model: SplatModel, splats: CanonicalSplats, views: View
 def _stage2_objective(model: SplatModel, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data, preset: Preset) -> float:
     """Stage II's loss over all training views (grey background, no dropout) right after recolouring."""
     _recolor(model, splats, views, c2w_init)
-    imgs, cov, ks, w, h = data
+    imgs, cov, valid, ks, w, h = data
     idx = torch.arange(len(views.images))
     bg = torch.full((len(idx), 3), 0.5)
     rgb, alpha = render(model.gaussians(), model.viewmats(c2w_init, idx), ks, w, h, bg)
-    return float(photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim) + preset.lambda_mask * mask_l1(alpha, cov))
+    return float(photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim, valid=valid)
+                 + preset.lambda_mask * mask_l1(alpha, cov, valid))
 
 
 def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data,
@@ -343,7 +368,7 @@ def train(
         plateau.history = list(state["plateau"])
         hist = state["history"].setdefault(stage, [])
         t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
-        imgs, cov, ks, w, h = mask_data if stage != "photo" else photo_data
+        imgs, cov, valid, ks, w, h = mask_data if stage != "photo" else photo_data
         use_consistency = stage != "photo" and preset.lambda_consistency > 0
         if use_consistency:
             pc_weights = _consistency_weights(model, splats, views, c2w_init)
@@ -358,9 +383,10 @@ def train(
             idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
             means, quats, scales, opac, sh = model.gaussians().activated()
             viewmats = model.viewmats(c2w_init, idx)
+            on_photo = None if valid is None else valid[idx]
             if stage != "photo":
                 _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
-                l_mask = mask_l1(alpha, cov[idx])
+                l_mask = mask_l1(alpha, cov[idx], on_photo)
                 loss = l_mask
                 last = {"mask": l_mask}
                 if use_consistency:
@@ -378,8 +404,9 @@ def train(
                     _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
                 support = (alpha.detach()[..., 0] > 0) | (cov[idx] > 0)
-                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim, support=support)
-                l_mask = mask_l1(alpha, cov[idx])
+                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim, support=support,
+                                         valid=on_photo)
+                l_mask = mask_l1(alpha, cov[idx], on_photo)
                 l_sh = sh_neighbour_loss(sh, sh_graph)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}

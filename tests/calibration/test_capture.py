@@ -170,11 +170,17 @@ def test_real_instant_ngp_fox_capture(tmp_path):
     assert img.shape == (1920, 1080, 3)
 
 
-def test_views_of_different_sizes_are_refused_in_one_sentence(tmp_path):
-    """A portrait photo among landscape ones: the engine batches views of one size, so it says so."""
+def test_views_of_different_sizes_share_a_canvas_top_left(tmp_path):
+    """A portrait photo among landscape ones: each view sits top-left on the largest canvas, so its K
+    holds, and its camera crops its own pixels back."""
     frames = small_frames(2) + small_frames(1, w=30, h=40)
     frames[2] = FrameData("cam09", frames[2].image, frames[2].camera, "cam09", 2000, frames[2].mask)
     cap = write_capture(tmp_path / "cap", frames)
     assert load_views(cap, [0, 1])[0].shape == (2, 30, 40, 3)
-    with pytest.raises(CaptureError, match=r"different image sizes \(30x40, 40x30\); choose views of one size"):
-        load_views(cap)
+    images, masks, cams = load_views(cap)
+    assert images.shape == (3, 40, 40, 3) and masks.shape == (3, 40, 40)
+    for i, cam in enumerate(cams):
+        image, mask = cap.view(i)
+        np.testing.assert_array_equal(cam.crop(images[i]), image)
+        np.testing.assert_array_equal(cam.crop(masks[i]), mask)
+        assert np.count_nonzero(images[i]) == np.count_nonzero(image) and masks[i].sum() == mask.sum()

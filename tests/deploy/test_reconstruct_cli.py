@@ -14,7 +14,8 @@ import torch
 
 torch.set_num_threads(1)  # the CI box is shared; one thread avoids oversubscription stalls
 
-from calibration.capture import load_views, read_capture  # noqa: E402
+from calibration.camera import Camera  # noqa: E402
+from calibration.capture import FrameData, load_views, read_capture, write_capture  # noqa: E402
 from deploy.cli import main  # noqa: E402
 from deploy.commands.demo import bundled_sample_dir  # noqa: E402
 from reconstruction import presets  # noqa: E402
@@ -220,3 +221,36 @@ def test_a_malformed_registration_is_refused_in_one_sentence(tmp_path, library, 
         err = _refused(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--registration", str(tmp_path / name), "--out", str(tmp_path / "twin")], capsys)
         assert "is not a registration document" in err, err
     assert not (tmp_path / "twin").exists()
+
+
+def portrait(frame: FrameData) -> FrameData:
+    """The same view taken with the camera turned 90 degrees about its optical axis (image turned clockwise)."""
+    cam = frame.camera
+    (fx, _, cx), (_, fy, cy) = cam.K[0], cam.K[1]
+    k = np.array([[fy, 0.0, cam.height - cy], [0.0, fx, cx], [0.0, 0.0, 1.0]])
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera axes: x' = -y, y' = x
+    c2w = cam.c2w.copy()
+    c2w[:3, :3] = cam.c2w[:3, :3] @ turn.T
+    camera = Camera(k, cam.height, cam.width, cam.dist, c2w)
+    return replace(frame, image=np.ascontiguousarray(np.rot90(frame.image, -1)), camera=camera,
+                   mask=np.ascontiguousarray(np.rot90(frame.mask, -1)))
+
+
+def test_photos_of_mixed_sizes_train_together(tmp_path, library, short_preview, capsys):
+    """A portrait photo among landscape ones is trained on, and the twin fits it at its own size."""
+    cap = read_capture(SAMPLE / "train")
+    frames = []
+    for i in (0, 2, 4, 6, 8):
+        image, mask = cap.view(i)
+        frames.append(FrameData(f"view{i}", image, cap.camera(i), cap.frames[i].camera_id, None, mask))
+    frames[2] = portrait(frames[2])
+    mixed = write_capture(tmp_path / "mixed", frames, meta={k: v for k, v in cap.meta.items() if k != "background"})
+    twin_dir = tmp_path / "twin"
+    rc = main(["reconstruct", str(mixed.root), "--library", str(library), "--out", str(twin_dir), "--preset", "preview"])
+    assert rc == 0, capsys.readouterr()
+    twin = load_twin(twin_dir)
+    assert [(c.camera.width, c.camera.height) for c in twin.cameras] == [(320, 240)] * 2 + [(240, 320)] + [(320, 240)] * 2
+    rendered = cv2.imread(str(twin_dir / "renders" / "view4.png"), cv2.IMREAD_UNCHANGED)
+    assert rendered.shape == (320, 240, 4)
+    drawn, truth = rendered[..., 3] > 127, frames[2].mask
+    assert (drawn & truth).sum() / (drawn | truth).sum() > 0.8

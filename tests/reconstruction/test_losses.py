@@ -146,3 +146,34 @@ def test_windowed_photometric_loss_equals_the_whole_image_loss_and_its_gradient(
     assert math.isclose(float(windowed.detach()), float(whole.detach()), rel_tol=1e-5)
     for a, b in zip(g_window, g_whole):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-8)
+
+
+def test_pixels_beyond_a_photo_pull_on_nothing():
+    """A portrait photo on a landscape-wide canvas: a splat seen only beyond the photo's edge gets no
+    gradient from the mask or the photometric loss, and L_mask is the photo's own mean."""
+    torch.manual_seed(0)
+    w, h, photo_w = 96, 72, 48
+    means = torch.tensor([[-0.1, 0.0, 3.0], [0.4, 0.0, 3.0]], requires_grad=True)  # left on the photo, right beyond it
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1)
+    scales = torch.full((2, 3), 0.03)
+    opac = torch.full((2,), 0.8)
+    colors = torch.rand(2, 3, requires_grad=True)
+    ks = torch.tensor([[[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]]])
+    bg = torch.rand(1, 3)
+    mask = torch.zeros(1, h, w)
+    mask[:, 30:42, 30:44] = 1.0
+    valid = torch.zeros(1, h, w, dtype=torch.bool)
+    valid[:, :, :photo_w] = True
+    target = composite(torch.rand(1, h, w, 3), mask, bg)
+    rgb, alpha, _ = rasterize(means, quats, scales, opac, colors, torch.eye(4)[None], ks, w, h, backgrounds=bg)
+    assert alpha[0, :, photo_w:].sum() > 1 and alpha[0, :, :photo_w].sum() > 1
+    support = (alpha.detach()[..., 0] > 0) | (mask > 0)
+    for loss in (mask_l1(alpha, mask, valid), photometric_loss(rgb, target, support=support, valid=valid),
+                 photometric_loss(rgb, target, valid=valid)):
+        g_means, g_colors = torch.autograd.grad(loss, (means, colors), retain_graph=True)
+        assert g_means[1].abs().max() == 0 and g_colors[1].abs().max() == 0
+        assert g_means[0].abs().max() > 0  # the splat on the photo still learns
+    g_means, _ = torch.autograd.grad(mask_l1(alpha, mask), (means, colors), retain_graph=True)
+    assert g_means[1].abs().max() > 0  # without `valid` the canvas beyond the photo pushes the splat away
+    photo = (slice(None), slice(None), slice(0, photo_w))
+    assert math.isclose(float(mask_l1(alpha, mask, valid)), float(mask_l1(alpha[photo], mask[photo])), rel_tol=1e-6)
