@@ -182,7 +182,7 @@ def main() -> None:
     lines += ["", f"2 shared CPU cores (15-minute load average {os.getloadavg()[2]:.1f} when this table was written). Folds are "
               f"cached; this invocation took {(time.perf_counter() - t0) / 60:.1f} min.", ""]
     text = "\n".join(lines)
-    suffix = "" if args.preset == "cpu" and not args.folds and not args.override else "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
+    suffix = "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
     (RESULTS / f"real_photos{suffix}.md").write_text(text)
     print(text)
 

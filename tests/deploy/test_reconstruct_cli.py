@@ -87,6 +87,9 @@ def test_sphere_init_and_ablation_switches(tmp_path, short_preview, capsys):
     twin = load_twin(twin_dir)
     assert twin.model_id == "sphere" and twin.choices["init"]["value"] == "sphere"
     assert twin.choices["ablations"]["value"] == ["no-pose"]
+    # The field carves a sphere into the object, so its stage's cap is longer than from a CAD model (20 here).
+    caps = twin.choices["iteration_caps"]
+    assert caps["value"]["deform"] == 4 * 20 and "carve" in caps["why"]
     assert twin.sim3_rig_to_object.rotation_deg_to(twin.sim3_rig_to_object_init) == 0.0
     assert 0.2 < twin.choices["registration"]["value"]["score"] < 1.0  # area-matched, so it overlaps the clamp, but is no clamp
     assert main(["reconstruct", str(SAMPLE / "train"), "--out", str(tmp_path / "t")]) != 0
