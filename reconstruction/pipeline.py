@@ -262,8 +262,7 @@ def reconstruct(
     ckpt = out.parent / f".{out.name}.checkpoint.pt"
     out.parent.mkdir(parents=True, exist_ok=True)
     sizes = np.array([(c.width, c.height) for c in cams])
-    mixed = bool(np.any(sizes != [masks.shape[2], masks.shape[1]]))
-    result = train(Views(images, masks, Ks, c2w_init, sizes if mixed else None), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
+    result = train(Views(images, masks, Ks, c2w_init, sizes), splats, cfg, pose_mode=mode, seed=seed, progress=progress, checkpoint=ckpt)
     for stage, secs in result.timings_s.items():
         timings[f"train_{stage}"] = secs
     choices["stage2_start"] = {"value": result.stage2_start.get("start"), "why": "Stage II starts from whichever of the Stage-I "

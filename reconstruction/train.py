@@ -63,8 +63,8 @@ class Views:
     """Training views at capture resolution: images [V, H, W, 3] float32, masks [V, H, W] bool,
     Ks [V, 3, 3], camera-to-object poses c2w [V, 4, 4] (float64, OpenCV) from the registration.
 
-    sizes [V, 2] (width, height): each photo's own size when views of mixed sizes share the canvas
-    top-left (`load_views`); None when every photo fills it.
+    sizes [V, 2] (width, height), optional: each photo's own size, when views of mixed sizes may share
+    the canvas top-left (`load_views`); None means every photo fills it.
     """
 
     images: np.ndarray
@@ -87,7 +87,7 @@ class Views:
 
         imgs, cov = area(self.images), area(self.masks.astype(np.float32))
         valid = None
-        if self.sizes is not None:
+        if self.sizes is not None and np.any(np.asarray(self.sizes) != [w, h]):
             on_photo = np.zeros((v, h, w), np.float32)
             for o, (pw, ph) in zip(on_photo, np.asarray(self.sizes)):
                 o[:ph, :pw] = 1.0

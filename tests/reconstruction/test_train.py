@@ -214,3 +214,13 @@ def test_normal_moves_that_a_pose_could_make_are_projected_out():
             with torch.no_grad():
                 model.displacement.copy_(torch.tensor(np.einsum("nd,nd->n", move, splats.normals) / radius))
                 assert float(model.displacement_offsets().abs().max()) < 1e-3 * float(model.displacement.abs().max()) * radius
+
+
+def test_views_mark_the_pixels_each_photo_has():
+    """On a shared canvas each photo's own pixels are valid at every scale; photos that fill it need no mark."""
+    images, masks = np.zeros((2, 40, 40, 3), np.float32), np.zeros((2, 40, 40), bool)
+    ks, c2w = np.tile(np.eye(3), (2, 1, 1)), np.tile(np.eye(4), (2, 1, 1))
+    assert Views(images, masks, ks, c2w, np.array([(40, 40), (40, 40)])).resized(0.5).valid is None
+    valid = Views(images, masks, ks, c2w, np.array([(40, 30), (30, 40)])).resized(0.5).valid
+    assert valid.shape == (2, 20, 20)
+    assert valid[0, :15].all() and not valid[0, 15:].any() and valid[1, :, :15].all() and not valid[1, :, 15:].any()
