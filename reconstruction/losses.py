@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy import sparse
+
+from reconstruction.ssim import ssim_map
 
 
 def _hw(t: torch.Tensor) -> torch.Tensor:
@@ -43,37 +44,9 @@ def composite(image: torch.Tensor, mask: torch.Tensor, background: torch.Tensor)
     return image * m + bg * (1 - m)
 
 
-def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> torch.Tensor:
-    x = torch.arange(size, dtype=dtype) - (size - 1) / 2
-    g = torch.exp(-(x * x) / (2 * sigma * sigma))
-    return g / g.sum()
-
-
-def _ssim_map(a: torch.Tensor, b: torch.Tensor, window: int, sigma: float) -> torch.Tensor:
-    """Per-pixel SSIM [C, 3, H, W] of [C, H, W, 3] images (Gaussian window, zero padding at the borders)."""
-    x = a.permute(0, 3, 1, 2)
-    y = b.permute(0, 3, 1, 2)
-    ch = x.shape[1]
-    g = _gaussian_window(window, sigma, x.dtype)
-    # Separable blur: a row pass then a column pass, depthwise per channel.
-    kx = g.reshape(1, 1, 1, -1).expand(ch, 1, 1, window)
-    ky = g.reshape(1, 1, -1, 1).expand(ch, 1, window, 1)
-
-    def blur(t):
-        t = F.conv2d(t, kx, padding=(0, window // 2), groups=ch)
-        return F.conv2d(t, ky, padding=(window // 2, 0), groups=ch)
-
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x * mu_x
-    syy = blur(y * y) - mu_y * mu_y
-    sxy = blur(x * y) - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
-
-
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM of [C, H, W, 3] images (Gaussian window, as 3DGS; zero padding at the borders)."""
-    return _ssim_map(a, b, window, sigma).mean()
+    return ssim_map(a, b, window, sigma).mean()
 
 
 def support_windows(support: torch.Tensor, margin: int) -> tuple[torch.Tensor, int, int]:
@@ -131,7 +104,7 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     r, t = crop_windows(render, corners, h, w), crop_windows(target, corners, h, w)
     total = float(render.numel())
     l1 = (r - t).abs().sum() / total
-    dssim = (1 - _ssim_map(r, t, window, 1.5)).sum() / total
+    dssim = (1 - ssim_map(r, t, window, 1.5)).sum() / total
     return (1 - lambda_dssim) * l1 + lambda_dssim * dssim
 
 

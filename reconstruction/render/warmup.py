@@ -1,9 +1,10 @@
-"""Compile the rasterizer's numba kernels once, at install time: `python -m reconstruction.render.warmup`.
+"""Compile the rasterizer's and the SSIM loss's numba kernels once, at install time: `python -m reconstruction.render.warmup`.
 
 The kernels are cached on disk (`cache=True`) per argument type, so the first reconstruction of a
 fresh clone would otherwise spend ~20 s compiling. Rendering a few splats through the public
 `rasterize` in every mode training and rendering use (alpha only; SH degrees 0-3 over a background;
-with and without gradients) compiles exactly the specialisations a run will ask for.
+with and without gradients), and the SSIM loss in float32 with gradients, compiles exactly the
+specialisations a run will ask for.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import time
 import torch
 
 from reconstruction.render.rasterization import rasterize
+from reconstruction.ssim import ssim_map
 
 
 def compile_kernels() -> float:
@@ -39,11 +41,13 @@ def compile_kernels() -> float:
                                       active=keep)
             if grad:
                 (rgb.sum() + alpha.sum()).backward()
+    image = torch.rand(2, h, w, 3, generator=gen).requires_grad_(True)
+    ssim_map(image, torch.rand(2, h, w, 3, generator=gen)).sum().backward()
     return time.perf_counter() - t0
 
 
 def main() -> None:
-    print(f"rasterizer kernels compiled and cached in {compile_kernels():.1f} s")
+    print(f"rasterizer and SSIM kernels compiled and cached in {compile_kernels():.1f} s")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,51 @@
+"""The fused SSIM map: the same value and gradients as SSIM through torch ops and autograd."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from reconstruction.ssim import _ssim_map_torch, gaussian_window, ssim_map
+
+
+def _pair(dtype: torch.dtype, shape=(2, 23, 31, 3), seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    a = torch.rand(shape, generator=gen, dtype=dtype)
+    b = (a + 0.3 * torch.randn(shape, generator=gen, dtype=dtype)).clamp(0, 1)
+    b[:, : shape[1] // 3] = a[:, : shape[1] // 3]  # identical rows: S = 1 there, its gradient 0
+    return a, b
+
+
+def _value_and_grads(fn, a, b, weight, want=(True, True)):
+    x, y = a.clone().requires_grad_(want[0]), b.clone().requires_grad_(want[1])
+    (fn(x, y) * weight).sum().backward()
+    return fn(x, y).detach(), x.grad, y.grad
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("shape", [(2, 23, 31, 3), (1, 5, 7, 3)])  # the second is smaller than the window
+def test_map_and_gradients_match_autograd_through_torch_ops(dtype, tol, shape):
+    a, b = _pair(dtype, shape)
+    weight = torch.rand(shape[0], 3, *shape[1:3], generator=torch.Generator().manual_seed(1), dtype=dtype)
+    reference = lambda x, y: _ssim_map_torch(x, y, gaussian_window(11, 1.5, dtype))  # noqa: E731
+    for got, want in zip(_value_and_grads(ssim_map, a, b, weight), _value_and_grads(reference, a, b, weight)):
+        assert got.shape == want.shape
+        assert float((got - want).abs().max()) <= tol
+
+
+def test_gradient_only_for_the_inputs_that_want_it():
+    a, b = _pair(torch.float32)
+    weight = torch.ones(2, 3, 23, 31)
+    _, gx, gy = _value_and_grads(ssim_map, a, b, weight, want=(True, False))
+    assert gx is not None and gy is None
+    reference = _value_and_grads(lambda x, y: _ssim_map_torch(x, y, gaussian_window(11, 1.5)), a, b, weight, (True, False))
+    assert float((gx - reference[1]).abs().max()) <= 1e-5
+
+
+def test_identical_images_score_one_with_zero_gradient():
+    a, _ = _pair(torch.float32)
+    x = a.clone().requires_grad_()
+    m = ssim_map(x, a)
+    assert float((m.detach() - 1).abs().max()) < 1e-5
+    m.sum().backward()
+    assert float(x.grad.abs().max()) < 1e-4
