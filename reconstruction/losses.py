@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy import sparse
+from torch.autograd.function import once_differentiable
 
 from reconstruction.ssim import ssim_map
 
@@ -73,11 +74,27 @@ def support_windows(support: torch.Tensor, margin: int) -> tuple[torch.Tensor, i
     return corners, wh, ww
 
 
+class _CropWindows(torch.autograd.Function):
+    """Per-view slices copied into one batch; the backward writes them back into one zero tensor (an
+    advanced-index gather's backward, a scatter-add, took 6 ms for 10 views at 320x240)."""
+
+    @staticmethod
+    def forward(ctx, t: torch.Tensor, corners: list[tuple[int, int]], height: int, width: int) -> torch.Tensor:
+        ctx.shape, ctx.corners = t.shape, corners
+        return torch.stack([t[c, y : y + height, x : x + width] for c, (y, x) in enumerate(corners)])
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        out = grad.new_zeros(ctx.shape)
+        for c, (y, x) in enumerate(ctx.corners):
+            out[c, y : y + grad.shape[1], x : x + grad.shape[2]] = grad[c]
+        return out, None, None, None
+
+
 def crop_windows(t: torch.Tensor, corners: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """t [C, H, W, ...] cut to each view's window: [C, height, width, ...] (one gather, one scatter back)."""
-    rows = corners[:, 0, None, None] + torch.arange(height)[None, :, None]
-    cols = corners[:, 1, None, None] + torch.arange(width)[None, None, :]
-    return t[torch.arange(len(t))[:, None, None], rows, cols]
+    """t [C, H, W, ...] cut to each view's window: [C, height, width, ...]."""
+    return _CropWindows.apply(t, [tuple(c) for c in corners.tolist()], height, width)
 
 
 def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2,
