@@ -20,6 +20,10 @@ from reconstruction.render.sh import eval_sh, num_sh_bases
 
 # Below this many items per thread, per-splat passes run on the calling thread alone.
 _GRAIN = 4096
+# The CPU kernels' default tile edge. Per-slot work (listing, sorting, records, sums) outweighs the pixels a larger
+# tile tests in vain: the `cpu` preset's Stage-II batch (10 views at 320x240, 15k splats) lists 228k tile
+# intersections at 32 px against 327k at 16 and renders forward+backward ~9 % faster; the image is the same.
+CPU_TILE_SIZE = 32
 N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity
 
 
@@ -255,7 +259,7 @@ def rasterize(
     eps2d: float = 0.3,
     sh_degree: int | None = None,
     backgrounds: Tensor | None = None,
-    tile_size: int = 16,
+    tile_size: int | None = None,
     active: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Renders 3D Gaussians into C pinhole cameras, as `gsplat.rasterization` in `classic` mode (unpacked).
@@ -275,7 +279,8 @@ def rasterize(
         near_plane, far_plane, eps2d: as gsplat.
         sh_degree: None for plain colours, else 0..3.
         backgrounds: optional [C, D] (or [D]) colour behind the Gaussians.
-        tile_size: tile edge in pixels, at most 64 (a tile row's live pixels are one 64-bit mask).
+        tile_size: tile edge in pixels, at most 64 (a tile row's live pixels are one 64-bit mask); it does not
+            change the image. None: `CPU_TILE_SIZE` on CPU, gsplat's 16 on a GPU.
         active: optional [N] bool; only these Gaussians are drawn and receive gradients (splat
             dropout without copying the model).
 
@@ -287,6 +292,8 @@ def rasterize(
 
     Gradients flow to means, quats, scales, opacities, colors, viewmats and backgrounds (not Ks).
     """
+    if tile_size is None:
+        tile_size = 16 if means.is_cuda else CPU_TILE_SIZE
     width, height, tile_size = int(width), int(height), int(tile_size)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active)
     if not 1 <= tile_size <= kernels.MAX_TILE_SIZE:
