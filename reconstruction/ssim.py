@@ -1,4 +1,5 @@
-"""SSIM of image batches as a loss: per-pixel map with an analytic gradient, fused in numba on CPU.
+"""SSIM of image batches: the per-pixel map with an analytic gradient, fused in numba on CPU. The training
+loss uses the zero-padded map; `metrics.ssim` crops it to the pixels whose window lies inside the image.
 
 Autograd through SSIM's torch ops (five depthwise blurs of 1x11 and 11x1 kernels, then the map's
 elementwise graph, each op a pass over memory) cost ~40 ms forward+backward per Stage-II iteration
@@ -199,9 +200,11 @@ def _ssim_map_torch(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.
 def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Per-pixel SSIM [C, 3, H, W] of images a, b [C, H, W, 3] (Gaussian window, zero padding at the
     borders, as 3DGS), differentiable in both."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window}")
     dtype = torch.promote_types(a.dtype, b.dtype)
     a, b = a.to(dtype), b.to(dtype)
     g = gaussian_window(window, sigma, dtype).to(a.device)
-    if a.is_cuda or dtype not in (torch.float32, torch.float64) or window % 2 == 0:
+    if a.is_cuda or dtype not in (torch.float32, torch.float64):
         return _ssim_map_torch(a, b, g)
     return _SSIMMap.apply(a, b, g)

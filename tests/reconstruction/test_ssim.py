@@ -49,3 +49,9 @@ def test_identical_images_score_one_with_zero_gradient():
     assert float((m.detach() - 1).abs().max()) < 1e-5
     m.sum().backward()
     assert float(x.grad.abs().max()) < 1e-4
+
+
+def test_an_even_window_is_one_sentence():
+    a, b = _pair(torch.float32)
+    with pytest.raises(ValueError, match="positive odd number"):
+        ssim_map(a, b, window=10)
