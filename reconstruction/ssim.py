@@ -3,7 +3,7 @@ loss uses the zero-padded map; `metrics.ssim` crops it to the pixels whose windo
 
 Autograd through SSIM's torch ops (five depthwise blurs of 1x11 and 11x1 kernels, then the map's
 elementwise graph, each op a pass over memory) cost ~40 ms forward+backward per Stage-II iteration
-of a 10-view batch at 320x240; torch's depthwise conv2d alone runs at ~2 GFLOP/s here. The kernels
+of a 10-view batch at 320x240, ~35 ms of it in torch's depthwise conv2d blurring the five moments. The kernels
 below take one (view, channel) plane per task, blur with tap-outer, pixel-inner loops over
 zero-padded rows (contiguous multiply-adds numba vectorises) and do the elementwise algebra in the
 same pass.
