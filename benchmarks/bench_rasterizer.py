@@ -13,7 +13,7 @@ benchmarks/results/rasterizer.md.
 
 Subprocesses run with OMP_WAIT_POLICY=PASSIVE unless the caller set it: torch's OpenMP workers
 otherwise spin for milliseconds after every op, and on a busy 2-core machine that spinning, not the
-code under test, decides the timings (see reconstruction/render/_parallel.py).
+code under test, decides the timings (see reconstruction/parallel.py).
 """
 
 from __future__ import annotations

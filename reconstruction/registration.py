@@ -52,6 +52,7 @@ from calibration.capture import Capture, capture_fingerprint, rig_metres_per_uni
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
+from reconstruction.parallel import parallel_for
 from reconstruction.silhouette import fill_triangles, normalize_silhouette, pack
 from reconstruction.silhouette_index import ANGLE, BX, BY, EXTENT, SilhouetteIndex
 
@@ -417,27 +418,25 @@ def _boundary_dt(sil: np.ndarray, dt: np.ndarray) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _view_scores(verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats: np.ndarray, masks: np.ndarray, obs_dt: np.ndarray,
-                 obs_edges: np.ndarray, n_edges: np.ndarray, obs_boxes: np.ndarray, sizes: np.ndarray, counts: np.ndarray, taus: np.ndarray,
-                 edge_weight: float, stop_below: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per view: IoU [V] and the objective [V] = (1 - edge_weight) IoU + edge_weight exp(-chamfer / tau).
+def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats: np.ndarray, masks: np.ndarray,
+                 obs_dt: np.ndarray, obs_edges: np.ndarray, n_edges: np.ndarray, obs_boxes: np.ndarray, sizes: np.ndarray, counts: np.ndarray,
+                 taus: np.ndarray, edge_weight: float, stop_below: float, iou: np.ndarray, obj: np.ndarray) -> None:
+    """Views lo..hi-1: writes IoU iou [V] and the objective obj [V] = (1 - edge_weight) IoU + edge_weight exp(-chamfer / tau).
 
     chamfer: symmetric mean distance (px) between the rendered and the observed silhouette
     boundaries (`obs_dt` [V, H, W] distance to the observed boundary; `obs_edges` [V, E, 2] its
     pixels, `n_edges` [V] of them valid). Work is confined to the union of the projected mesh's
     bbox and the observed mask's bbox `obs_boxes` [V, 4] (r0, r1, c0, c1, exclusive ends). Stops
-    early (remaining views left at 0) once the objective sum cannot reach `stop_below`.
+    early (remaining views left as they were) once the objective sum over lo..hi-1 cannot reach `stop_below`.
     """
-    n_views = ks.shape[0]
-    iou = np.zeros(n_views)
-    obj = np.zeros(n_views)
+    n_views = hi - lo
     total = 0.0
     hmax, wmax = masks.shape[1], masks.shape[2]
     buf = np.zeros((hmax, wmax), dtype=np.bool_)
     dt = np.zeros((hmax, wmax), dtype=np.float32)
     uv = np.empty((verts.shape[0], 2))
     ok = np.empty(verts.shape[0], dtype=np.bool_)
-    for v in range(n_views):
+    for v in range(lo, hi):
         h, w = sizes[v, 0], sizes[v, 1]
         vm = viewmats[v]
         k = ks[v]
@@ -491,9 +490,8 @@ def _view_scores(verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats:
                 buf[r, c] = False
         obj[v] = (1.0 - edge_weight) * iou[v] + edge_weight * edge
         total += obj[v]
-        if total + (n_views - 1 - v) < stop_below:
+        if total + (n_views - 1 - (v - lo)) < stop_below:
             break
-    return iou, obj
 
 
 def boundary(mask: np.ndarray) -> np.ndarray:
@@ -562,8 +560,17 @@ class Scorer:
         """
         s, r, t = sim3_rig_to_object.scale, sim3_rig_to_object.rotation, sim3_rig_to_object.translation
         verts_rig = ((vertices_obj - t) @ r) / s
-        return _view_scores(verts_rig, faces, self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
-                            self.sizes, self.counts, self.taus, self.edge_weight, float(stop_below))
+        n = len(self.ks)
+        iou, obj = np.zeros(n), np.zeros(n)
+        args = (verts_rig, faces, self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
+                self.sizes, self.counts, self.taus, self.edge_weight)
+        if stop_below > -1.0:
+            # Cutting short depends on the running sum over the views in order: one thread.
+            _view_scores(0, n, *args, float(stop_below), iou, obj)
+        else:
+            # Views are independent: any split over the threads gives the same scores.
+            parallel_for(_view_scores, n, *args, -1.0, iou, obj)
+        return iou, obj
 
     def __call__(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0) -> np.ndarray:
         """IoU per view [V] of the mesh (object frame) seen by the rig cameras under the Sim(3)."""

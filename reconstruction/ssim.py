@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from numba import njit
 from torch.autograd.function import once_differentiable
 
-from reconstruction.render._parallel import parallel_for
+from reconstruction.parallel import parallel_for
 
 C1, C2 = 0.01**2, 0.03**2
 _OPTS = {"cache": True, "nogil": True, "fastmath": True, "error_model": "numpy"}

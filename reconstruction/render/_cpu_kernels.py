@@ -11,7 +11,7 @@ back and their gradients, which are in the caller's dtype: a float32 pixel-space
 is off by up to 3e-5 px, which alone moves a sharp splat's alpha by more than the 1e-5 the rasterizer
 promises.
 Kernels take numpy arrays and write into preallocated outputs. Those that run in parallel take a
-leading (lo, hi) range of their parallel index and are driven by `_parallel.parallel_for`; they write
+leading (lo, hi) range of their parallel index and are driven by `reconstruction.parallel.parallel_for`; they write
 disjoint outputs per index, and sums run over fixed chunks (of Gaussians) or per slot, so results
 are bit-identical whatever the thread count.
 
@@ -61,7 +61,7 @@ SF_COLUMNS = 7
 SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI = range(4)
 SI_COLUMNS = 4
 
-# nogil: the kernels run on plain threads (see `_parallel`); error_model numpy: no ZeroDivision checks.
+# nogil: the kernels run on plain threads (see `reconstruction.parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 # Projection and compositing let multiply-adds fuse (one rounding instead of two): 6-13% faster, and
 # results move by ~1e-15 relative.

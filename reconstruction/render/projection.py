@@ -16,7 +16,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
-from reconstruction.render._parallel import parallel_for
+from reconstruction.parallel import parallel_for
 
 
 class Projection(NamedTuple):

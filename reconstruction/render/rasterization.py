@@ -14,7 +14,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
-from reconstruction.render._parallel import PARTS_PER_THREAD, num_threads, parallel_for
+from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
 from reconstruction.render.projection import project_gaussians, to_numpy
 from reconstruction.render.sh import eval_sh, num_sh_bases
 

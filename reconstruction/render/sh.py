@@ -15,7 +15,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _sh_kernels as kernels
-from reconstruction.render._parallel import parallel_for
+from reconstruction.parallel import parallel_for
 
 MAX_SH_DEGREE = 3
 _GRAIN = 2048

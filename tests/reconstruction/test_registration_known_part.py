@@ -106,6 +106,27 @@ def test_thin_part_score_degrades_gracefully():
     assert objs[2] - objs[3] > 0.03
 
 
+def test_scores_do_not_depend_on_threads_and_a_cut_short_score_keeps_its_views(monkeypatch):
+    # Views are scored on the kernel threads when nothing cuts the sum short: any split gives the same
+    # scores; with a bar, views are scored in order on one thread and the ones never reached stay 0.
+    mesh = bracket()
+    gt = true_sim3(mesh, 1.0, seed=23)
+    masks, cams = scene(mesh, ring(7, 0.5), gt)
+    scorer = Scorer(masks, cams, 160)
+    off = Sim3(1.0, axis_angle_to_matrix(np.array([0.0, 0.0, 0.3])), np.array([0.01, 0.0, 0.0])) @ gt
+    monkeypatch.setattr("reconstruction.parallel.num_threads", lambda: 1)
+    one = scorer.scores(mesh.vertices, mesh.faces, off)
+    monkeypatch.setattr("reconstruction.parallel.num_threads", lambda: 3)
+    three = scorer.scores(mesh.vertices, mesh.faces, off)
+    np.testing.assert_array_equal(one[0], three[0])
+    np.testing.assert_array_equal(one[1], three[1])
+    cut_iou, cut_obj = scorer.scores(mesh.vertices, mesh.faces, off, stop_below=len(cams) - 0.5)
+    done = np.flatnonzero(cut_obj)
+    assert 0 < len(done) < len(cams) and np.array_equal(done, np.arange(len(done)))
+    np.testing.assert_array_equal(cut_obj[done], one[1][done])
+    assert not cut_iou[len(done):].any()
+
+
 def test_images_tell_a_near_symmetric_turn_from_the_true_pose():
     # A box tapered at one end: a half turn about z nearly keeps its silhouettes, but its striped
     # texture no longer lines up across views. (An exact symmetry keeps the colours consistent too:

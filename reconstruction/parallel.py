@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import itertools
 import os
+import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-
-import torch
 
 PARTS_PER_THREAD = 4
 
@@ -28,8 +27,13 @@ _pool_lock = threading.Lock()
 
 
 def num_threads() -> int:
-    """Threads the rasterizer uses: torch's intra-op thread count, so one setting governs both."""
-    return max(1, torch.get_num_threads())
+    """Threads the kernels use: torch's intra-op thread count once torch is loaded, so one setting governs
+    both; before that (registration alone does not need torch) the CPUs this process may run on."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        return max(1, torch.get_num_threads())
+    affinity = getattr(os, "sched_getaffinity", None)
+    return max(1, len(affinity(0)) if affinity else (os.cpu_count() or 1))
 
 
 def _forget_pool() -> None:
