@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numba
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -98,16 +99,34 @@ def remove_similarity(offsets: torch.Tensor, basis: torch.Tensor, pinv: torch.Te
     return (flat - basis @ (pinv @ flat)).reshape(offsets.shape)
 
 
+@numba.njit(cache=True, nogil=True)
+def _farthest_points(pts: np.ndarray, idx: np.ndarray) -> None:
+    """Fills idx[1:] greedily, each the point farthest from those before it (ties: the lowest index)."""
+    n = pts.shape[0]
+    d = np.empty(n)
+    for j in range(n):
+        dx, dy, dz = pts[j, 0] - pts[idx[0], 0], pts[j, 1] - pts[idx[0], 1], pts[j, 2] - pts[idx[0], 2]
+        d[j] = dx * dx + dy * dy + dz * dz
+    for i in range(1, idx.shape[0]):
+        best = 0
+        for j in range(1, n):
+            if d[j] > d[best]:
+                best = j
+        idx[i] = best
+        for j in range(n):
+            dx, dy, dz = pts[j, 0] - pts[best, 0], pts[j, 1] - pts[best, 1], pts[j, 2] - pts[best, 2]
+            d[j] = min(d[j], dx * dx + dy * dy + dz * dz)
+
+
 def farthest_point_indices(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
     """Indices [m] of a farthest-point subsample of points [N, 3] (m clipped to N)."""
-    pts = np.asarray(points, np.float64)
+    pts = np.ascontiguousarray(points, np.float64)
     m = min(m, len(pts))
     idx = np.empty(m, np.int64)
+    if m == 0:
+        return idx
     idx[0] = np.random.default_rng(seed).integers(len(pts))
-    d = np.sum((pts - pts[idx[0]]) ** 2, 1)
-    for i in range(1, m):
-        idx[i] = int(d.argmax())
-        d = np.minimum(d, np.sum((pts - pts[idx[i]]) ** 2, 1))
+    _farthest_points(pts, idx)
     return idx
 
 

@@ -51,6 +51,15 @@ def test_paper_architecture_8x256_skip_at_middle():
     assert layers[0].in_features == 63 and layers[4].in_features == 256 + 63 and layers[5].in_features == 256
 
 
+def test_fps_takes_each_time_the_point_farthest_from_those_taken():
+    pts = np.round(np.random.default_rng(4).normal(size=(300, 3)), 1)  # coarse grid: many ties
+    idx = farthest_point_indices(pts, 40, seed=2)
+    for i in range(1, len(idx)):
+        d = np.min(np.sum((pts[:, None] - pts[idx[:i]][None]) ** 2, 2), 1)
+        assert idx[i] == int(np.argmax(d))  # the first of equals
+    assert len(farthest_point_indices(pts, 0)) == 0 and len(farthest_point_indices(pts[:3], 10)) == 3
+
+
 def test_fps_spreads_and_idw_interpolates():
     pts = sphere_points(2000)
     idx = farthest_point_indices(pts, 100)
