@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_rig_scenes [--scenes A,B] [--variant NAME] [--preset cpu]
         [--views all|5|3] [--pose-mode global|per_camera] [--override KEY=JSON ...] [--vanilla ITERS ...]
-        [--refine-steps N] [--work DIR] [--report-only] [--plot VARIANT] [--rescore]
+        [--refine-steps N] [--work DIR] [--report-only] [--plot VARIANT] [--rescore] [--exact-cameras]
 
 Each scene (8 YCB objects, 9-13 training views at 320x240, a metric rig frame, 0.1 deg / 1 mm
 calibration noise the capture does not state, a deformed and decimated CAD variant among 110
@@ -18,7 +18,8 @@ and is scored against the scene's ground truth:
   closest-point distance, exact point-to-triangle from 20k samples of each surface, and its p95, % of
   the diameter).
 
-`--vanilla ITERS` also trains masked vanilla 3DGS (`baselines.train_vanilla_3dgs`) on the same
+`--exact-cameras` trains on the true training poses instead of the recorded ones: an oracle that says what
+the calibration noise costs (name the variant apart). `--vanilla ITERS` also trains masked vanilla 3DGS (`baselines.train_vanilla_3dgs`) on the same
 views for each iteration count given. Every run is cached as JSON under the work directory, keyed
 by variant, so interrupted sweeps resume and variants are compared paired, per scene.
 Writes benchmarks/results/rig_scenes.md and rig_scenes.png (the engine variant against vanilla 3DGS per
@@ -91,18 +92,45 @@ def views_for(gt: dict, n: int, views: str) -> list[int]:
     return list(range(n)) if views == "all" else [int(i) for i in gt["subsets"][views]]
 
 
+def exact_camera_capture(scene: Path, out: Path) -> Path:
+    """A copy of the scene's training capture at `out` whose recorded cameras are the true ones (the oracle
+    without calibration noise): the images, masks and backgrounds linked, transforms.json rewritten from
+    gt.json's true object-frame cameras through the inverse of the true rig-to-object Sim(3)."""
+    from calibration.sim3 import Sim3
+
+    gt = json.loads((scene / "gt.json").read_text())
+    doc = json.loads((scene / "train" / "transforms.json").read_text())
+    rig_c2w = Sim3.from_dict(gt["sim3_rig_to_object"]).inverse().apply_to_c2w(np.asarray(gt["train"]["c2w_opencv_object"], np.float64))
+    out.mkdir(parents=True, exist_ok=True)
+    for entry in (scene / "train").iterdir():
+        if entry.is_dir() and not (out / entry.name).exists():
+            (out / entry.name).symlink_to(entry.resolve(), target_is_directory=True)
+    opengl = np.diag([1.0, -1.0, -1.0, 1.0])  # transforms.json holds OpenGL-axis c2w
+    for frame, c2w in zip(doc["frames"], rig_c2w):
+        frame["transform_matrix"] = (c2w @ opengl).tolist()
+    (out / "transforms.json").write_text(json.dumps(doc, indent=1))
+    return out
+
+
+def train_dir(scene: Path, variant_dir: Path, args) -> Path:
+    """The training capture a run uses: the scene's, or with --exact-cameras its copy on the true poses."""
+    if getattr(args, "exact_cameras", False):
+        return exact_camera_capture(scene, variant_dir / f"{scene.name}-exact-train")
+    return scene / "train"
+
+
 def score_heldout(scene: Path, twin_dir: Path, args, library: Path | None = None, **engine) -> tuple:
     """The protocol on the scene's held-out views (nominal and refined); trains the twin first (against
     `library`, with the engine's arguments) unless `twin_dir` holds one.
     Returns (twin, {mean, mean_refined, num_splats})."""
     from reconstruction.evaluation import run_protocol
 
-    run = run_protocol(scene / "train", scene / "heldout", library, twin_dir, refine_steps=args.refine_steps, seed=args.seed,
+    run = run_protocol(train_dir(scene, twin_dir.parent, args), scene / "heldout", library, twin_dir, refine_steps=args.refine_steps, seed=args.seed,
                        reuse=True, overwrite=True, **engine)
     return run.twin, {"mean": run.mean, "mean_refined": run.mean_refined, "num_splats": int(run.twin.num_splats)}
 
 
-def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int]) -> dict:
+def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int], train_dir: Path | None = None) -> dict:
     """Training-pose (registration and trained), Sim(3) and geometry scores of a CAD-frame twin."""
     import trimesh
 
@@ -114,7 +142,7 @@ def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int]) -> dic
     true_mesh = trimesh.load(scene / "gt_mesh.ply", process=False)
     diameter = 2.0 * float(gt["object"]["bounding_sphere_radius_m"])
     pts = surface_points(np.asarray(true_mesh.vertices), np.asarray(true_mesh.faces), POSE_SAMPLES)
-    train = read_capture(scene / "train")
+    train = read_capture(train_dir or scene / "train")
     truth = np.asarray(gt["train"]["c2w_opencv_object"], np.float64)[idx]
     rig_c2w = np.stack([train.frames[i].camera.c2w for i in idx])
     registered = twin.sim3_rig_to_object_init.apply_to_c2w(rig_c2w)
@@ -144,7 +172,8 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
         if args.rescore:
             from reconstruction.twin import load_twin
 
-            doc.update(pose_and_geometry_scores(load_twin(work / "twins" / key / scene.name), scene, gt, doc["train_views"]))
+            doc.update(pose_and_geometry_scores(load_twin(work / "twins" / key / scene.name), scene, gt, doc["train_views"],
+                                                train_dir(scene, work / "twins" / key, args)))
             cache.write_text(json.dumps(doc, indent=1))
         return doc
     n = len(gt["train"]["c2w_opencv_object"])
@@ -155,7 +184,7 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
            "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
            "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0],
-           **scores, **pose_and_geometry_scores(twin, scene, gt, idx)}
+           **scores, **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args))}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -308,6 +337,8 @@ def main() -> None:
     ap.add_argument("--override", action="append", default=[], help="preset field KEY=JSON value")
     ap.add_argument("--vanilla", type=int, nargs="*", default=[], help="also train vanilla 3DGS for these iteration counts")
     ap.add_argument("--no-engine", action="store_true", help="only the vanilla runs")
+    ap.add_argument("--exact-cameras", action="store_true",
+                    help="oracle: train on the true camera poses instead of the noisy recorded ones (name the variant apart)")
     ap.add_argument("--refine-steps", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-rig-scenes"))
