@@ -55,3 +55,10 @@ def test_per_camera_residuals_learn_finely_through_stage_two_unless_the_poses_ar
         rough, changed = residual_rates(cpu.lr, meta, px)
         assert changed and pose_stage_lr(rough, "pose_camera", "deform") == cpu.lr["pose_deform"]
         assert pose_stage_lr(rough, "pose_camera", "photo") == 0.0
+
+
+def test_preview_weighs_ssim_more_and_says_why():
+    cpu, cpu_choices = resolve_preset("cpu", STATS)
+    preview, preview_choices = resolve_preset("preview", STATS)
+    assert cpu.lambda_dssim == PAPER.lambda_dssim == 0.2 and preview.lambda_dssim == 0.6
+    assert cpu_choices["lambda_dssim"]["value"] == 0.2 and "preview" in preview_choices["lambda_dssim"]["why"]
