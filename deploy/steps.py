@@ -142,7 +142,8 @@ def inspect_step(work: Path, cfg: PipelineConfig) -> dict:
         doc = inspect_twin_dir(work / "twin", report, tolerance_mm=cfg.inspection_tolerance_mm, max_unseen_pct=unseen, turntable=12)
     v = doc["verdict"]
     return {"status": v["status"], "line": v["line"], "exit_code": v["exit_code"], "part": v["part"], "deviation_mm": v["deviation_mm"],
-            "at_mm": v["at_mm"], "unseen_pct": v["unseen_pct"], "tolerance_mm": v["tolerance_mm"], "report": str(report)}
+            "at_mm": v["at_mm"], "unseen_pct": v["unseen_pct"], "out_of_view_pct": v.get("out_of_view_pct"),
+            "tolerance_mm": v["tolerance_mm"], "report": str(report)}
 
 
 def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str, list[dict]]:

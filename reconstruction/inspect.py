@@ -11,7 +11,10 @@ reference surface (a scan, the truth of a benchmark) is measured.
 Visibility. A vertex is seen by a training camera when it projects inside the image, its normal turns
 at most `max_angle_deg` away from the camera's line of sight, and nothing of the twin's surface lies in
 front of it (a z-buffer of the deformed mesh). Where no camera sees the surface, the twin there is the
-CAD moved only by the field's smooth continuation: it is reported unseen, never in tolerance.
+CAD moved only by the field's smooth continuation: it is reported unseen, never in tolerance. Unseen
+surface that no camera even has in view (inside its image and within the angle, whatever hides it: an
+underside above which all cameras stand) is reported apart: that share is the rig's coverage, which
+another capture of the same part would not change; the rest was hidden by the part itself.
 
 Verdict. FAIL when a seen vertex departs by more than the tolerance (the worst one is named with its
 part and position), else UNCERTAIN when more than `max_unseen_pct` of the surface area is unseen, else
@@ -195,6 +198,7 @@ class Visibility:
     seen: np.ndarray
     views: np.ndarray
     best_angle_deg: np.ndarray
+    in_view: np.ndarray  # [V] cameras that have the vertex in their image within the angle, occluded or not
 
 
 def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
@@ -209,6 +213,7 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
     p = np.asarray(points, np.float64)
     cos_min = np.cos(np.radians(max_angle_deg))
     seen = np.zeros((len(cameras), len(p)), bool)
+    in_view = np.zeros(len(p), np.int64)
     cos_best = np.full(len(p), -1.0)
     for i, cam in enumerate(cameras):
         depth, _, _ = rasterize_mesh(vertices, faces, cam)
@@ -225,10 +230,11 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
         tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, cos_min)
         unoccluded = zbuf >= z - footprint * (1.0 + 2.0 * tan)
         seen[i] = inside & (cos >= cos_min) & unoccluded
+        in_view += inside & (cos >= cos_min)
         cos_best = np.where(seen[i], np.maximum(cos_best, cos), cos_best)
     views = seen.sum(0)
     best = np.where(views > 0, np.degrees(np.arccos(np.clip(cos_best, -1.0, 1.0))), np.nan)
-    return Visibility(seen, views, best)
+    return Visibility(seen, views, best, in_view)
 
 
 # ---------------------------------------------------------------------------------------- inspection
@@ -239,7 +245,8 @@ class Inspection:
 
     vertices_mm [V, 3] (CAD positions), deviation_mm [V] (signed, along the outward CAD normal; NaN where
     the twin's surface could not be found along it), views [V], best_angle_deg [V] (NaN unseen),
-    area_mm2 [V], part [V] (index into part_names).
+    area_mm2 [V], part [V] (index into part_names); in_view [V] (cameras that have the vertex in view,
+    occluded or not; None when not known).
     """
 
     vertices_mm: np.ndarray
@@ -249,6 +256,7 @@ class Inspection:
     area_mm2: np.ndarray
     part: np.ndarray
     part_names: list[str]
+    in_view: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -260,6 +268,15 @@ class Inspection:
         m = np.ones(len(self.views), bool) if mask is None else mask
         total = self.area_mm2[m].sum()
         return 0.0 if total <= 0 else float(100.0 * self.area_mm2[m & ~self.seen].sum() / total)
+
+    def out_of_view_pct(self, mask: np.ndarray | None = None) -> float | None:
+        """Share of the surface area (of the vertices in `mask`) unseen because no camera has it in view at all, in %
+        (the rig's coverage); None when `in_view` is not known."""
+        if self.in_view is None:
+            return None
+        m = np.ones(len(self.views), bool) if mask is None else mask
+        total = self.area_mm2[m].sum()
+        return 0.0 if total <= 0 else float(100.0 * self.area_mm2[m & ~self.seen & (self.in_view == 0)].sum() / total)
 
 
 def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: np.ndarray, part_names: Sequence[str],
@@ -294,6 +311,7 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
         area_mm2=vertex_areas(cad_v, cad_faces) * mm_per_unit**2,
         part=vertex_parts(len(cad_v), cad_faces, face_part),
         part_names=list(part_names),
+        in_view=vis.in_view,
     )
 
 
@@ -303,7 +321,8 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
 class PartReport:
     """One part's findings (millimetres, object frame). Deviation figures are over its seen vertices;
     `worst_mm` is the signed deviation of largest magnitude, at `worst_at_mm` (None when nothing was seen).
-    Uncertainty: `unseen_pct` and `single_view_pct` of the part's area, and over its seen vertices the median
+    Uncertainty: `unseen_pct` and `single_view_pct` of the part's area (`out_of_view_pct` of it unseen because no
+    camera has it in view: the rig's coverage; None when not known), and over its seen vertices the median
     number of views and of the best angle between normal and line of sight."""
 
     name: str
@@ -318,6 +337,7 @@ class PartReport:
     mean_mm: float | None
     p95_abs_mm: float | None
     out_of_tolerance_pct: float
+    out_of_view_pct: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready: positions as lists."""
@@ -341,7 +361,8 @@ def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
             worst, worst_at = float(d[i]), tuple(float(x) for x in insp.vertices_mm[s][i])
             mean, p95 = float(d.mean()), float(np.percentile(np.abs(d), 95))
             bad = 100.0 * float(insp.area_mm2[s][np.abs(d) > tolerance_mm].sum()) / max(area, 1e-300)
-        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad))
+        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad,
+                              insp.out_of_view_pct(m)))
     return out
 
 
@@ -360,6 +381,7 @@ class Verdict:
     part: str | None
     deviation_mm: float | None
     at_mm: tuple[float, float, float] | None
+    out_of_view_pct: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready: positions as lists."""
@@ -372,6 +394,10 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     if not tolerance_mm > 0:
         raise ValueError(f"the tolerance must be a positive number of millimetres, got {tolerance_mm}")
     unseen = insp.unseen_pct()
+    out_of_view = insp.out_of_view_pct()
+    # Unseen surface that no camera has in view is the rig's coverage: said apart, so an operator knows whether
+    # another capture could help.
+    why = "" if out_of_view is None or unseen < 0.5 else f" ({out_of_view:.0f} % in no camera's view)"
     seen = insp.seen
     worst = part = at = None
     if seen.any():
@@ -386,12 +412,12 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     elif worst is None or unseen > max_unseen_pct:
         status = "UNCERTAIN"
         seen_part = "" if worst is None else f"; seen surface within tolerance, max {abs(worst):.1f} mm (tolerance {tol})"
-        line = f"UNCERTAIN {unseen:.0f} % of the surface unseen{seen_part}"
+        line = f"UNCERTAIN {unseen:.0f} % of the surface unseen{why}{seen_part}"
     else:
         status = "PASS"
-        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {unseen:.0f} % of the surface unseen" if unseen >= 0.5 else "")
+        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {unseen:.0f} % of the surface unseen{why}" if unseen >= 0.5 else "")
     return Verdict(status, line, EXIT_CODES[status], float(tolerance_mm), float(max_unseen_pct), unseen,
-                   None if worst is None else abs(worst), part, worst, at)
+                   None if worst is None else abs(worst), part, worst, at, out_of_view)
 
 
 # ---------------------------------------------------------------------------------------- pictures

@@ -7,10 +7,13 @@ Prints one line on stdout, the verdict, and exits with a code a PLC can act on:
     2  error      the twin could not be inspected (missing meshes, bad arguments); one sentence on stderr
     3  UNCERTAIN  nothing seen is out of tolerance, but more than --max-unseen % of the surface was unseen
 
+Unseen shares name the part no camera has in view at all (the rig's coverage, which no recapture changes):
+`UNCERTAIN 26 % of the surface unseen (25 % in no camera's view); ...`.
+
 DIR (default TWIN/inspection) is replaced as a whole, atomically:
 
     inspection.json       verdict, settings, per-part summary, sha256 of every file below
-    parts/<part>.csv      one row per CAD vertex: position and deviation (mm), views, best angle, status
+    parts/<part>.csv      one row per CAD vertex: position and deviation (mm), views, best angle, status, cameras in view
     deviation.ply         the CAD mesh (metres) with vertex colours, deviation_mm, views per vertex
     deviation.glb         the same colours, one node per part
     views/<view>.png      heat map from every training viewpoint; turntable/orbit_NNN.png; legend.png
@@ -49,14 +52,15 @@ def _safe_name(name: str, taken: set[str]) -> str:
 def _part_csv(insp, rows: np.ndarray, tolerance_mm: float) -> bytes:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["vertex", "x_mm", "y_mm", "z_mm", "deviation_mm", "status", "views", "best_angle_deg", "area_mm2"])
+    w.writerow(["vertex", "x_mm", "y_mm", "z_mm", "deviation_mm", "status", "views", "best_angle_deg", "area_mm2", "in_view"])
     seen = insp.seen
     for i in rows:
         status = "unseen" if not seen[i] else ("out" if abs(insp.deviation_mm[i]) > tolerance_mm else "ok")
         dev = f"{insp.deviation_mm[i]:.4f}" if np.isfinite(insp.deviation_mm[i]) else ""
         ang = f"{insp.best_angle_deg[i]:.1f}" if np.isfinite(insp.best_angle_deg[i]) else ""
         x, y, z = insp.vertices_mm[i]
-        w.writerow([int(i), f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", dev, status, int(insp.views[i]), ang, f"{insp.area_mm2[i]:.4f}"])
+        w.writerow([int(i), f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", dev, status, int(insp.views[i]), ang, f"{insp.area_mm2[i]:.4f}",
+                    int(insp.in_view[i])])
     return buf.getvalue().encode()
 
 
@@ -161,8 +165,10 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
                      "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
                                   "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
                      "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
+                     "in_view": "as seen, occluded or not: unseen surface in no camera's view is the rig's coverage",
                      "colour_range_mm": [-range_mm, range_mm]},
         "surface": {"vertices": int(len(insp.views)), "area_mm2": float(insp.area_mm2.sum()), "unseen_pct": result.unseen_pct,
+                    "out_of_view_pct": result.out_of_view_pct,
                     "views_per_vertex": {str(k): int(n) for k, n in enumerate(np.bincount(insp.views, minlength=len(cams) + 1))}},
         "parts": [r.to_dict() for r in part_reports(insp, tolerance_mm)],
         "sha256": {name: sha256_bytes(data) for name, data in files.items()},
@@ -204,7 +210,8 @@ def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir:
     for p in doc["parts"]:
         worst = "unseen" if p["worst_mm"] is None else f"worst {p['worst_mm']:+.2f} mm, p95 |dev| {p['p95_abs_mm']:.2f} mm"
         seen = "" if p["views_median"] is None else f", seen by {p['views_median']:.0f} views (median) at {p['best_angle_median_deg']:.0f} deg"
-        click.echo(f"  {p['name']:<24} {worst}; {p['out_of_tolerance_pct']:.2f} % out of tolerance, {p['unseen_pct']:.0f} % unseen, "
+        click.echo(f"  {p['name']:<24} {worst}; {p['out_of_tolerance_pct']:.2f} % out of tolerance, {p['unseen_pct']:.0f} % unseen "
+                   f"({p['out_of_view_pct']:.0f} % in no camera's view), "
                    f"{p['single_view_pct']:.0f} % seen by one view only{seen}", err=True)
     click.echo(f"  report: {out}", err=True)
     v = doc["verdict"]

@@ -89,12 +89,14 @@ def test_unseen_surface_makes_the_verdict_uncertain_never_a_pass(tmp_path, capsy
     twin = make_twin(tmp_path, "top", dented(two_parts(), np.array([0.0, 0.0, -0.04]), 0.003, 0.012), elevations=(50.0,))
     assert main(["inspect", str(twin), "--turntable", "0", "--max-unseen", "20"]) == 3
     line = capsys.readouterr().out.strip()
-    assert line.startswith("UNCERTAIN") and "% of the surface unseen" in line
+    assert line.startswith("UNCERTAIN") and "% of the surface unseen" in line and "% in no camera's view)" in line
     doc = json.loads((twin / "inspection" / "inspection.json").read_text())
     assert doc["verdict"]["unseen_pct"] > 20
+    # The underside is the rig's coverage: most of what is unseen is in no camera's view at all.
+    assert doc["verdict"]["out_of_view_pct"] == doc["surface"]["out_of_view_pct"] > 0.5 * doc["verdict"]["unseen_pct"]
     rows = list(csv.DictReader((twin / "inspection" / "parts" / "ball.csv").open()))
     deep = [r for r in rows if r["deviation_mm"] and float(r["deviation_mm"]) < -1.0]
-    assert deep and all(r["status"] == "unseen" for r in deep)
+    assert deep and all(r["status"] == "unseen" and r["in_view"] == "0" for r in deep)
 
 
 @pytest.mark.parametrize("args, message", [(["--tolerance", "0"], "--tolerance"), (["--max-unseen", "120"], "--max-unseen")])

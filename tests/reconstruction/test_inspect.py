@@ -110,6 +110,26 @@ def _inspection(deviation, views, part=None, names=("a",)):
                       part=np.zeros(k, np.int64) if part is None else np.asarray(part), part_names=list(names))
 
 
+def test_unseen_surface_in_no_cameras_view_is_told_apart_from_surface_hidden_by_the_part():
+    # Two nested spheres seen by cameras on a ring above the equator: the outer sphere's underside is in no
+    # camera's view; the inner sphere faces the cameras but the outer one hides it.
+    v, f = sphere()
+    both_v, both_f = np.concatenate([v, 0.5 * v]), np.concatenate([f, f + len(v)])
+    cams = ring(elevations=(40.0,))
+    vis = point_visibility(both_v, vertex_normals(both_v, both_f), both_v, both_f, cams)
+    outer, inner = np.arange(len(v)), np.arange(len(v), 2 * len(v))
+    below = outer[v[:, 2] < -0.045]
+    assert below.size and not vis.in_view[below].any() and not vis.views[below].any()
+    assert not vis.views[inner].any() and (vis.in_view[inner] > 0).mean() > 0.5
+    assert np.all(vis.in_view >= vis.views)
+    insp = inspect_meshes(both_v, both_f, np.zeros(len(both_f), np.int64), ["ball"], both_v, both_f, cams)
+    assert 0 < insp.out_of_view_pct() < insp.unseen_pct()
+    unsure = verdict(insp, 1.0, 10.0)
+    assert unsure.line.startswith(f"UNCERTAIN {insp.unseen_pct():.0f} % of the surface unseen "
+                                  f"({insp.out_of_view_pct():.0f} % in no camera's view)")
+    assert unsure.out_of_view_pct == insp.out_of_view_pct()
+
+
 def test_verdict_lines_and_exit_codes():
     ok = verdict(_inspection([0.2, -0.8, 0.5, 0.1], [2, 3, 1, 4]), 1.0, 25.0)
     assert (ok.status, ok.exit_code, ok.line) == ("PASS", 0, "PASS max 0.8 mm (tolerance 1 mm)")
