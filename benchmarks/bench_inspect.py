@@ -75,6 +75,7 @@ def scene_row(scene: str, twin_dir: Path) -> dict:
     row["rms_error_mm"] = float(np.sqrt(np.mean((reported - truth_mm[ok]) ** 2)))
     row["truth_left_out_pct"] = float(100.0 * np.mean(~np.isfinite(truth_mm)))
     row["unseen_pct"] = insp.unseen_pct()
+    row["out_of_view_pct"] = insp.out_of_view_pct()
     cad_file_v, cad_file_f = load_mesh(DATA / "library" / f"{scene}.obj")
     for name, (v, f) in {"twin": (deformed.vertices, deformed.faces), "cad": (cad_file_v, cad_file_f)}.items():
         mean, p95 = symmetric_surface_distance(v, f, true_v, true_f, SAMPLES)
@@ -106,7 +107,7 @@ def _f(x, fmt: str = "{:.2f}") -> str:
 
 
 def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
-    head = ("| scene | Pearson r (seen) | RMS true dev (mm) | RMS map error (mm) | unseen % | truth left out % | "
+    head = ("| scene | Pearson r (seen) | RMS true dev (mm) | RMS map error (mm) | unseen % (in no camera's view) | truth left out % | "
             "twin mean % (p95) | CAD mean % (p95) | twin closer than CAD by | inspect CPU s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     lines = [head]
     for r in rows:
@@ -114,14 +115,16 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
             lines.append(f"| {r['scene']} | {r['note']} ||||||||| ")
             continue
         lines.append(
-            f"| {r['scene']} | {_f(r['pearson_seen'])} | {_f(r['rms_true_mm'])} | {_f(r['rms_error_mm'])} | {_f(r['unseen_pct'], '{:.1f}')} | "
+            f"| {r['scene']} | {_f(r['pearson_seen'])} | {_f(r['rms_true_mm'])} | {_f(r['rms_error_mm'])} | {_f(r['unseen_pct'], '{:.1f}')} "
+            f"({_f(r.get('out_of_view_pct'), '{:.1f}')}) | "
             f"{_f(r['truth_left_out_pct'], '{:.1f}')} | {_f(r['twin_mean_pct'])} ({_f(r['twin_p95_pct'])}) | "
             f"{_f(r['cad_mean_pct'])} ({_f(r['cad_p95_pct'])}) | {_f(r['twin_vs_cad_gain_pct'], '{:+.1f} %')} | {_f(r['inspect_cpu_s'], '{:.2f}')} |")
     done = [r for r in rows if "note" not in r]
     if done:
         med = lambda k: float(np.nanmedian([r[k] for r in done]))  # noqa: E731
         lines.append(f"| **median** ({len(done)}) | **{_f(med('pearson_seen'))}** | {_f(med('rms_true_mm'))} | {_f(med('rms_error_mm'))} | "
-                     f"{_f(med('unseen_pct'), '{:.1f}')} | {_f(med('truth_left_out_pct'), '{:.1f}')} | {_f(med('twin_mean_pct'))} "
+                     f"{_f(med('unseen_pct'), '{:.1f}')} ({_f(med('out_of_view_pct'), '{:.1f}')}) | {_f(med('truth_left_out_pct'), '{:.1f}')} | "
+                     f"{_f(med('twin_mean_pct'))} "
                      f"({_f(med('twin_p95_pct'))}) | {_f(med('cad_mean_pct'))} ({_f(med('cad_p95_pct'))}) | "
                      f"{_f(med('twin_vs_cad_gain_pct'), '{:+.1f} %')} | {_f(med('inspect_cpu_s'), '{:.2f}')} |")
     text = "\n".join([
@@ -133,7 +136,7 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
         "Map: per CAD vertex, `inspect`'s deviation (twin's deformed surface vs CAD along the CAD normal) against the true",
         "one (gt_mesh.ply vs CAD, same line cast); Pearson r and RMS over the vertices `inspect` declares seen (projects",
         "into a training view, unoccluded, normal within 75 deg of the line of sight). Unseen %: share of the CAD surface",
-        "area no training view sees. Truth left out: CAD vertices whose normal line misses the true surface or runs past",
+        "area no training view sees (in brackets: the share no training camera has in view at all, the rig's coverage). Truth left out: CAD vertices whose normal line misses the true surface or runs past",
         "an edge (true hit > 3x the closest-point distance + 0.2 % of the diameter). Geometry: symmetric mean closest-point",
         f"distance to gt_mesh.ply, {SAMPLES} area-uniform samples per surface, exact point-to-triangle, % of the true",
         "bounding-sphere diameter (p95 pooled over both directions); the last column is the twin's relative gain over the CAD.",
