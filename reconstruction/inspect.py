@@ -229,8 +229,9 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
         footprint = np.abs(z) / cam.K[0, 0]
         tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, cos_min)
         unoccluded = zbuf >= z - footprint * (1.0 + 2.0 * tan)
-        seen[i] = inside & (cos >= cos_min) & unoccluded
-        in_view += inside & (cos >= cos_min)
+        facing = inside & (cos >= cos_min)
+        seen[i] = facing & unoccluded
+        in_view += facing
         cos_best = np.where(seen[i], np.maximum(cos_best, cos), cos_best)
     views = seen.sum(0)
     best = np.where(views > 0, np.degrees(np.arccos(np.clip(cos_best, -1.0, 1.0))), np.nan)
