@@ -132,18 +132,19 @@ class NeighbourGraph:
     gathering K neighbours' coefficients, and gives the gradient 2 L C exactly."""
 
     laplacian: sparse.csr_matrix  # [N, N] float32, symmetric
-    num_pairs: int  # N K
+    num_pairs: int  # pairs listed (N K when every point has K neighbours)
 
 
 def neighbour_graph(neighbours: np.ndarray) -> NeighbourGraph:
-    """The graph of neighbours [N, K] (indices into the same N points)."""
+    """The graph of neighbours [N, K] (indices into the same N points; -1 for none)."""
     n, k = neighbours.shape
     rows = np.repeat(np.arange(n), k)
     cols = np.asarray(neighbours, np.int64).reshape(-1)
-    adj = sparse.coo_matrix((np.ones(n * k, np.float32), (rows, cols)), shape=(n, n)).tocsr()
+    rows, cols = rows[cols >= 0], cols[cols >= 0]
+    adj = sparse.coo_matrix((np.ones(len(cols), np.float32), (rows, cols)), shape=(n, n)).tocsr()
     degree = np.asarray(adj.sum(1)).ravel() + np.asarray(adj.sum(0)).ravel()
     lap = (sparse.diags(degree.astype(np.float32)) - adj - adj.T).tocsr()
-    return NeighbourGraph(lap.astype(np.float32), n * k)
+    return NeighbourGraph(lap.astype(np.float32), len(cols))
 
 
 class _Quadratic(torch.autograd.Function):

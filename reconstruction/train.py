@@ -40,7 +40,7 @@ from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
 from reconstruction.gaussians import Gaussians, render
 from reconstruction.render import rasterize
-from reconstruction.splats import CanonicalSplats, knn_indices, point_visibility, project_colors, rgb_to_sh_dc
+from reconstruction.splats import CanonicalSplats, point_visibility, project_colors, rgb_to_sh_dc, surface_neighbours
 
 STAGES = ("pose", "deform", "photo")
 ProgressFn = Callable[[str, int, int, float], None]
@@ -327,7 +327,7 @@ def train(
     # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups
     # that are frozen in a stage have no gradient and are skipped by Adam.
     opt = torch.optim.Adam(model.param_groups(preset.lr), eps=1e-15)
-    sh_graph = neighbour_graph(knn_indices(splats.means, preset.sh_neighbours))
+    sh_graph = neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours))
     c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
     mask_data = views.resized(preset.mask_scale)
     if preset.lambda_consistency > 0:

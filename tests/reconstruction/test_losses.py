@@ -53,6 +53,16 @@ def test_sh_neighbour_loss_zero_for_equal_sh_and_matches_formula():
     assert math.isclose(float(sh_neighbour_loss(sh, graph)), 4 / 6, rel_tol=1e-6)
 
 
+def test_neighbour_graph_skips_missing_neighbours():
+    full = neighbour_graph(np.array([[1, 2], [0, 2], [0, 1]]))
+    ragged = neighbour_graph(np.array([[1, -1], [0, 2], [-1, -1]]))
+    assert full.num_pairs == 6 and ragged.num_pairs == 3
+    sh = torch.zeros(3, 1, 3)
+    sh[0, 0, 0] = 1.0
+    # Listed pairs (0,1), (1,0), (1,2): two differ by 1.
+    assert math.isclose(float(sh_neighbour_loss(sh, ragged)), 2 / 3, rel_tol=1e-6)
+
+
 def test_sh_neighbour_loss_value_and_gradient_equal_the_pairwise_sum():
     rng = np.random.default_rng(0)
     n, k = 500, 7

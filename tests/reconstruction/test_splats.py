@@ -18,6 +18,7 @@ from reconstruction.splats import (
     project_colors,
     rgb_to_sh_dc,
     sample_surface,
+    surface_neighbours,
 )
 from tests.conftest import require_shared
 
@@ -156,6 +157,37 @@ def test_knn_excludes_self():
     assert idx.shape == (100, 20)
     assert not np.any(idx == np.arange(100)[:, None])
     assert knn_indices(pts[:5], 20).shape == (5, 4)
+
+
+def thin_wall(gap: float, n: int = 12):
+    """Two n x n grids of unit spacing, `gap` apart, with outward normals: the faces of a thin wall."""
+    g = np.stack(np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float)), -1).reshape(-1, 2)
+    top, bottom = np.c_[g, np.full(len(g), gap / 2)], np.c_[g, np.full(len(g), -gap / 2)]
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (len(g), 1)), np.tile([0.0, 0.0, -1.0], (len(g), 1))]
+    return np.r_[top, bottom], normals
+
+
+def test_surface_neighbours_stay_on_their_face_of_a_thin_wall():
+    pts, normals = thin_wall(gap=0.5)
+    half = len(pts) // 2
+    # In space, a quarter of the 8 nearest are across the wall.
+    assert (knn_indices(pts, 8)[:half] >= half).any()
+    nb = surface_neighbours(pts, normals, 8)
+    assert nb.shape == (len(pts), 8) and (nb >= 0).all()
+    assert (nb[:half] < half).all() and (nb[half:] >= half).all()
+    # On one face alone they are the plain nearest neighbours, in distance order.
+    one, up = pts[:half], normals[:half]
+    d_same = np.linalg.norm(one[:, None] - one[surface_neighbours(one, up, 8)], axis=-1)
+    d_knn = np.linalg.norm(one[:, None] - one[knn_indices(one, 8)], axis=-1)
+    np.testing.assert_allclose(d_same, d_knn)
+    # Fewer same-side candidates than asked: the rest is -1, never a point across the wall.
+    flipped = normals.copy()
+    flipped[::2] *= -1
+    nb = surface_neighbours(pts, flipped, 8)
+    listed = nb >= 0
+    assert (~listed).any()
+    assert (np.einsum("nd,nkd->nk", flipped, flipped[np.where(listed, nb, 0)])[listed] > 0).all()
+    assert surface_neighbours(pts[:3], normals[:3], 8).shape == (3, 2)
 
 
 def test_initial_opacity_is_stored_as_a_logit():
