@@ -125,28 +125,22 @@ def knn_indices(points: np.ndarray, k: int) -> np.ndarray:
 
 
 def surface_neighbours(points: np.ndarray, normals: np.ndarray, k: int) -> np.ndarray:
-    """Indices [N, k] of each point's k nearest other points on the same side of the surface, -1 past the last.
+    """Indices [N, k] of each point's k nearest other points, -1 in place of those on the other side of the surface.
 
     Same side: unit `normals` [N, 3] with a positive dot product. Across a wall thinner than the sample
-    spacing (a spatula's blade, a clamp's jaw) the nearest points in space are the far face's, whose colour,
-    highlights and outward moves are not this face's; they are skipped, as a graph along the surface would.
-    Candidates are the 2k nearest points, so a point with fewer same-side ones among them keeps fewer.
+    spacing (a spatula's blade, a clamp's jaw) some of the nearest points in space are the far face's, whose
+    colour, highlights and outward moves are not this face's: they are dropped, not replaced by farther
+    same-side points, so a smoothness over these neighbours reaches as far along the surface as before.
     """
     pts = np.asarray(points, np.float64)
-    k_query = min(2 * k, len(pts) - 1)
-    out = np.full((len(pts), max(k, 0)), -1, np.int64)
-    if k_query < 1 or k < 1:
-        return out[:, : max(0, min(k, len(pts) - 1))]
-    _, idx = cKDTree(pts).query(pts, k=k_query + 1, workers=-1)
+    k_eff = min(k, len(pts) - 1)
+    if k_eff < 1:
+        return np.zeros((len(pts), 0), np.int64)
+    _, idx = cKDTree(pts).query(pts, k=k_eff + 1, workers=-1)
     idx = np.asarray(idx[:, 1:], np.int64)
     nrm = np.asarray(normals, np.float64)
     same = np.einsum("nd,nkd->nk", nrm, nrm[idx]) > 0.0
-    # The first k same-side candidates of each row, in distance order.
-    rank = np.cumsum(same, axis=1) - 1
-    keep = same & (rank < k)
-    rows, cols = np.nonzero(keep)
-    out[rows, rank[rows, cols]] = idx[rows, cols]
-    return out[:, : min(k, len(pts) - 1)]
+    return np.where(same, idx, -1)
 
 
 def point_visibility(
