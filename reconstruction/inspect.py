@@ -389,6 +389,12 @@ class Verdict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
+def _share(pct: float, limit: float) -> str:
+    """pct to the percent, or to a tenth where that would print the limit it is judged against (25.3 vs 25)."""
+    whole = f"{pct:.0f}"
+    return f"{pct:.1f}" if whole == f"{limit:.0f}" and pct != limit else whole
+
+
 def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
     """FAIL if a seen vertex departs by more than `tolerance_mm`; else UNCERTAIN if more than `max_unseen_pct`
     of the area is unseen; else PASS. A twin nobody saw any of is UNCERTAIN, whatever `max_unseen_pct` says."""
@@ -413,10 +419,10 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     elif worst is None or unseen > max_unseen_pct:
         status = "UNCERTAIN"
         seen_part = "" if worst is None else f"; seen surface within tolerance, max {abs(worst):.1f} mm (tolerance {tol})"
-        line = f"UNCERTAIN {unseen:.0f} % of the surface unseen{why}{seen_part}"
+        line = f"UNCERTAIN {_share(unseen, max_unseen_pct)} % of the surface unseen{why}{seen_part}"
     else:
         status = "PASS"
-        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {unseen:.0f} % of the surface unseen{why}" if unseen >= 0.5 else "")
+        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {_share(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
     return Verdict(status, line, EXIT_CODES[status], float(tolerance_mm), float(max_unseen_pct), unseen,
                    None if worst is None else abs(worst), part, worst, at, out_of_view)
 

@@ -146,6 +146,9 @@ def test_unseen_surface_is_never_in_tolerance_and_never_fails():
     unsure = verdict(insp, 1.0, 20.0)
     assert (unsure.status, unsure.exit_code) == ("UNCERTAIN", 3)
     assert unsure.line.startswith("UNCERTAIN 25 % of the surface unseen")
+    # A share that rounds onto the limit it is judged against is printed to a tenth: 25 % would read as within 25 %.
+    assert verdict(insp, 1.0, 24.9).line.startswith("UNCERTAIN 25.0 % of the surface unseen")
+    assert verdict(insp, 1.0, 25.0).line.startswith("PASS") and verdict(insp, 1.0, 25.0).line.endswith(", 25 % of the surface unseen")
     blind = verdict(_inspection([0.0, 0.0], [0, 0]), 1.0, 100.0)
     assert blind.status == "UNCERTAIN" and blind.max_abs_mm is None
     # A seen vertex out of tolerance fails even when much of the surface is unseen.
