@@ -206,12 +206,13 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     # Neighbour colour differences of a given texture grow with splat spacing (~N^-1/2), so their
     # squares grow ~1/N: scaling λ_SH by N / 600k keeps the paper's smoothing strength per surface.
     lambda_sh = min(1.0, n / PAPER.num_splats)
-    # The neighbours are each splat's nearest on its own side of the surface (`splats.surface_neighbours`): the paper's
-    # nearest in space reach across thin walls (rig scenes: 17 % of the spatula's pairs, 8 % of the clamp's), and
+    # The neighbours are each splat's 20 nearest less those on the far side of a thin wall (`splats.surface_neighbours`):
+    # the paper's nearest in space reach across (rig scenes: 17 % of the spatula's pairs, 8 % of the clamp's), and
     # smoothing a face's colours and moves into the far face's cost the thin parts (cpu, paired over 8: fgPSNR
-    # -0.03..+0.24 dB, mean +0.07; spatula +0.24, scissors and clamp +0.12; IoU unchanged).
+    # +0.00..+0.20 dB, mean +0.06; spatula +0.20, scissors +0.13, clamp +0.08; IoU +0.000..+0.002). Replacing them by
+    # farther splats on the same side gained as much but smoothed a 2 mm dent to 1.4 mm (benchmarks/results/dent_cpu.md).
     choices["lambda_sh"] = _choice(round(lambda_sh, 5), f"paper's 1.0 scaled by {n} / 600k splats: the same smoothing per unit of surface, "
-                                                        f"over each splat's {PAPER.sh_neighbours} nearest on its own side of the surface")
+                                                        f"over each splat's {PAPER.sh_neighbours} nearest less those across a thin wall")
     # The registration's scale stays: silhouettes of splat disks bias a learnt scale upwards (sample, cpu
     # pose-only stage: scale +3.6 %, camera-centre error 1.95 -> 2.23 %; scale frozen: 1.95 -> 1.76 %).
     choices["pose_scale"] = _choice(False, "the global correction learns rotation and translation; the registration fixes the scale")
