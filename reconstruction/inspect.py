@@ -389,10 +389,11 @@ class Verdict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
-def _share(pct: float, limit: float) -> str:
-    """pct to the percent, or to a tenth where that would print the limit it is judged against (25.3 vs 25)."""
-    whole = f"{pct:.0f}"
-    return f"{pct:.1f}" if whole == f"{limit:.0f}" and pct != limit else whole
+def _beside(value: float, limit: float, digits: int = 0) -> str:
+    """value to `digits` decimals, or one more where that would print the limit it is judged against (25.3 % against
+    25 %, 1.48 mm against 1.5 mm)."""
+    text = f"{value:.{digits}f}"
+    return f"{value:.{digits + 1}f}" if text == f"{limit:.{digits}f}" and value != limit else text
 
 
 def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
@@ -415,14 +416,14 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     tol = f"{tolerance_mm:g} mm"
     if worst is not None and abs(worst) > tolerance_mm:
         status = "FAIL"
-        line = f"FAIL part '{part}' {worst:+.1f} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
+        line = f"FAIL part '{part}' {'+' if worst > 0 else '-'}{_beside(abs(worst), tolerance_mm, 1)} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
     elif worst is None or unseen > max_unseen_pct:
         status = "UNCERTAIN"
-        seen_part = "" if worst is None else f"; seen surface within tolerance, max {abs(worst):.1f} mm (tolerance {tol})"
-        line = f"UNCERTAIN {_share(unseen, max_unseen_pct)} % of the surface unseen{why}{seen_part}"
+        seen_part = "" if worst is None else f"; seen surface within tolerance, max {_beside(abs(worst), tolerance_mm, 1)} mm (tolerance {tol})"
+        line = f"UNCERTAIN {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}{seen_part}"
     else:
         status = "PASS"
-        line = f"PASS max {abs(worst):.1f} mm (tolerance {tol})" + (f", {_share(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
+        line = f"PASS max {_beside(abs(worst), tolerance_mm, 1)} mm (tolerance {tol})" + (f", {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
     return Verdict(status, line, EXIT_CODES[status], float(tolerance_mm), float(max_unseen_pct), unseen,
                    None if worst is None else abs(worst), part, worst, at, out_of_view)
 

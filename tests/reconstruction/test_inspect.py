@@ -137,6 +137,9 @@ def test_verdict_lines_and_exit_codes():
     assert (bad.status, bad.exit_code, bad.part) == ("FAIL", 1, "jaw")
     assert bad.line == "FAIL part 'jaw' -2.3 mm at (3.0, 4.0, 5.0) mm"
     assert EXIT_CODES == {"PASS": 0, "FAIL": 1, "UNCERTAIN": 3}
+    # A deviation that rounds onto the tolerance is printed to a hundredth: 1.0 mm would read as within 1 mm.
+    assert verdict(_inspection([0.2, -0.98, 0.5], [2, 3, 1]), 1.0, 25.0).line == "PASS max 0.98 mm (tolerance 1 mm)"
+    assert verdict(_inspection([0.2, 1.04, 0.5], [2, 3, 1]), 1.0, 25.0).line.startswith("FAIL part 'a' +1.04 mm at (")
 
 
 def test_unseen_surface_is_never_in_tolerance_and_never_fails():
