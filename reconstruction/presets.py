@@ -142,16 +142,10 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     choices["sh_degree"] = _choice(degree, why)
     anchors = int(min(n, 512 if preview else 2048))
     width, depth = (64, 4) if preview else (128, 6)
-    # 6 frequency bands instead of the paper's 10 for the cpu preset's field: what its anchors carry of bands 7-10
-    # varies faster than their spacing, and few views leave it free (rig scenes, paired over 8 against 10 bands:
-    # 3 views +0.11 dB, IoU +0.0025, up or equal on every scene; 5 views +0.00 dB; all views +0.02 dB, geometry
-    # 0.342 -> 0.330 % of the diameter; 4 bands at 3 views: +0.05 dB, IoU +0.0017). Preview's short fit keeps 10
-    # (6: -0.02 dB, IoU -0.002; scissors -0.21 dB).
-    bands = 10 if preview else 6
     # The field carries no rigid motion (the pose does): with it free, pose and field competed for the
     # same offset and the pose had to be frozen beside it.
-    fc = FieldConfig(depth=depth, width=width, bands=bands, num_anchors=anchors, anchor_k=4, project_similarity=True)
-    choices["deformation"] = _choice(asdict(fc), f"MLP {depth}x{width} on {bands} frequency bands, evaluated at {anchors} farthest-point anchors and "
+    fc = FieldConfig(depth=depth, width=width, bands=10, num_anchors=anchors, anchor_k=4, project_similarity=True)
+    choices["deformation"] = _choice(asdict(fc), f"MLP {depth}x{width} evaluated at {anchors} farthest-point anchors and "
                                                  f"blended to the {n} splats (see benchmarks/bench_reconstruction.py); its rigid "
                                                  f"(and, without a metric rig, similarity) component projected out")
     # Preview's Stage II gets 50 iterations. It had 80 because, at 40, the rim had not saturated (sample, lambda_fill 1.5:
