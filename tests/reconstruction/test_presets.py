@@ -62,3 +62,15 @@ def test_preview_weighs_ssim_more_and_says_why():
     preview, preview_choices = resolve_preset("preview", STATS)
     assert cpu.lambda_dssim == PAPER.lambda_dssim == 0.2 and preview.lambda_dssim == 0.6
     assert cpu_choices["lambda_dssim"]["value"] == 0.2 and "preview" in preview_choices["lambda_dssim"]["why"]
+
+
+def test_the_field_gets_fewer_frequency_bands_when_few_views_constrain_it():
+    from dataclasses import replace
+
+    three = replace(STATS, num_views=3, foreground_px=(6000,) * 3)
+    cpu9, _ = resolve_preset("cpu", STATS)
+    cpu3, choices3 = resolve_preset("cpu", three)
+    assert cpu9.field.bands == PAPER.field.bands == 10
+    assert cpu3.field.bands == 6 and "3 views leave finer ones unconstrained" in choices3["deformation"]["why"]
+    assert resolve_preset("cpu", replace(STATS, num_views=5, foreground_px=(6000,) * 5))[0].field.bands == 10
+    assert resolve_preset("preview", three)[0].field.bands == 10
