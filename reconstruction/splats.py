@@ -132,12 +132,7 @@ def surface_neighbours(points: np.ndarray, normals: np.ndarray, k: int) -> np.nd
     colour, highlights and outward moves are not this face's: they are dropped, not replaced by farther
     same-side points, so a smoothness over these neighbours reaches as far along the surface as before.
     """
-    pts = np.asarray(points, np.float64)
-    k_eff = min(k, len(pts) - 1)
-    if k_eff < 1:
-        return np.zeros((len(pts), 0), np.int64)
-    _, idx = cKDTree(pts).query(pts, k=k_eff + 1, workers=-1)
-    idx = np.asarray(idx[:, 1:], np.int64)
+    idx = knn_indices(points, k)
     nrm = np.asarray(normals, np.float64)
     same = np.einsum("nd,nkd->nk", nrm, nrm[idx]) > 0.0
     return np.where(same, idx, -1)
