@@ -8,7 +8,7 @@ is free, so a thread that loses its core for a while only delays its current par
 
 torch's own OpenMP workers still spin after each op unless OMP_WAIT_POLICY=PASSIVE is set before torch
 is imported (the `cadsplat` command and the benchmarks set it): even on a quiet 2-core machine their
-spinning took the cores these threads need (rig scenes, `preview`: 12.7 s per capture under libgomp's
+spinning took the cores these threads need (rig scene clamp, `preview`: 12.7 s under libgomp's
 default, 10.5-10.8 s with PASSIVE; on a busy machine 3-10x).
 """
 
