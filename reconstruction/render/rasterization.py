@@ -16,6 +16,7 @@ from torch.autograd.function import once_differentiable
 from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
 from reconstruction.render.projection import project_gaussians, to_numpy
+from reconstruction.render.scratch import ScratchPool
 from reconstruction.render.sh import eval_sh, num_sh_bases
 
 # Below this many items per thread, per-splat passes run on the calling thread alone.
@@ -25,6 +26,8 @@ _GRAIN = 4096
 # intersections at 32 px against 327k at 16 and renders forward+backward ~9 % faster; the image is the same.
 CPU_TILE_SIZE = 32
 N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity
+# The compositing kernels' (slot, pixel) pairs and per-slot gradients, reused from call to call.
+_SCRATCH = ScratchPool()
 
 
 @dataclass(frozen=True)
@@ -163,8 +166,8 @@ class _RasterizeToPixels(torch.autograd.Function):
         render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
         slot_counts = np.empty(bins.n_isects, np.int64)
         # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
-        pair_px = np.empty(bins.pair_offsets[-1], np.int16)
-        pair_vis = np.empty(bins.pair_offsets[-1])
+        pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
+        pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
         parallel_for(
             kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
             width, height, bins.pair_offsets, out_colors, transmittance, render_colors.numpy(),
@@ -178,7 +181,12 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.slot_c = slot_c
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
-        ctx.pairs = (slot_counts, pair_px, pair_vis)
+        if any(ctx.needs_input_grad):
+            ctx.pairs = (slot_counts, pair_px, pair_vis)
+        else:
+            _SCRATCH.give("pair_px", pair_px)
+            _SCRATCH.give("pair_vis", pair_vis)
+            ctx.pairs = None
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
         return render_colors, render_alphas, counts_t
@@ -189,15 +197,22 @@ class _RasterizeToPixels(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins: TileBins = ctx.bins
         n_cams, n, color_cams, width, height = ctx.shapes
+        if ctx.pairs is None:
+            raise RuntimeError("the rasterizer's backward runs once per forward: render again to differentiate again")
+        slot_counts, pair_px, pair_vis = ctx.pairs
+        ctx.pairs = None
         n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
-        slot_grads = np.empty((bins.n_isects, n_cols))
+        slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
-            width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, *ctx.pairs, v_colors_np,
-            to_numpy(v_render_alphas[..., 0]), slot_grads,
+            width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, slot_counts, pair_px, pair_vis,
+            v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
+        _SCRATCH.give("pair_px", pair_px)
+        _SCRATCH.give("pair_vis", pair_vis)
         grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols)))
+        _SCRATCH.give("slot_grads", slot_grads)
         grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
         v_colors = grads_t[..., N_GRAD_GEOMETRY:]
         if color_cams == 1:

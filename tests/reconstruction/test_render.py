@@ -466,3 +466,30 @@ def test_cuda_backend_agrees_with_cpu():
     assert (cpu[2] - gpu[2].cpu()).abs().sum() <= 0.01 * cpu[2].sum()
     for k in PARAMS:
         assert torch.allclose(cpu[3][k], gpu[3][k].cpu(), rtol=1e-2, atol=1e-4), k
+
+
+def test_interleaved_renders_keep_their_own_scratch_buffers():
+    # The pairs a forward keeps for its backward come from a shared pool: two graphs alive at once and
+    # a no-grad render between them must not share a buffer.
+    scene = random_scene(400, seed=23, n_cams=2, width=64, height=48, sh_degree=1)
+
+    def render(grad: bool):
+        inputs = {k: scene[k].clone().requires_grad_(grad) for k in PARAMS[:-1]}
+        colors, alphas, _ = rasterize(*inputs.values(), scene["Ks"], scene["width"], scene["height"], sh_degree=1)
+        return inputs, (colors.square().sum() + alphas.sum())
+
+    alone_inputs, alone_loss = render(True)
+    alone_loss.backward()
+    first_inputs, first_loss = render(True)
+    second_inputs, second_loss = render(True)
+    with torch.no_grad():
+        render(False)
+    second_loss.backward()
+    first_loss.backward()
+    for inputs in (first_inputs, second_inputs):
+        for name in ("means", "scales", "opacities", "colors"):
+            assert torch.equal(inputs[name].grad, alone_inputs[name].grad), name
+    with pytest.raises(RuntimeError, match="backward runs once"):
+        _, loss = render(True)
+        loss.backward(retain_graph=True)
+        loss.backward()
