@@ -661,7 +661,8 @@ def _exp_neg(sigma, out, m) -> None:
 @njit(fastmath=_FUSED, **_OPTS)
 def rasterize_forward(
     bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, pair_offsets, out_colors, out_transmittance, render_colors, render_alphas, slot_counts, pair_px, pair_vis,
+    height, pair_offsets, out_colors, out_transmittance, render_colors, render_alphas, slot_starts, slot_counts, pair_px,
+    pair_vis,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
 
@@ -671,8 +672,9 @@ def rasterize_forward(
     over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D], out_transmittance
     [C, H, W] (final T), the same colours and alpha = 1 - T in the caller's dtype (render_colors
     [C, H, W, D], render_alphas [C, H, W], so that no cast follows), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
-    shaded pixel of slot k at pair_offsets[k] + i (i < slot_counts[k]; pair_offsets [n_isect] has room
-    for the slot's whole pixel rect): pair_px int16 (tile-local p) and pair_vis (exp(-sigma)).
+    shaded pixel of slot k at slot_starts[k] + i (i < slot_counts[k]): pair_px int16 (tile-local p) and
+    pair_vis (exp(-sigma)). A tile's pairs are packed from the room pair_offsets [n_isect + 1] gives its
+    first slot (room for every slot's whole pixel rect), so the backward reads them densely.
     """
     depth = slot_c.shape[1]
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
@@ -703,7 +705,9 @@ def rasterize_forward(
             acc[:used] = 0.0
             live[:] = _row_mask(x1 - x0 + 1)
             n_live = (x1 - x0 + 1) * (y1 - y0 + 1)
+            out = pair_offsets[tile_offsets[tile]]
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
+                slot_starts[k] = out
                 slot_counts[k] = 0
                 if n_live == 0:
                     continue
@@ -712,7 +716,6 @@ def rasterize_forward(
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
                 opacity = slot_f[k, SF_OPACITY]
-                out = pair_offsets[k]
                 for i in range(m):
                     if buf_sigma[i] < 0.0:
                         continue
@@ -732,7 +735,7 @@ def rasterize_forward(
                     pair_px[out] = p
                     pair_vis[out] = buf_vis[i]
                     out += 1
-                slot_counts[k] = out - pair_offsets[k]
+                slot_counts[k] = out - slot_starts[k]
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
                     p = ((py - y0) << _ROW_SHIFT) + (px - x0)
@@ -747,12 +750,12 @@ def rasterize_forward(
 @njit(fastmath=_FUSED, **_OPTS)
 def rasterize_backward(
     bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, pair_offsets, out_colors, transmittance, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
+    height, out_colors, transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
     slot_grads,
 ) -> None:
     """VJP of `rasterize_forward`: each tile's shaded pixels again, front to back, as the forward listed them.
 
-    The forward's out_colors [C, H, W, D], transmittance [C, H, W], slot_counts, pair_px and pair_vis
+    The forward's out_colors [C, H, W, D], transmittance [C, H, W], slot_starts, slot_counts, pair_px and pair_vis
     come in, with v_out_colors [C, H, W, D] and v_out_alphas [C, H, W] (in the caller's dtype). T is recomputed by the same
     products as in the forward (no division by 1 - alpha); the colour behind a splat is the pixel's
     accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D] receives
@@ -800,7 +803,7 @@ def rasterize_backward(
                 v_c = 0.0
                 v_opacity = 0.0
                 v_color[:] = 0.0
-                for i in range(pair_offsets[k], pair_offsets[k] + count):
+                for i in range(slot_starts[k], slot_starts[k] + count):
                     p = pair_px[i]
                     row = p >> _ROW_SHIFT
                     col = p & (MAX_TILE_SIZE - 1)

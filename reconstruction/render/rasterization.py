@@ -42,7 +42,7 @@ class TileBins:
     slot_i: np.ndarray  # [n_isect, SI_COLUMNS] int32 records (pixel rect within the tile)
     slot_offsets: np.ndarray  # [C * N + 1] int64, pair cg owns slot_at[slot_offsets[cg]:slot_offsets[cg + 1]]
     slot_at: np.ndarray  # [n_isect] int64 slots listed pair-major
-    pair_offsets: np.ndarray  # [n_isect + 1] int64, slot k's shaded pixels go from pair_offsets[k] (room for its rect)
+    pair_offsets: np.ndarray  # [n_isect + 1] int64, room for each slot's whole pixel rect; a tile's pairs start at its first slot's
     tile_offsets: np.ndarray  # [C * tiles_y * tiles_x + 1] int64
     work: np.ndarray  # [C * tiles_y * tiles_x] tile ids grouped into per-thread bins
     work_offsets: np.ndarray  # [n_bins + 1]
@@ -164,6 +164,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         transmittance = np.empty((n_cams, height, width))
         render_colors = torch.empty((n_cams, height, width, depth), dtype=dtype)
         render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
+        slot_starts = np.empty(bins.n_isects, np.int64)
         slot_counts = np.empty(bins.n_isects, np.int64)
         # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
         pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
@@ -171,7 +172,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         parallel_for(
             kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
             width, height, bins.pair_offsets, out_colors, transmittance, render_colors.numpy(),
-            render_alphas.numpy()[..., 0], slot_counts, pair_px, pair_vis,
+            render_alphas.numpy()[..., 0], slot_starts, slot_counts, pair_px, pair_vis,
         )
         counts = bins.sum_slots(kernels.sum_slot_counts, slot_counts, np.empty(n_cams * n, np.int64))
 
@@ -182,7 +183,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
         if any(ctx.needs_input_grad):
-            ctx.pairs = (slot_counts, pair_px, pair_vis)
+            ctx.pairs = (slot_starts, slot_counts, pair_px, pair_vis)
         else:
             _SCRATCH.give("pair_px", pair_px)
             _SCRATCH.give("pair_vis", pair_vis)
@@ -199,15 +200,15 @@ class _RasterizeToPixels(torch.autograd.Function):
         n_cams, n, color_cams, width, height = ctx.shapes
         if ctx.pairs is None:
             raise RuntimeError("the rasterizer's backward runs once per forward: render again to differentiate again")
-        slot_counts, pair_px, pair_vis = ctx.pairs
+        slot_starts, slot_counts, pair_px, pair_vis = ctx.pairs
         ctx.pairs = None
         n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
-            width, height, bins.pair_offsets, ctx.out_colors, ctx.transmittance, slot_counts, pair_px, pair_vis,
-            v_colors_np, to_numpy(v_render_alphas[..., 0]), slot_grads,
+            width, height, ctx.out_colors, ctx.transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_colors_np,
+            to_numpy(v_render_alphas[..., 0]), slot_grads,
         )
         _SCRATCH.give("pair_px", pair_px)
         _SCRATCH.give("pair_vis", pair_vis)
