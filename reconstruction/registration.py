@@ -52,7 +52,7 @@ from calibration.capture import Capture, capture_fingerprint, rig_metres_per_uni
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
-from reconstruction.parallel import parallel_for
+from reconstruction.parallel import num_threads, parallel_for
 from reconstruction.silhouette import fill_triangles, normalize_silhouette, pack
 from reconstruction.silhouette_index import ANGLE, BX, BY, EXTENT, SilhouetteIndex
 
@@ -553,10 +553,12 @@ class Scorer:
         self.sizes = np.array(sizes, dtype=np.int64)
         self.counts = self.masks.reshape(n, -1).sum(1).astype(np.int64)
 
-    def scores(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0) -> tuple[np.ndarray, np.ndarray]:
+    def scores(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0,
+               parallel: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """IoU [V] and objective [V] of the mesh (object frame) seen by the rig cameras under the Sim(3).
 
         With `stop_below`, scoring stops once the objective sum cannot reach it (the rest stay 0).
+        `parallel=False` keeps the work on the calling thread (for callers that score several poses at once).
         """
         s, r, t = sim3_rig_to_object.scale, sim3_rig_to_object.rotation, sim3_rig_to_object.translation
         verts_rig = ((vertices_obj - t) @ r) / s
@@ -564,7 +566,7 @@ class Scorer:
         iou, obj = np.zeros(n), np.zeros(n)
         args = (verts_rig, faces, self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
                 self.sizes, self.counts, self.taus, self.edge_weight)
-        if stop_below > -1.0:
+        if stop_below > -1.0 or not parallel:
             # Cutting short depends on the running sum over the views in order: one thread.
             _view_scores(0, n, *args, float(stop_below), iou, obj)
         else:
@@ -575,6 +577,51 @@ class Scorer:
     def __call__(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0) -> np.ndarray:
         """IoU per view [V] of the mesh (object frame) seen by the rig cameras under the Sim(3)."""
         return self.scores(vertices_obj, faces, sim3_rig_to_object, stop_below=stop_below)[0]
+
+
+def cut_short(obj: np.ndarray, stop_below: float) -> np.ndarray:
+    """The objectives [V] that `_view_scores` leaves when it scores views in order and stops once their running
+    sum cannot reach `stop_below` (views after the stop stay 0); `obj` must hold every view up to that stop."""
+    out = np.zeros_like(obj)
+    total = 0.0
+    for v in range(len(obj)):
+        out[v] = obj[v]
+        total += obj[v]
+        if total + (len(obj) - 1 - v) < stop_below:
+            break
+    return out
+
+
+def _score_candidates(scorer: Scorer, candidates: list[tuple[int, Sim3]], mesh) -> list[tuple[float, int, Sim3]]:
+    """(mean objective, model, Sim(3)) of each candidate, in order, as if scored one after another with the
+    ones that cannot enter the top CANDIDATES so far cut short.
+
+    The bar only rises, so a batch scored in parallel against the bar before it has computed every view that
+    the bar of its own turn would have (`cut_short` then stops it there): the scores are those of the
+    sequential loop for any thread count.
+    """
+    scored: list[tuple[float, int, Sim3]] = []
+    n_views = len(scorer.ks)
+    batch = 2 * num_threads()
+    shapes = {model: mesh(model) for model, _ in candidates}  # loaded here, not on the scoring threads
+
+    def bar() -> float:
+        return sorted(s[0] for s in scored)[-CANDIDATES] * n_views if len(scored) >= CANDIDATES else -1.0
+
+    for start in range(0, len(candidates), batch):
+        chunk = candidates[start : start + batch]
+        objs: list[np.ndarray | None] = [None] * len(chunk)
+        stale = bar()
+
+        def score(lo: int, hi: int) -> None:
+            for i in range(lo, hi):
+                model, sim = chunk[i]
+                objs[i] = scorer.scores(*shapes[model], sim, stop_below=stale, parallel=False)[1]
+
+        parallel_for(score, len(chunk))
+        for (model, sim), obj in zip(chunk, objs):
+            scored.append((float(cut_short(obj, bar()).mean()), model, sim))
+    return scored
 
 
 def perturb(sim3: Sim3, params: np.ndarray, center: np.ndarray, radius: float) -> Sim3:
@@ -912,6 +959,7 @@ def register(
         for h in hs:
             by_model_view.setdefault((h.model, v), []).append(h)
     seen = set()
+    candidates: list[tuple[int, Sim3]] = []
     for _ in range(iterations):
         vi = seeds[rng.integers(len(seeds))]
         hi = hyps[vi][rng.integers(len(hyps[vi]))]
@@ -928,12 +976,9 @@ def register(
         if key in seen:
             continue
         seen.add(key)
-        v_, f_ = mesh(hi.model)
-        for sim in sim3_from_pair(hi, second, cameras_rig, index.centers[hi.model], band=band, expected_scale=expected):
-            # Candidates that cannot enter the current top few are cut short.
-            bar = sorted(s[0] for s in scored)[-CANDIDATES] * n_views if len(scored) >= CANDIDATES else -1.0
-            _, obj = scorer.scores(v_, f_, sim, stop_below=bar)
-            scored.append((float(obj.mean()), hi.model, sim))
+        candidates += [(hi.model, sim) for sim in sim3_from_pair(hi, second, cameras_rig, index.centers[hi.model], band=band,
+                                                                expected_scale=expected)]
+    scored += _score_candidates(scorer, candidates, mesh)
     if not scored:
         # Every hypothesising model appears in one view only: no pair to take a scale from.
         for vi in seeds:

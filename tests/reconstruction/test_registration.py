@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from calibration.camera import Camera, look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg
 from reconstruction.library import build_library
-from reconstruction.registration import RegistrationError, register
+from reconstruction.registration import RegistrationError, Scorer, cut_short, register
 from reconstruction.silhouette import render_silhouette
 from reconstruction.silhouette_index import GridSpec
 
@@ -203,3 +204,36 @@ def test_from_dict_reads_back_what_to_dict_wrote_and_checks_it_against_capture_a
         RegistrationResult.from_dict({k: v for k, v in doc.items() if k != "per_view_iou"})
     with pytest.raises(RegistrationError, match="registers model 'gear', which is not in the library"):
         RegistrationResult.from_dict({**doc, "model_id": "gear"}, library=lib)
+
+
+def test_cut_short_replays_the_scorers_early_stop():
+    # Candidates are scored in parallel against the bar before their batch; the bar of their own turn is then
+    # applied by `cut_short`, which must stop exactly where the kernel itself would have.
+    mesh = bracket()
+    gt = true_sim3(mesh, 0.35)
+    masks, cams = scene(mesh, ring(7), gt)
+    scorer = Scorer(masks, cams, 96)
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        sim = Sim3(gt.scale, axis_angle_to_matrix(rng.normal(scale=0.3, size=3)) @ gt.rotation, gt.translation)
+        full = scorer.scores(verts, faces, sim)[1]
+        assert full.min() > 0.0
+        for bar in (-1.0, 0.5 * full.sum(), full.sum() - 0.5, full.sum() + 0.5, 6.9):
+            assert np.array_equal(scorer.scores(verts, faces, sim, stop_below=bar)[1], cut_short(full, bar))
+
+
+def test_registration_does_not_depend_on_the_thread_count(lib):
+    mesh = bracket()
+    gt = true_sim3(mesh, 0.35)
+    masks, cams = scene(mesh, ring(6), gt)
+    before = torch.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            res = register(masks, cams, lib, iterations=60, refine_evals=40)
+            results.append((res.model_id, res.score, res.sim3_rig_to_object.to_dict()))
+    finally:
+        torch.set_num_threads(before)
+    assert results[0] == results[1]
