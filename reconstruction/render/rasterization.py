@@ -148,33 +148,51 @@ def bin_gaussians(
     )
 
 
+def _composite(bins: TileBins, slot_c: np.ndarray, backgrounds: np.ndarray, width: int, height: int,
+               dtype: torch.dtype) -> tuple:
+    """Runs the compositing kernel: (render_colors [C, H, W, D] and render_alphas [C, H, W, 1] in `dtype`,
+    out_colors [C, H, W, D] and transmittance [C, H, W] float64, and the pairs the backward reads: slot_starts,
+    slot_counts [n_isect], pair_px, pair_vis (lent by `_SCRATCH`))."""
+    n_cams, depth = backgrounds.shape
+    out_colors = np.empty((n_cams, height, width, depth))
+    transmittance = np.empty((n_cams, height, width))
+    render_colors = torch.empty((n_cams, height, width, depth), dtype=dtype)
+    render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
+    slot_starts = np.empty(bins.n_isects, np.int64)
+    slot_counts = np.empty(bins.n_isects, np.int64)
+    # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
+    pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
+    pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
+    parallel_for(
+        kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), backgrounds, width, height,
+        bins.pair_offsets, out_colors, transmittance, render_colors.numpy(), render_alphas.numpy()[..., 0], slot_starts,
+        slot_counts, pair_px, pair_vis,
+    )
+    return render_colors, render_alphas, out_colors, transmittance, (slot_starts, slot_counts, pair_px, pair_vis)
+
+
+def _give_back(pairs: tuple) -> None:
+    _SCRATCH.give("pair_px", pairs[2])
+    _SCRATCH.give("pair_vis", pairs[3])
+
+
 class _RasterizeToPixels(torch.autograd.Function):
     """Compositing of the slots listed in `bins`.
 
     means2d, conics and opacities are the tensors the bins were built from, taken as inputs so that
     autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
+    The pairs the forward keeps go back to the pool after the first backward (the next iteration's forward
+    reuses them); a second backward through a retained graph composites again to get them.
     """
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype):
         n_cams, n = means2d.shape[:2]
-        depth = colors.shape[2]
         slot_c = bins.gather(colors)
-        out_colors = np.empty((n_cams, height, width, depth))
-        transmittance = np.empty((n_cams, height, width))
-        render_colors = torch.empty((n_cams, height, width, depth), dtype=dtype)
-        render_alphas = torch.empty((n_cams, height, width, 1), dtype=dtype)
-        slot_starts = np.empty(bins.n_isects, np.int64)
-        slot_counts = np.empty(bins.n_isects, np.int64)
-        # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
-        pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
-        pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
-        parallel_for(
-            kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), to_numpy(backgrounds),
-            width, height, bins.pair_offsets, out_colors, transmittance, render_colors.numpy(),
-            render_alphas.numpy()[..., 0], slot_starts, slot_counts, pair_px, pair_vis,
+        render_colors, render_alphas, out_colors, transmittance, pairs = _composite(
+            bins, slot_c, to_numpy(backgrounds), width, height, dtype
         )
-        counts = bins.sum_slots(kernels.sum_slot_counts, slot_counts, np.empty(n_cams * n, np.int64))
+        counts = bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64))
 
         ctx.save_for_backward(backgrounds)
         ctx.bins = bins
@@ -182,11 +200,9 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.slot_c = slot_c
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
-        if any(ctx.needs_input_grad):
-            ctx.pairs = (slot_starts, slot_counts, pair_px, pair_vis)
-        else:
-            _SCRATCH.give("pair_px", pair_px)
-            _SCRATCH.give("pair_vis", pair_vis)
+        ctx.pairs = pairs
+        if not any(ctx.needs_input_grad):
+            _give_back(pairs)
             ctx.pairs = None
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
@@ -198,20 +214,19 @@ class _RasterizeToPixels(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins: TileBins = ctx.bins
         n_cams, n, color_cams, width, height = ctx.shapes
-        if ctx.pairs is None:
-            raise RuntimeError("the rasterizer's backward runs once per forward: render again to differentiate again")
-        slot_starts, slot_counts, pair_px, pair_vis = ctx.pairs
+        pairs = ctx.pairs
+        if pairs is None:
+            pairs = _composite(bins, ctx.slot_c, to_numpy(backgrounds), width, height, torch.float64)[4]
         ctx.pairs = None
         n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
-            width, height, ctx.out_colors, ctx.transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_colors_np,
-            to_numpy(v_render_alphas[..., 0]), slot_grads,
+            width, height, ctx.out_colors, ctx.transmittance, *pairs, v_colors_np, to_numpy(v_render_alphas[..., 0]),
+            slot_grads,
         )
-        _SCRATCH.give("pair_px", pair_px)
-        _SCRATCH.give("pair_vis", pair_vis)
+        _give_back(pairs)
         grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols)))
         _SCRATCH.give("slot_grads", slot_grads)
         grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)

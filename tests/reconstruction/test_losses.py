@@ -186,4 +186,4 @@ def test_pixels_beyond_a_photo_pull_on_nothing():
     g_means, _ = torch.autograd.grad(mask_l1(alpha, mask), (means, colors), retain_graph=True)
     assert g_means[1].abs().max() > 0  # without `valid` the canvas beyond the photo pushes the splat away
     photo = (slice(None), slice(None), slice(0, photo_w))
-    assert math.isclose(float(mask_l1(alpha, mask, valid)), float(mask_l1(alpha[photo], mask[photo])), rel_tol=1e-6)
+    assert math.isclose(float(mask_l1(alpha, mask, valid).detach()), float(mask_l1(alpha[photo], mask[photo]).detach()), rel_tol=1e-6)
