@@ -452,18 +452,70 @@ def scatter_tile_keys(
                 cursor[chunk, t] += 1
 
 
+# Below this many keys a tile's keys are insertion-sorted; above, radix-sorted by their depth bits.
+_RADIX_MIN_KEYS = 48
+
+
+@njit(inline="always", **_OPTS)
+def _sort_by_depth_bits(segment, tmp, counts) -> None:
+    """Stable LSD radix sort of segment's int64 keys by their upper 32 bits (float32 depth), 8 bits a pass.
+
+    Bytes that all keys share are skipped (a tile's depths span a narrow range, so the top byte usually
+    is). tmp [>= len(segment)] int64 and counts [256] int64 are scratch.
+    """
+    m = segment.shape[0]
+    src, dst = segment, tmp[:m]
+    in_tmp = False
+    for shift in range(32, 64, 8):
+        counts[:] = 0
+        for i in range(m):
+            counts[(src[i] >> shift) & 0xFF] += 1
+        if counts[(src[0] >> shift) & 0xFF] == m:
+            continue
+        total = 0
+        for b in range(256):
+            c = counts[b]
+            counts[b] = total
+            total += c
+        for i in range(m):
+            b = (src[i] >> shift) & 0xFF
+            dst[counts[b]] = src[i]
+            counts[b] += 1
+        src, dst = dst, src
+        in_tmp = not in_tmp
+    if in_tmp:
+        segment[:] = src
+
+
 @njit(**_OPTS)
 def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, out) -> None:
     """Sorts each tile's keys by depth, then Gaussian index, and writes out[k] = c * N + g.
 
-    Keys are float32 depth bits << 32 | g (depths are positive, so the bits order like the values), so
-    one int64 sort does nearly everything; runs whose float32 depths tie are then re-sorted by the
-    float64 depths [C * N], since float32 rounding merges depths that differ and the order of
-    overlapping splats changes the image. Tiles lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
+    Keys are float32 depth bits << 32 | g (depths are positive, so the bits order like the values). They
+    arrive in index order (`scatter_tile_keys` writes a tile's keys in increasing c * N + g), so a stable
+    sort by the depth bits alone leaves equal depths in index order: the order of sorting the whole int64
+    keys, in a few radix passes instead of a comparison sort (4.8 -> 0.7 ms for the `cpu` preset's Stage-II
+    batch). Runs whose float32 depths tie are then re-sorted by the float64 depths [C * N], since float32
+    rounding merges depths that differ and the order of overlapping splats changes the image. Tiles
+    lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
     """
+    longest = 0
+    for t in range(lo, hi):
+        longest = max(longest, offsets[t + 1] - offsets[t])
+    tmp = np.empty(longest, np.int64)
+    counts = np.empty(256, np.int64)
     for t in range(lo, hi):
         segment = keys[offsets[t] : offsets[t + 1]]
-        segment.sort()
+        if segment.shape[0] >= _RADIX_MIN_KEYS:
+            _sort_by_depth_bits(segment, tmp, counts)
+        else:
+            for i in range(1, segment.shape[0]):
+                key = segment[i]
+                m = i
+                while m > 0 and segment[m - 1] > key:
+                    segment[m] = segment[m - 1]
+                    m -= 1
+                segment[m] = key
         cam_base = (t // tiles_per_cam) * n
         run = 0
         for k in range(1, segment.shape[0] + 1):

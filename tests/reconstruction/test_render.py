@@ -304,6 +304,23 @@ def test_depths_that_tie_only_in_float32_keep_their_float64_order():
     assert colors[0, 8, 8, 2] > colors[0, 8, 8, 0]  # the blue Gaussian is in front
 
 
+def test_crowded_tiles_sort_like_the_reference():
+    # Hundreds of splats per tile (the radix-sorted path), a third at one depth, a third at depths that tie only
+    # in float32, and the rest spread: each tile's order must still be depth, then float64 depth, then index.
+    n = 240
+    g = torch.Generator().manual_seed(31)
+    scene = random_scene(n, seed=31, n_cams=1, width=40, height=36)
+    scene["viewmats"] = torch.eye(4)[None]
+    depth = torch.where(torch.arange(n) % 3 == 0, torch.tensor(2.0), 2.0 + torch.rand(n, generator=g) * 0.5)
+    depth = torch.where(torch.arange(n) % 3 == 1, 2.5 + (torch.arange(n) % 5) * 2.0**-22, depth)
+    xy = torch.randn(n, 2, generator=g) * 0.12 * depth[:, None]
+    scene["means"] = torch.cat([xy, depth[:, None]], dim=1)
+    scene["scales"] = torch.full((n, 3), 0.06)
+    scene["opacities"] = torch.rand(n, generator=g) * 0.2 + 0.05
+    _, _, meta, _ = assert_matches(scene)
+    assert meta["n_isects"] > 4 * 48  # more keys per tile than the insertion-sort path takes
+
+
 def test_everything_off_screen():
     scene = random_scene(20, seed=9, n_cams=2, width=17, height=16)
     scene["means"] = scene["means"] * 0.1 + torch.tensor([40.0, 0.0, 0.0])
