@@ -382,37 +382,39 @@ def train(
             for group, lr0 in pose_groups:
                 group["lr"] = lr0 * preset.pose_lr_final ** (it / max(cap, 1))
             idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
+            # Every view in the batch: the stacks themselves, not an indexed copy of each per iteration.
+            sel = slice(None) if batch == v else idx
             means, quats, scales, opac, sh = model.gaussians().activated()
             viewmats = model.viewmats(c2w_init, idx)
-            on_photo = None if valid is None else valid[idx]
+            on_photo = None if valid is None else valid[sel]
             if stage != "photo":
-                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
-                l_mask = mask_l1(alpha, cov[idx], on_photo)
+                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
+                l_mask = mask_l1(alpha, cov[sel], on_photo)
                 loss = l_mask
                 last = {"mask": l_mask}
                 if use_consistency:
-                    l_pc = consistency_loss(sample_colors(pc_images[idx], means, viewmats, pc_ks[idx]), pc_weights[idx])
+                    l_pc = consistency_loss(sample_colors(pc_images[sel], means, viewmats, pc_ks[sel]), pc_weights[sel])
                     loss = loss + preset.lambda_consistency * l_pc
                     last["consistency"] = l_pc
             else:
                 bg = torch.rand(len(idx), 3, generator=gen)
                 p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
                 active = dropout_active(n, p, gen)
-                rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[idx], w, h,
+                rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[sel], w, h,
                                           sh_degree=model.sh_degree, backgrounds=bg, active=active)
                 if active is not None:
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
-                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[idx], w, h)
+                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
-                support = (alpha.detach()[..., 0] > 0) | (cov[idx] > 0)
-                l_rgb = photometric_loss(rgb, composite(imgs[idx], cov[idx], bg), preset.lambda_dssim, support=support,
+                support = (alpha.detach()[..., 0] > 0) | (cov[sel] > 0)
+                l_rgb = photometric_loss(rgb, composite(imgs[sel], cov[sel], bg), preset.lambda_dssim, support=support,
                                          valid=on_photo)
-                l_mask = mask_l1(alpha, cov[idx], on_photo)
+                l_mask = mask_l1(alpha, cov[sel], on_photo)
                 l_sh = sh_neighbour_loss(sh, sh_graph)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
                 if preset.lambda_fill:
-                    l_fill = fill_loss(alpha, cov[idx])
+                    l_fill = fill_loss(alpha, cov[sel])
                     loss = loss + preset.lambda_fill * l_fill
                     last["fill"] = l_fill
             if preset.lambda_displacement and stage != "pose":
