@@ -14,9 +14,15 @@ Images are blurred before sampling so the objective reaches a few pixels of misa
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numba import njit
+from torch.autograd.function import once_differentiable
+
+from reconstruction.parallel import parallel_for
 
 # Charbonnier scale (colour units): a specular highlight or a wrongly visible point weighs like an
 # outlier, not quadratically (render noise of a rig is ~0.01-0.02).
@@ -52,15 +58,90 @@ def sample_colors(images: torch.Tensor, points: torch.Tensor, viewmats: torch.Te
     return out[..., 0].permute(0, 2, 1)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _robust_spread(lo, hi, colors, weights, eps, point_loss, point_weight, grad) -> None:
+    """Points lo..hi-1 of colors [V, N, C], weights [V, N]: point_loss [N] = sum_v w rho(|c_v - mean|^2),
+    point_weight [N] = sum_v w (both 0 for a point seen by fewer than two views) and grad [V, N, C], the
+    gradient of point_loss with respect to the colours (the mean included)."""
+    n_views, _, n_ch = colors.shape
+    mean = np.empty(n_ch)
+    pull = np.empty(n_ch)
+    for n in range(lo, hi):
+        wsum = 0.0
+        for v in range(n_views):
+            wsum += weights[v, n]
+        point_loss[n] = 0.0
+        point_weight[n] = 0.0
+        if not wsum >= 2.0:
+            for v in range(n_views):
+                for ch in range(n_ch):
+                    grad[v, n, ch] = 0.0
+            continue
+        mean[:] = 0.0
+        for v in range(n_views):
+            for ch in range(n_ch):
+                mean[ch] += weights[v, n] * colors[v, n, ch]
+        for ch in range(n_ch):
+            mean[ch] /= wsum
+        # rho(r2) = eps^2 (sqrt(1 + r2 / eps^2) - 1), rho' = 1 / (2 sqrt(1 + r2 / eps^2)); through the mean,
+        # colour v also pulls on every other view's residual by w_v / wsum.
+        pull[:] = 0.0
+        total = 0.0
+        for v in range(n_views):
+            r2 = 0.0
+            for ch in range(n_ch):
+                d = colors[v, n, ch] - mean[ch]
+                r2 += d * d
+            root = math.sqrt(1.0 + r2 / (eps * eps))
+            total += weights[v, n] * eps * eps * (root - 1.0)
+            a = weights[v, n] / root
+            for ch in range(n_ch):
+                grad[v, n, ch] = a * (colors[v, n, ch] - mean[ch])
+                pull[ch] += grad[v, n, ch]
+        for v in range(n_views):
+            share = weights[v, n] / wsum
+            for ch in range(n_ch):
+                grad[v, n, ch] -= share * pull[ch]
+        point_loss[n] = total
+        point_weight[n] = wsum
+
+
+class _ConsistencyLoss(torch.autograd.Function):
+    """`consistency_loss` in one pass with its gradient: the same arithmetic as a dozen torch ops over [V, N, 3]
+    and their backward, which cost ~7 ms of a Stage-I iteration (10 views, 15k points)."""
+
+    @staticmethod
+    def forward(ctx, colors: torch.Tensor, weights: torch.Tensor, eps: float) -> torch.Tensor:
+        c = colors.detach().contiguous().numpy()
+        w = weights.detach().to(colors.dtype).contiguous().numpy()
+        n = c.shape[1]
+        point_loss, point_weight, grad = np.empty(n), np.empty(n), np.empty_like(c)
+        parallel_for(_robust_spread, n, c, w, float(eps), point_loss, point_weight, grad, grain=4096)
+        norm = max(float(point_weight.sum()), 1.0)
+        ctx.save_for_backward(torch.from_numpy(grad).div_(norm))
+        return torch.tensor(point_loss.sum() / norm, dtype=colors.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):
+        (grad,) = ctx.saved_tensors
+        return grad * grad_out, None, None
+
+
 def consistency_loss(colors: torch.Tensor, weights: torch.Tensor, eps: float = ROBUST_EPS) -> torch.Tensor:
     """Robust spread of each point's colours about their weighted mean: colors [V, N, 3], weights [V, N]
-    (visibility, 0 or 1). Points seen by fewer than two views carry no information and no weight."""
-    wsum = weights.sum(0)
-    used = (wsum >= 2).to(colors.dtype)
-    mean = (weights[..., None] * colors).sum(0) / wsum.clamp_min(1)[:, None]
-    r2 = ((colors - mean[None]) ** 2).sum(-1)
-    rho = eps * eps * (torch.sqrt(1 + r2 / (eps * eps)) - 1)
-    return (weights * used[None] * rho).sum() / (weights * used[None]).sum().clamp_min(1)
+    (visibility, 0 or 1). Points seen by fewer than two views carry no information and no weight.
+
+    sum over points seen twice or more and their views of w rho(|c - mean|^2) / sum of those w, with the
+    Charbonnier rho(r2) = eps^2 (sqrt(1 + r2 / eps^2) - 1); differentiable in the colours."""
+    if colors.is_cuda or colors.dtype not in (torch.float32, torch.float64):
+        wsum = weights.sum(0)
+        used = (wsum >= 2).to(colors.dtype)
+        mean = (weights[..., None] * colors).sum(0) / wsum.clamp_min(1)[:, None]
+        r2 = ((colors - mean[None]) ** 2).sum(-1)
+        rho = eps * eps * (torch.sqrt(1 + r2 / (eps * eps)) - 1)
+        return (weights * used[None] * rho).sum() / (weights * used[None]).sum().clamp_min(1)
+    return _ConsistencyLoss.apply(colors, weights, eps)
 
 
 def visibility_weights(visible: np.ndarray) -> torch.Tensor:

@@ -81,3 +81,24 @@ def test_true_pose_is_the_minimum_and_the_gradient_points_back():
     # Lifted off the plane, the points are pulled back down: the mean z-gradient opposes the lift.
     _, grad = loss_for(np.array([0, 0, 0.004]), np.zeros(3))
     assert float(grad[:, 2].sum()) > 0
+
+
+def test_fused_spread_equals_the_formula_and_its_gradient():
+    # The CPU kernel against the loss written out in torch ops (the form kept for GPU tensors).
+    def formula(colors, weights, eps=0.05):
+        wsum = weights.sum(0)
+        used = (wsum >= 2).to(colors.dtype)
+        mean = (weights[..., None] * colors).sum(0) / wsum.clamp_min(1)[:, None]
+        rho = eps * eps * (torch.sqrt(1 + ((colors - mean[None]) ** 2).sum(-1) / (eps * eps)) - 1)
+        return (weights * used[None] * rho).sum() / (weights * used[None]).sum().clamp_min(1)
+
+    gen = torch.Generator().manual_seed(3)
+    colors = torch.rand(6, 3000, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    weights = (torch.rand(6, 3000, generator=gen) > 0.6).double() * torch.rand(6, 3000, generator=gen, dtype=torch.float64) * 2
+    weights[:, :50] = 0.0
+    weights[0, 50:60] = 1.0  # seen by one view only
+    fused, ref = consistency_loss(colors, weights), formula(colors, weights)
+    (g_fused,), (g_ref,) = torch.autograd.grad(fused, colors), torch.autograd.grad(ref, colors)
+    assert torch.allclose(fused, ref, rtol=1e-12, atol=0)
+    assert torch.allclose(g_fused, g_ref, rtol=1e-9, atol=1e-18)
+    assert float(consistency_loss(colors[:, :50], weights[:, :50]).detach()) == 0.0
