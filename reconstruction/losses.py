@@ -45,6 +45,13 @@ def composite(image: torch.Tensor, mask: torch.Tensor, background: torch.Tensor)
     return image * m + bg * (1 - m)
 
 
+def composite_parts(image: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(image * M [C, H, W, 3], 1 - M [C, H, W, 1]): `composite` over background bg is then part0 + bg * part1, two
+    passes instead of four for a training loop that draws a new background every iteration."""
+    m = _hw(mask).to(image.dtype)[..., None]
+    return image * m, 1 - m
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM of [C, H, W, 3] images (Gaussian window, as 3DGS; zero padding at the borders)."""
     return ssim_map(a, b, window, sigma).mean()

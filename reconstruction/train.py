@@ -33,7 +33,7 @@ from torch import nn
 
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
-from reconstruction.losses import (composite, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
+from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
                                    neighbour_smoothness, sh_neighbour_loss)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
@@ -375,6 +375,8 @@ def train(
             pc_weights = _consistency_weights(model, splats, views, c2w_init)
         if stage == "photo" and state["it"] == 0:
             state["stage2_start"] = _choose_stage2_start(model, opt, splats, views, c2w_init, photo_data, preset)
+        if stage == "photo":
+            target_fg, target_bg_weight = composite_parts(imgs, cov)
         last: dict = {}
         it = state["it"]
         while it < cap:
@@ -407,7 +409,8 @@ def train(
                     _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
                 support = (alpha.detach()[..., 0] > 0) | (cov[sel] > 0)
-                l_rgb = photometric_loss(rgb, composite(imgs[sel], cov[sel], bg), preset.lambda_dssim, support=support,
+                target = target_fg[sel] + bg[:, None, None, :] * target_bg_weight[sel]
+                l_rgb = photometric_loss(rgb, target, preset.lambda_dssim, support=support,
                                          valid=on_photo)
                 l_mask = mask_l1(alpha, cov[sel], on_photo)
                 l_sh = sh_neighbour_loss(sh, sh_graph)

@@ -9,6 +9,7 @@ import torch
 
 from reconstruction.losses import (
     composite,
+    composite_parts,
     dropout_active,
     dropout_fraction,
     fill_loss,
@@ -187,3 +188,11 @@ def test_pixels_beyond_a_photo_pull_on_nothing():
     assert g_means[1].abs().max() > 0  # without `valid` the canvas beyond the photo pushes the splat away
     photo = (slice(None), slice(None), slice(0, photo_w))
     assert math.isclose(float(mask_l1(alpha, mask, valid).detach()), float(mask_l1(alpha[photo], mask[photo]).detach()), rel_tol=1e-6)
+
+
+def test_composite_parts_give_the_composite_over_any_background():
+    gen = torch.Generator().manual_seed(5)
+    image, mask = torch.rand(2, 6, 7, 3, generator=gen), torch.rand(2, 6, 7, generator=gen)
+    fg, bg_weight = composite_parts(image, mask)
+    for background in (torch.rand(2, 3, generator=gen), torch.zeros(2, 3)):
+        assert torch.allclose(fg + background[:, None, None, :] * bg_weight, composite(image, mask, background), atol=1e-7)
