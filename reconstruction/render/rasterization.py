@@ -181,12 +181,12 @@ class _RasterizeToPixels(torch.autograd.Function):
 
     means2d, conics and opacities are the tensors the bins were built from, taken as inputs so that
     autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
-    The pairs the forward keeps go back to the pool after the first backward (the next iteration's forward
-    reuses them); a second backward through a retained graph composites again to get them.
+    The pairs the forward keeps (`keep_pairs`: a graph will be differentiated) go back to the pool after the first
+    backward, for the next iteration's forward; a second backward through a retained graph composites again.
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs):
         n_cams, n = means2d.shape[:2]
         slot_c = bins.gather(colors)
         render_colors, render_alphas, out_colors, transmittance, pairs = _composite(
@@ -201,7 +201,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
         ctx.pairs = pairs
-        if not any(ctx.needs_input_grad):
+        if not keep_pairs:
             _give_back(pairs)
             ctx.pairs = None
         counts_t = torch.from_numpy(counts).view(n_cams, n)
@@ -239,7 +239,8 @@ class _RasterizeToPixels(torch.autograd.Function):
                 "chw,chwd->cd", torch.from_numpy(ctx.transmittance), v_render_colors.to(torch.float64)
             )
         return (
-            grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None, None
+            grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None, None,
+            None,
         )
 
 
@@ -365,8 +366,12 @@ def rasterize(
     bins = bin_gaussians(proj.means2d, proj.conics, opacities, proj.radii, proj.depths, width, height, tile_size)
     # The images come out of the kernel in the caller's dtype (float64 for any other than float32).
     out_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float64
+    # Without a graph to differentiate (no_grad, or nothing requires grad) the pairs go straight back to the pool.
+    keep_pairs = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (proj.means2d, proj.conics, colors, opacities, backgrounds)
+    )
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype, keep_pairs
     )
     meta = {
         "radii": proj.radii,

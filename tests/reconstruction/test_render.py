@@ -501,6 +501,7 @@ def test_interleaved_renders_keep_their_own_scratch_buffers():
     second_inputs, second_loss = render(True)
     with torch.no_grad():
         render(False)
+        render(True)  # inputs that require grad, but no graph: its pairs go straight back to the pool
     second_loss.backward()
     first_loss.backward()
     for inputs in (first_inputs, second_inputs):
