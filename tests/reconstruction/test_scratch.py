@@ -41,3 +41,13 @@ def test_growth_dtype_change_and_reshaped_views():
     assert np.shares_memory(pool.take("pairs", 5_000, np.int16), bigger)
     pool.clear()
     assert not np.shares_memory(pool.take("pairs", 5_000, np.int16), bigger)
+
+
+def test_buffers_above_the_cap_are_not_kept():
+    pool = ScratchPool(max_kept_bytes=8_000)
+    big = pool.take("pairs", 2_000, np.float64)  # 16 kB with its growth room
+    pool.give("pairs", big)
+    assert not np.shares_memory(pool.take("pairs", 10, np.float64), big)
+    small = pool.take("pairs", 500, np.float64)
+    pool.give("pairs", small)
+    assert np.shares_memory(pool.take("pairs", 500, np.float64), small)
