@@ -944,7 +944,6 @@ def register(
     expected = None if rig_metres_per_unit is None else float(rig_metres_per_unit)
 
     t = time.perf_counter()
-    n_views = len(masks)
     scorer = Scorer(masks, cameras_rig, SCORE_PX)
     meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
