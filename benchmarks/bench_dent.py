@@ -176,7 +176,7 @@ def write_markdown(res: dict, load: str, path: Path) -> str:
         "",
         f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; load {load}.",
         "",
-        f"Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the",
+        "Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the",
         f"library model). Dented part: the same mesh pushed in along its normal by up to {res['depth_mm']:g} mm (cosine bump,",
         f"radius {res['radius_mm']:g} mm) at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, the side-wall vertex the rig sees best.",
         f"Synthetic rig (`cadsplat synth`, {res['views']} views, 320x240, seed 7, same cameras and pose for both); reconstruction",
