@@ -224,3 +224,18 @@ def test_views_mark_the_pixels_each_photo_has():
     valid = Views(images, masks, ks, c2w, np.array([(40, 30), (30, 40)])).resized(0.5).valid
     assert valid.shape == (2, 20, 20)
     assert valid[0, :15].all() and not valid[0, 15:].any() and valid[1, :, :15].all() and not valid[1, :, 15:].any()
+
+
+def test_gradient_finiteness_check():
+    from reconstruction.train import _grads_finite
+
+    params = [torch.nn.Parameter(torch.zeros(1000)), torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(2))]
+    params[0].grad = torch.full((1000,), 3e38)  # finite, though its float32 sum would overflow
+    params[1].grad = torch.tensor([1.0, -2.0, 0.5])
+    assert _grads_finite(params)  # the third has no gradient: frozen this stage
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        params[1].grad[1] = bad
+        assert not _grads_finite(params)
+    params[1].grad = torch.tensor([float("inf"), float("-inf"), 0.0])  # cancelling infinities sum to nan
+    assert not _grads_finite(params)
+    assert _grads_finite([torch.nn.Parameter(torch.zeros(1))])
