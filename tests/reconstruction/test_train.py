@@ -19,7 +19,7 @@ from calibration.so3 import axis_angle_to_matrix  # noqa: E402
 from reconstruction.deformation import FieldConfig  # noqa: E402
 from reconstruction.presets import SceneStats, resolve_preset  # noqa: E402
 from reconstruction.splats import init_splats  # noqa: E402
-from reconstruction.train import Plateau, Views, train  # noqa: E402
+from reconstruction.train import Plateau, Views, _grads_finite, train  # noqa: E402
 from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample"
@@ -227,8 +227,6 @@ def test_views_mark_the_pixels_each_photo_has():
 
 
 def test_gradient_finiteness_check():
-    from reconstruction.train import _grads_finite
-
     params = [torch.nn.Parameter(torch.zeros(1000)), torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(2))]
     params[0].grad = torch.full((1000,), 3e38)  # finite, though its float32 sum would overflow
     params[1].grad = torch.tensor([1.0, -2.0, 0.5])
