@@ -38,18 +38,17 @@ def fill_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (m * (1 - _hw(alpha))).sum() / m.sum().clamp_min(1.0)
 
 
-def composite(image: torch.Tensor, mask: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """image [C, H, W, 3] over `background` [C, 3] or [3] where mask [C, H, W] is 0."""
-    m = _hw(mask).to(image.dtype)[..., None]
-    bg = background.reshape(-1, 1, 1, 3).to(image.dtype)
-    return image * m + bg * (1 - m)
-
-
 def composite_parts(image: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(image * M [C, H, W, 3], 1 - M [C, H, W, 1]): `composite` over background bg is then part0 + bg * part1, two
-    passes instead of four for a training loop that draws a new background every iteration."""
+    """(image * M [C, H, W, 3], 1 - M [C, H, W, 1]): `composite` over background bg is part0 + bg * part1, so a
+    training loop that draws a new background every iteration computes the parts once."""
     m = _hw(mask).to(image.dtype)[..., None]
     return image * m, 1 - m
+
+
+def composite(image: torch.Tensor, mask: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """image [C, H, W, 3] over `background` [C, 3] or [3] where mask [C, H, W] is 0."""
+    inside, outside = composite_parts(image, mask)
+    return inside + background.reshape(-1, 1, 1, 3).to(image.dtype) * outside
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
