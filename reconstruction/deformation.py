@@ -9,6 +9,12 @@ On a CPU the MLP need not run at every splat: with `anchors`, it runs at M ancho
 point subsample of the splats) and each splat takes a fixed inverse-distance blend of its k nearest
 anchors' offsets. The field stays smooth (it is a smooth MLP blended with smooth weights) and its
 cost drops from N to M evaluations.
+
+On a CPU with native bfloat16 dot products (AVX512-BF16, AMX) the hidden layers' matrix products run in
+bfloat16 with float32 accumulation (torch autocast; weights, encoding and the linear head stay float32). They
+ran at 84 % of the FP32 peak, and bfloat16 halves them (2048 anchors, 6x128, forward+backward 11.2 -> 5.8 ms)
+at ~0.1 % relative error in the offsets (micrometres on a millimetre move). Training and
+export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did.
 """
 
 from __future__ import annotations
@@ -39,6 +45,15 @@ class FieldConfig:
     projection_keeps_scale: bool = False
 
 
+def _native_bf16() -> bool:
+    """True when this CPU multiplies bfloat16 natively; elsewhere bfloat16 matmuls are emulated and slower."""
+    probe = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
+    return bool(probe is not None and probe())
+
+
+CPU_BF16_MATMUL = _native_bf16()
+
+
 def positional_encoding(x: torch.Tensor, bands: int) -> torch.Tensor:
     """γ(x) for x [N, 3] in about [-1, 1] -> [N, 3 + 6 * bands]: x, sin(2^l π x), cos(2^l π x)."""
     freqs = (2.0 ** torch.arange(bands, dtype=x.dtype, device=x.device)) * math.pi
@@ -65,13 +80,17 @@ class DeformationMLP(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
-    def forward(self, enc: torch.Tensor) -> torch.Tensor:
+    def features(self, enc: torch.Tensor) -> torch.Tensor:
+        """The last hidden layer [N, width] for the encoding enc [N, in_dim]."""
         h = enc
         for i, layer in enumerate(self.layers):
             if i == self.skip and i > 0:
                 h = torch.cat([h, enc], 1)
             h = torch.relu(layer(h))
-        return self.head(h)
+        return h
+
+    def forward(self, enc: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(enc))
 
 
 def similarity_basis(points: torch.Tensor, with_scale: bool = True) -> torch.Tensor:
@@ -189,7 +208,10 @@ class DeformationField(nn.Module):
 
     def _mlp_at(self, x: torch.Tensor) -> torch.Tensor:
         xn = (x - self.center) / self.radius
-        return self.mlp(positional_encoding(xn, self.config.bands)) * self.radius
+        enc = positional_encoding(xn, self.config.bands)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=CPU_BF16_MATMUL and x.device.type == "cpu"):
+            h = self.mlp.features(enc)
+        return self.mlp.head(h.float()) * self.radius
 
     def forward(self) -> torch.Tensor:
         """Δμ [N, 3] at the canonical means."""
