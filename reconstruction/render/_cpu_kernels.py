@@ -120,16 +120,19 @@ def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
 
 
 @njit(inline="always", **_OPTS)
-def _clamp_limits(fx: float, fy: float, cx: float, cy: float, width: int, height: int):
-    """gsplat's limits on x/z and y/z: the image plus 30% of the half field of view on each side."""
-    tan_fovx = 0.5 * width / fx
-    tan_fovy = 0.5 * height / fy
-    return (
-        -(cx / fx + 0.3 * tan_fovx),
-        (width - cx) / fx + 0.3 * tan_fovx,
-        -(cy / fy + 0.3 * tan_fovy),
-        (height - cy) / fy + 0.3 * tan_fovy,
-    )
+def _clamp_limits(Ks, width: int, height: int) -> np.ndarray:
+    """gsplat's limits on x/z and y/z per camera [C, 4] (x_lo, x_hi, y_lo, y_hi): the image plus 30% of the
+    half field of view on each side. Computed once per call, not per Gaussian (six divisions each)."""
+    limits = np.empty((Ks.shape[0], 4))
+    for c in range(Ks.shape[0]):
+        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+        tan_fovx = 0.5 * width / fx
+        tan_fovy = 0.5 * height / fy
+        limits[c, 0] = -(cx / fx + 0.3 * tan_fovx)
+        limits[c, 1] = (width - cx) / fx + 0.3 * tan_fovx
+        limits[c, 2] = -(cy / fy + 0.3 * tan_fovy)
+        limits[c, 3] = (height - cy) / fy + 0.3 * tan_fovy
+    return limits
 
 
 @njit(inline="always", **_OPTS)
@@ -177,6 +180,7 @@ def project_forward(
     cov = np.empty((3, 3))
     tmp = np.empty((3, 3))
     cov_cam = np.empty((3, 3))
+    limits = _clamp_limits(Ks, width, height)
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         for g in range(lo, hi):
@@ -194,7 +198,7 @@ def project_forward(
                     continue
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
-                x_lo, x_hi, y_lo, y_hi = _clamp_limits(fx, fy, cx, cy, width, height)
+                x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 s00, s01, s11 = _covariance2d(cov_cam, j00, j02, j11, j12, eps2d)
                 det = s00 * s11 - s01 * s01
@@ -243,6 +247,7 @@ def project_backward(
     v_w = np.empty((3, 3))
     rw = np.empty((3, 3))
     v_factor = np.empty((3, 3))
+    limits = _clamp_limits(Ks, width, height)
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         for g in range(lo, hi):
@@ -263,8 +268,7 @@ def project_backward(
                 vm = viewmats[c]
                 mx, my, mz = _to_camera(vm, means[g], cov, tmp, cov_cam)
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-                cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
-                x_lo, x_hi, y_lo, y_hi = _clamp_limits(fx, fy, cx, cy, width, height)
+                x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
                 # dL/dQ as a symmetric matrix V (b appears twice in Q); dSigma = -Q V Q.

@@ -15,7 +15,7 @@ from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
-from reconstruction.render.projection import project_gaussians, to_numpy
+from reconstruction.render.projection import project_gaussians, to_float64, to_numpy
 from reconstruction.render.scratch import ScratchPool
 from reconstruction.render.sh import eval_sh, num_sh_bases
 
@@ -195,6 +195,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         counts = bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64))
 
         ctx.save_for_backward(backgrounds)
+        ctx.out_dtype = render_colors.numpy().dtype
         ctx.bins = bins
         ctx.shapes = (n_cams, n, colors.shape[0], width, height)
         ctx.slot_c = slot_c
@@ -206,6 +207,8 @@ class _RasterizeToPixels(torch.autograd.Function):
             ctx.pairs = None
         counts_t = torch.from_numpy(counts).view(n_cams, n)
         ctx.mark_non_differentiable(counts_t)
+        # An image the loss does not use (the colours of an alpha-only pass) comes back as None, not as zeros to fill.
+        ctx.set_materialize_grads(False)
         return render_colors, render_alphas, counts_t
 
     @staticmethod
@@ -218,29 +221,33 @@ class _RasterizeToPixels(torch.autograd.Function):
         if pairs is None:
             pairs = _composite(bins, ctx.slot_c, to_numpy(backgrounds), width, height, torch.float64)[4]
         ctx.pairs = None
-        n_cols = N_GRAD_GEOMETRY + ctx.slot_c.shape[1]
+        depth = ctx.slot_c.shape[1]
+        n_cols = N_GRAD_GEOMETRY + depth
+        image_dtype = ctx.out_dtype
+        v_image = (np.zeros((n_cams, height, width, depth), image_dtype) if v_render_colors is None
+                   else to_numpy(v_render_colors))
+        v_alphas = (np.zeros((n_cams, height, width), image_dtype) if v_render_alphas is None
+                    else to_numpy(v_render_alphas[..., 0]))
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
-        v_colors_np = to_numpy(v_render_colors)
         parallel_for(
             kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
-            width, height, ctx.out_colors, ctx.transmittance, *pairs, v_colors_np, to_numpy(v_render_alphas[..., 0]),
-            slot_grads,
+            width, height, ctx.out_colors, ctx.transmittance, *pairs, v_image, v_alphas, slot_grads,
         )
         _give_back(pairs)
-        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols)))
+        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols))).reshape(n_cams, n, n_cols)
         _SCRATCH.give("slot_grads", slot_grads)
-        grads_t = torch.from_numpy(grads).view(n_cams, n, n_cols)
-        v_colors = grads_t[..., N_GRAD_GEOMETRY:]
-        if color_cams == 1:
-            v_colors = v_colors.sum(0, keepdim=True)
+        # Split and summed over cameras in numpy: these arrays are small, and each torch op on them woke torch's
+        # sleeping OpenMP workers (~60-300 us a call, more than the arithmetic).
+        v_colors = grads[..., N_GRAD_GEOMETRY:]
+        v_colors = v_colors.sum(0, keepdims=True) if color_cams == 1 and n_cams > 1 else np.ascontiguousarray(v_colors)
         v_backgrounds = None
         if ctx.needs_input_grad[4]:
             v_backgrounds = torch.einsum(
-                "chw,chwd->cd", torch.from_numpy(ctx.transmittance), v_render_colors.to(torch.float64)
+                "chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_image).to(torch.float64)
             )
         return (
-            grads_t[..., 0:2], grads_t[..., 2:5], v_colors, grads_t[..., 5].sum(0), v_backgrounds, None, None, None, None,
-            None,
+            torch.from_numpy(np.ascontiguousarray(grads[..., 0:2])), torch.from_numpy(np.ascontiguousarray(grads[..., 2:5])),
+            torch.from_numpy(v_colors), torch.from_numpy(grads[..., 5].sum(0)), v_backgrounds, None, None, None, None, None,
         )
 
 
@@ -345,7 +352,7 @@ def rasterize(
     # from all paths are summed in float64 and rounded once, when autograd casts them back.
     dtype = colors.dtype
     means, quats, scales, opacities, colors, viewmats = (
-        t.to(torch.float64) for t in (means, quats, scales, opacities, colors, viewmats)
+        to_float64(t) for t in (means, quats, scales, opacities, colors, viewmats)
     )
     n_cams = viewmats.shape[0]
     proj = project_gaussians(

@@ -513,3 +513,27 @@ def test_interleaved_renders_keep_their_own_scratch_buffers():
     loss.backward()
     for name in ("means", "scales", "opacities", "colors"):
         assert torch.equal(twice_inputs[name].grad, 2 * alone_inputs[name].grad), name
+
+
+def test_a_loss_on_one_image_differentiates_like_zero_weight_on_the_other():
+    # Stage I's loss reads only the alphas and Stage II's photometric term could read only the colours: the image the
+    # loss ignores reaches the backward as nothing at all, which must equal an explicit zero weight on it.
+    scene = random_scene(200, seed=29, n_cams=2, width=48, height=40)
+
+    def grads(loss_of):
+        inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
+        colors, alphas, _ = rasterize(*[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"],
+                                      backgrounds=inputs["backgrounds"])
+        loss_of(colors, alphas).backward()
+        return {k: inputs[k].grad for k in PARAMS}
+
+    for alone, weighted in (
+        (lambda c, a: a.square().sum(), lambda c, a: a.square().sum() + 0.0 * c.sum()),
+        (lambda c, a: c.square().sum(), lambda c, a: c.square().sum() + 0.0 * a.sum()),
+    ):
+        got, want = grads(alone), grads(weighted)
+        for name in PARAMS:
+            if got[name] is None:
+                assert name == "backgrounds" and not want[name].any()
+            else:
+                assert torch.equal(got[name], want[name]), name
