@@ -14,7 +14,8 @@ On a CPU with native bfloat16 dot products (AVX512-BF16, AMX) the hidden layers'
 bfloat16 with float32 accumulation (torch autocast; weights, encoding and the linear head stay float32). They
 ran at 84 % of the FP32 peak, and bfloat16 halves them (2048 anchors, 6x128, forward+backward 11.2 -> 5.8 ms)
 at ~0.1 % relative error in the offsets (micrometres on a millimetre move). Training and
-export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did.
+export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did; a field rebuilt from
+its saved state keeps the precision it was trained in (`bf16` in the state), on any CPU.
 """
 
 from __future__ import annotations
@@ -179,6 +180,8 @@ class DeformationField(nn.Module):
         self.register_buffer("center", torch.tensor(c, dtype=torch.float32))
         self.register_buffer("radius", torch.tensor(r, dtype=torch.float32))
         self.mlp = DeformationMLP(3 + 6 * config.bands, config.depth, config.width)
+        # Hidden layers in bfloat16 (CPU only): decided once, so that a field evaluates the same way all its life.
+        self.bf16 = CPU_BF16_MATMUL
         if config.num_anchors is not None and config.num_anchors < len(pts):
             anchors = pts[farthest_point_indices(pts, config.num_anchors, seed)]
             idx, w = idw_weights(pts, anchors, config.anchor_k)
@@ -209,9 +212,9 @@ class DeformationField(nn.Module):
     def _mlp_at(self, x: torch.Tensor) -> torch.Tensor:
         xn = (x - self.center) / self.radius
         enc = positional_encoding(xn, self.config.bands)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=CPU_BF16_MATMUL and x.device.type == "cpu"):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16 and x.device.type == "cpu"):
             h = self.mlp.features(enc)
-        return self.mlp.head(h.float()) * self.radius
+        return self.mlp.head(h.to(enc.dtype)) * self.radius
 
     def forward(self) -> torch.Tensor:
         """Δμ [N, 3] at the canonical means."""
@@ -246,6 +249,7 @@ class DeformationField(nn.Module):
             "center": self.center.cpu(),
             "radius": self.radius.cpu(),
             "anchors": None if self.anchors is None else self.anchors.cpu(),
+            "bf16": self.bf16,
         }
 
 
@@ -257,6 +261,7 @@ def field_from_state(state: dict, means_canonical: np.ndarray) -> DeformationFie
         center=state["center"].numpy(), radius=float(state["radius"]),
     )
     field.config = config
+    field.bf16 = bool(state.get("bf16", False))
     field.mlp.load_state_dict(state["state_dict"])
     if state.get("anchors") is not None:
         anchors = state["anchors"].numpy().astype(np.float64)

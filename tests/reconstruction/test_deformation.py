@@ -160,11 +160,10 @@ def test_projection_can_keep_the_uniform_scaling():
     assert g.sim_basis.shape[1] == 6
 
 
-def test_bfloat16_hidden_layers_match_float32_and_export(monkeypatch):
+def test_bfloat16_hidden_layers_match_float32_and_export():
     """Where the CPU multiplies bfloat16 natively the hidden layers run in it: the offsets stay within a fraction of
-    a percent of float32, their gradients point the same way, and the export evaluates the same field as training."""
-    import reconstruction.deformation as deformation
-
+    a percent of float32, their gradients point the same way, and the export and a field rebuilt from its saved
+    state evaluate the same field as training."""
     torch.manual_seed(0)
     pts = sphere_points(3000)
     field = DeformationField(pts, FieldConfig(depth=6, width=128, bands=10, num_anchors=512))
@@ -172,7 +171,7 @@ def test_bfloat16_hidden_layers_match_float32_and_export(monkeypatch):
         torch.nn.init.normal_(p, std=0.05)
 
     def offsets_and_grads(bf16: bool):
-        monkeypatch.setattr(deformation, "CPU_BF16_MATMUL", bf16)
+        field.bf16 = bf16
         field.zero_grad(set_to_none=True)
         out = field()
         (out**2).sum().backward()
@@ -184,3 +183,6 @@ def test_bfloat16_hidden_layers_match_float32_and_export(monkeypatch):
     assert float(torch.nn.functional.cosine_similarity(fast_grad, exact_grad, 0)) > 0.999
     # The export blends the anchors' offsets as training does, with the same arithmetic.
     np.testing.assert_allclose(field.offsets_at(pts), fast.numpy(), rtol=1e-5, atol=1e-9)
+    rebuilt = field_from_state(field.export_state(), pts)
+    assert rebuilt.bf16
+    np.testing.assert_allclose(rebuilt().detach().numpy(), fast.numpy(), rtol=1e-4, atol=1e-8)
