@@ -48,7 +48,7 @@ def composite_parts(image: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tens
 def composite(image: torch.Tensor, mask: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     """image [C, H, W, 3] over `background` [C, 3] or [3] where mask [C, H, W] is 0."""
     inside, outside = composite_parts(image, mask)
-    return inside + background.reshape(-1, 1, 1, 3).to(image.dtype) * outside
+    return torch.addcmul(inside, background.reshape(-1, 1, 1, 3).to(image.dtype), outside)
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:

@@ -381,6 +381,7 @@ def train(
             state["stage2_start"] = _choose_stage2_start(model, opt, splats, views, c2w_init, photo_data, preset)
         if stage == "photo":
             target_fg, target_bg_weight = composite_parts(imgs, cov)
+            in_mask = cov > 0
         last: dict = {}
         it = state["it"]
         while it < cap:
@@ -412,8 +413,8 @@ def train(
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
                     _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
-                support = (alpha.detach()[..., 0] > 0) | (cov[sel] > 0)
-                target = target_fg[sel] + bg[:, None, None, :] * target_bg_weight[sel]
+                support = (alpha.detach()[..., 0] > 0) | in_mask[sel]
+                target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])
                 l_rgb = photometric_loss(rgb, target, preset.lambda_dssim, support=support,
                                          valid=on_photo)
                 l_mask = mask_l1(alpha, cov[sel], on_photo)

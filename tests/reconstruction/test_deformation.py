@@ -186,3 +186,20 @@ def test_bfloat16_hidden_layers_match_float32_and_export():
     rebuilt = field_from_state(field.export_state(), pts)
     assert rebuilt.bf16
     np.testing.assert_allclose(rebuilt().detach().numpy(), fast.numpy(), rtol=1e-4, atol=1e-8)
+
+
+def test_anchor_blend_and_its_gradient_match_the_gather():
+    from reconstruction.deformation import blend_anchors
+
+    g = torch.Generator().manual_seed(3)
+    rows = torch.randn(50, 3, generator=g, requires_grad=True)
+    idx = torch.randint(0, 50, (400, 4), generator=g)
+    w = torch.rand(400, 4, generator=g)
+    w = w / w.sum(1, keepdim=True)
+    upstream = torch.randn(400, 3, generator=g)
+    out = blend_anchors(rows, idx, w)
+    (grad,) = torch.autograd.grad(out, rows, upstream)
+    ref = torch.einsum("nk,nkd->nd", w.double(), rows.double()[idx])
+    (ref_grad,) = torch.autograd.grad(ref, rows, upstream.double())
+    torch.testing.assert_close(out.double(), ref, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(grad.double(), ref_grad.double(), rtol=1e-5, atol=1e-5)
