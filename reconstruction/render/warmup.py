@@ -1,10 +1,11 @@
-"""Compile the rasterizer's and the SSIM loss's numba kernels once, at install time: `python -m reconstruction.render.warmup`.
+"""Compile the training loop's numba kernels once, at install time: `python -m reconstruction.render.warmup`.
 
 The kernels are cached on disk (`cache=True`) per argument type, so the first reconstruction of a
 fresh clone would otherwise spend ~20 s compiling. Rendering a few splats through the public
 `rasterize` in every mode training and rendering use (alpha only; SH degrees 0-3 over a background;
-with and without gradients), and SSIM (the loss in float32 with gradients, the metric in float64), compiles exactly the
-specialisations a run will ask for.
+with and without gradients), SSIM (the loss in float32 with gradients, the metric in float64), the photo-consistency
+term and the deformation field's anchor blend (float32, with gradients) compiles exactly the specialisations a run
+will ask for.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import time
 
 import torch
 
+from reconstruction.deformation import blend_anchors
+from reconstruction.photo_consistency import consistency_loss, sample_colors
 from reconstruction.render.rasterization import rasterize
 from reconstruction.ssim import ssim_map
 
@@ -44,11 +47,16 @@ def compile_kernels() -> float:
     image = torch.rand(2, h, w, 3, generator=gen).requires_grad_(True)
     ssim_map(image, torch.rand(2, h, w, 3, generator=gen)).sum().backward()
     ssim_map(image.detach().double(), image.detach().double())  # the evaluation metric's float64 map
+    points = means.clone().requires_grad_(True)
+    colors = sample_colors(image.detach(), points, viewmats.clone().requires_grad_(True), ks)
+    consistency_loss(colors, torch.ones(2, n)).backward()
+    anchors = torch.rand(8, 3, generator=gen).requires_grad_(True)
+    blend_anchors(anchors, torch.randint(0, 8, (n, 4), generator=gen), torch.full((n, 4), 0.25)).sum().backward()
     return time.perf_counter() - t0
 
 
 def main() -> None:
-    print(f"rasterizer and SSIM kernels compiled and cached in {compile_kernels():.1f} s")
+    print(f"rasterizer, loss and deformation kernels compiled and cached in {compile_kernels():.1f} s")
 
 
 if __name__ == "__main__":

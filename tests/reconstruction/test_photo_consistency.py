@@ -34,14 +34,14 @@ def cameras() -> np.ndarray:
 
 
 def test_samples_at_pixel_centres_are_the_pixels():
-    img = torch.rand(1, 3, H, W)
+    img = torch.rand(1, H, W, 3)
     c2w = np.eye(4)
     # Points at depth 1 projecting exactly onto pixel centres (u, v) = (10.5, 20.5) and (50.5, 3.5).
     uv = np.array([[10.5, 20.5], [50.5, 3.5]])
     pts = np.concatenate([(uv - K[:2, 2]) / F, np.ones((2, 1))], 1)
     out = sample_colors(img, torch.tensor(pts, dtype=torch.float32), torch.tensor(np.linalg.inv(c2w), dtype=torch.float32)[None],
                         torch.tensor(K, dtype=torch.float32)[None])
-    np.testing.assert_allclose(out[0].numpy(), img[0, :, [20, 3], [10, 50]].T.numpy(), atol=1e-6)
+    np.testing.assert_allclose(out[0].numpy(), img[0, [20, 3], [10, 50]].numpy(), atol=1e-6)
 
 
 def test_spread_is_zero_when_views_agree_and_ignores_points_seen_once():
@@ -102,3 +102,29 @@ def test_fused_spread_equals_the_formula_and_its_gradient():
     assert torch.allclose(fused, ref, rtol=1e-12, atol=0)
     assert torch.allclose(g_fused, g_ref, rtol=1e-9, atol=1e-18)
     assert float(consistency_loss(colors[:, :50], weights[:, :50]).detach()) == 0.0
+
+
+def test_fused_sampler_equals_grid_sample_and_its_gradients():
+    # The CPU kernel against the torch form (projection, grid_sample), which the images requiring grad select:
+    # samples inside, on the border and off the image, for the points and the poses.
+    gen = torch.Generator().manual_seed(5)
+    images = torch.rand(3, H, W, 3, generator=gen, dtype=torch.float64)
+    c2w = cameras()
+    viewmats = torch.tensor(np.linalg.inv(c2w), requires_grad=True)
+    ks = torch.tensor(np.stack([K] * 3))
+
+    def run(imgs, pts):
+        pts = pts.clone().requires_grad_(True)
+        out = sample_colors(imgs, pts, viewmats, ks)
+        upstream = torch.randn(out.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+        return (out, *torch.autograd.grad(out, (pts, viewmats), upstream))
+
+    pts = torch.cat([torch.rand(500, 3, generator=gen, dtype=torch.float64) * 0.3 - 0.15,
+                     torch.tensor([[5.0, 0.0, 0.0], [0.0, -4.0, 0.1]], dtype=torch.float64)])
+    for got, want in zip(run(images, pts), run(images.clone().requires_grad_(True), pts)):
+        torch.testing.assert_close(got, want, rtol=1e-7, atol=1e-9)
+    # Behind the cameras: the border's colour, and no gradient (torch's form divides by the clamped depth there).
+    behind = torch.tensor([[0.0, 0.0, 0.6]], dtype=torch.float64)
+    out, v_points, v_viewmats = run(images, behind)
+    torch.testing.assert_close(out, run(images.clone().requires_grad_(True), behind)[0])
+    assert not v_points.any() and not v_viewmats.any()
