@@ -204,7 +204,7 @@ class _AnchorBlend(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor):
         idx, w = ctx.saved_tensors
         out = np.empty((ctx.num_rows, grad.shape[1]), np.float32)
-        _scatter_rows(idx.numpy(), w.numpy(), grad.to(torch.float32).contiguous().numpy(), out)
+        _scatter_rows(idx.numpy(), w.numpy(), grad.contiguous().numpy(), out)
         return torch.from_numpy(out), None, None
 
 

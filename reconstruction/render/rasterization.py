@@ -223,10 +223,9 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.pairs = None
         depth = ctx.slot_c.shape[1]
         n_cols = N_GRAD_GEOMETRY + depth
-        image_dtype = ctx.out_dtype
-        v_image = (np.zeros((n_cams, height, width, depth), image_dtype) if v_render_colors is None
+        v_image = (np.zeros((n_cams, height, width, depth), ctx.out_dtype) if v_render_colors is None
                    else to_numpy(v_render_colors))
-        v_alphas = (np.zeros((n_cams, height, width), image_dtype) if v_render_alphas is None
+        v_alphas = (np.zeros((n_cams, height, width), ctx.out_dtype) if v_render_alphas is None
                     else to_numpy(v_render_alphas[..., 0]))
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         parallel_for(
