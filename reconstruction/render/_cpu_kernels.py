@@ -162,19 +162,61 @@ def _covariance2d(cov_cam, j00, j02, j11, j12, eps2d):
     return s00, s01, s11
 
 
+@njit(inline="always", **_OPTS)
+def _tile_shift(tile_size: int) -> int:
+    """log2(tile_size) for a power of two, else -1: pixel // tile_size as a shift, not a 40-cycle integer division."""
+    return int(math.log2(tile_size)) if tile_size > 0 and tile_size & (tile_size - 1) == 0 else -1
+
+
+@njit(inline="always", **_OPTS)
+def _tile_of(px: int, tile_size: int, shift: int) -> int:
+    """Tile index of pixel px >= 0 (shift from `_tile_shift`)."""
+    return px >> shift if shift >= 0 else px // tile_size
+
+
+@njit(inline="always", **_OPTS)
+def _pixel_rect(u, v, a, b, cc, two_log, width, height):
+    """Inclusive pixel range (u_lo, u_hi, v_lo, v_hi) of the centres inside the bounding box of the alpha >= 1/255
+    ellipse sigma <= ln(255 opacity) of a splat at (u, v) with conic (a, b, cc), clipped to the image; two_log is
+    2 ln(255 opacity). Empty when u_lo > u_hi or v_lo > v_hi.
+
+    The ellipse spans |dx| <= sqrt(2 ln(255 opacity) cov2d_xx) (likewise y): the extent gsplat's radius rounds up, so
+    the rect holds every pixel the radius box holds that could be shaded, and for small splats about half of them.
+    A pixel u belongs when its centre u + 0.5 is inside.
+    """
+    two_log_over_det = two_log / (a * cc - b * b)
+    ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+    ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+    # Clip in float first so that huge extents cannot overflow the integer conversion.
+    u_lo = math.ceil(max(u - ext_x - 0.5, -1.0))
+    u_hi = math.floor(min(u + ext_x - 0.5, 1.0 * width))
+    v_lo = math.ceil(max(v - ext_y - 0.5, -1.0))
+    v_hi = math.floor(min(v + ext_y - 0.5, 1.0 * height))
+    return max(0, u_lo), min(width - 1, u_hi), max(0, v_lo), min(height - 1, v_hi)
+
+
 @njit(fastmath=_FUSED, **_OPTS)
 def project_forward(
     chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far,
-    eps2d, means2d, conics, depths, radii,
+    eps2d, tile_size, means2d, conics, depths, radii, two_logs, rects, tile_counts, hist,
 ) -> None:
     """Projects N Gaussians into C cameras; culled entries keep the zeros they were allocated with.
 
     Inputs: means [N, 3], quats [N, 4] (wxyz, any norm), scales [N, 3], opacities [N], active [N] bool,
     viewmats [C, 4, 4], Ks [C, 3, 3]. Outputs: means2d [C, N, 2] f64, conics [C, N, 3] f64,
     depths [C, N] f64, radii [C, N, 2] int32.
+
+    With tile_size > 0 it also lays out the binning's first pass while each splat is in registers:
+    two_logs [N] = 2 ln(255 opacity) of the drawn Gaussians, each visible pair's pixel rect rects [C * N, 4] and
+    tile count tile_counts [C * N] (zero-initialised; zero for culled pairs and rects without a pixel centre), and
+    hist [n_chunks, C * tiles_per_cam] (zero-initialised), the slots of chunk's pairs per tile: a counting
+    sort's histogram. Chunks are fixed ranges of Gaussians, all cameras each.
     """
     n = means.shape[0]
     n_cams = viewmats.shape[0]
+    tiles_x = -(-width // tile_size) if tile_size > 0 else 0
+    tiles_per_cam = tiles_x * (-(-height // tile_size)) if tile_size > 0 else 0
+    shift = _tile_shift(tile_size)
     rot = np.empty((3, 3))
     factor = np.empty((3, 3))
     cov = np.empty((3, 3))
@@ -191,7 +233,10 @@ def project_forward(
             _rotation_and_factor(quats[g], scales[g], rot, factor)
             _covariance(factor, cov)
             # gsplat 1.5.3's opacity-aware box: alpha >= 1/255 needs sigma <= ln(255 opacity).
-            extent = math.sqrt(2.0 * math.log(opacity / ALPHA_THRESHOLD))
+            two_log = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
+            extent = math.sqrt(two_log)
+            if tile_size > 0:
+                two_logs[g] = two_log
             for c in range(n_cams):
                 mx, my, mz = _to_camera(viewmats[c], means[g], cov, tmp, cov_cam)
                 if not (mz > near and mz < far):
@@ -213,14 +258,34 @@ def project_forward(
                 v = fy * my / mz + cy
                 if u + rx <= 0.0 or u - rx >= width or v + ry <= 0.0 or v - ry >= height:
                     continue
+                a = s11 / det
+                b = -s01 / det
+                cc = s00 / det
                 means2d[c, g, 0] = u
                 means2d[c, g, 1] = v
-                conics[c, g, 0] = s11 / det
-                conics[c, g, 1] = -s01 / det
-                conics[c, g, 2] = s00 / det
+                conics[c, g, 0] = a
+                conics[c, g, 1] = b
+                conics[c, g, 2] = cc
                 depths[c, g] = mz
                 radii[c, g, 0] = rx
                 radii[c, g, 1] = ry
+                if tile_size == 0:
+                    continue
+                u_lo, u_hi, v_lo, v_hi = _pixel_rect(u, v, a, b, cc, two_log, width, height)
+                if u_lo > u_hi or v_lo > v_hi:
+                    continue
+                cg = c * n + g
+                rects[cg, 0] = u_lo
+                rects[cg, 1] = u_hi
+                rects[cg, 2] = v_lo
+                rects[cg, 3] = v_hi
+                tx0, tx1 = _tile_of(u_lo, tile_size, shift), _tile_of(u_hi, tile_size, shift)
+                ty0, ty1 = _tile_of(v_lo, tile_size, shift), _tile_of(v_hi, tile_size, shift)
+                tile_counts[cg] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+                base = c * tiles_per_cam
+                for ty in range(ty0, ty1 + 1):
+                    for tx in range(tx0, tx1 + 1):
+                        hist[chunk, base + ty * tiles_x + tx] += 1
 
 
 @njit(fastmath=_FUSED, **_OPTS)
@@ -378,82 +443,32 @@ def project_backward(
 
 
 @njit(**_OPTS)
-def pixel_rects(lo, hi, means2d, conics, two_logs, radii, width, height, tile_size, rects, tile_counts) -> None:
-    """Pixel range of each visible Gaussian's alpha >= 1/255 ellipse and the number of tiles it touches.
-
-    The ellipse sigma <= ln(255 opacity) spans |dx| <= sqrt(2 ln(255 opacity) cov2d_xx) (likewise y);
-    that is the extent gsplat's radius rounds up, so these rects hold every pixel the radius box
-    holds that could be shaded, and for small splats cover about half the pixels. A pixel u belongs
-    when its centre u + 0.5 is inside. two_logs [N] is 2 ln(255 opacity). Writes rects [C * N, 4]
-    (u_lo, u_hi, v_lo, v_hi, clipped to the image) and tile_counts [C * N] (zero for culled Gaussians
-    and rects without a pixel centre).
-    """
-    n = radii.shape[1]
-    for cg in range(lo, hi):
-        c = cg // n
-        g = cg - c * n
-        tile_counts[cg] = 0
-        if radii[c, g, 0] <= 0:
-            continue
-        a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
-        two_log_over_det = two_logs[g] / (a * cc - b * b)
-        ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
-        ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
-        # Clip in float first so that huge extents cannot overflow the integer conversion.
-        u_lo = math.ceil(max(means2d[c, g, 0] - ext_x - 0.5, -1.0))
-        u_hi = math.floor(min(means2d[c, g, 0] + ext_x - 0.5, 1.0 * width))
-        v_lo = math.ceil(max(means2d[c, g, 1] - ext_y - 0.5, -1.0))
-        v_hi = math.floor(min(means2d[c, g, 1] + ext_y - 0.5, 1.0 * height))
-        u_lo, u_hi = max(0, u_lo), min(width - 1, u_hi)
-        v_lo, v_hi = max(0, v_lo), min(height - 1, v_hi)
-        if u_lo > u_hi or v_lo > v_hi:
-            continue
-        rects[cg, 0] = u_lo
-        rects[cg, 1] = u_hi
-        rects[cg, 2] = v_lo
-        rects[cg, 3] = v_hi
-        tile_counts[cg] = (u_hi // tile_size - u_lo // tile_size + 1) * (v_hi // tile_size - v_lo // tile_size + 1)
-
-
-@njit(inline="always", **_OPTS)
-def _slot_tile(rect, s, tile_size, tiles_x) -> int:
-    """Camera-local tile id of the s-th tile (row-major) of a pixel rect's tile rectangle."""
-    tx0 = rect[0] // tile_size
-    tiles_w = rect[1] // tile_size - tx0 + 1
-    row = s // tiles_w
-    return (rect[2] // tile_size + row) * tiles_x + tx0 + s - row * tiles_w
-
-
-@njit(**_OPTS)
-def tile_histogram(chunk_lo, chunk_hi, n_chunks, rects, tile_counts, n, tile_size, tiles_x, tiles_per_cam, hist) -> None:
-    """hist[chunk, t] = number of slots of chunk's (camera, Gaussian) pairs in tile t (a counting sort's
-    first pass); chunks are fixed ranges of c * N + g."""
-    for chunk in range(chunk_lo, chunk_hi):
-        lo, hi = _chunk_bounds(chunk, n_chunks, tile_counts.shape[0])
-        for cg in range(lo, hi):
-            base = (cg // n) * tiles_per_cam
-            for s in range(tile_counts[cg]):
-                hist[chunk, base + _slot_tile(rects[cg], s, tile_size, tiles_x)] += 1
-
-
-@njit(**_OPTS)
 def scatter_tile_keys(
     chunk_lo, chunk_hi, n_chunks, rects, tile_counts, n, depth_bits, tile_size, tiles_x, tiles_per_cam, cursor, keys,
 ) -> None:
     """Writes each slot's key (float32 depth bits << 32 | g) at its chunk's cursor for its tile.
 
-    cursor [n_chunks, n_tiles] starts at each chunk's first position inside each tile's segment, so
-    chunks scatter without atomics and a tile's keys arrive in chunk order.
+    Chunks are those of `project_forward`'s histogram (fixed ranges of Gaussians, all cameras each). cursor
+    [n_chunks, n_tiles] starts at each chunk's first position inside each tile's segment, so chunks scatter without
+    atomics and a tile's keys (all of one camera) arrive in increasing Gaussian index.
     """
+    n_cams = tile_counts.shape[0] // n
+    shift = _tile_shift(tile_size)
     for chunk in range(chunk_lo, chunk_hi):
-        lo, hi = _chunk_bounds(chunk, n_chunks, tile_counts.shape[0])
-        for cg in range(lo, hi):
-            c = cg // n
-            key = (depth_bits[cg] << 32) | (cg - c * n)
-            for s in range(tile_counts[cg]):
-                t = c * tiles_per_cam + _slot_tile(rects[cg], s, tile_size, tiles_x)
-                keys[cursor[chunk, t]] = key
-                cursor[chunk, t] += 1
+        lo, hi = _chunk_bounds(chunk, n_chunks, n)
+        for g in range(lo, hi):
+            for c in range(n_cams):
+                cg = c * n + g
+                if tile_counts[cg] == 0:
+                    continue
+                key = (depth_bits[cg] << 32) | g
+                base = c * tiles_per_cam
+                tx0, tx1 = _tile_of(rects[cg, 0], tile_size, shift), _tile_of(rects[cg, 1], tile_size, shift)
+                for ty in range(_tile_of(rects[cg, 2], tile_size, shift), _tile_of(rects[cg, 3], tile_size, shift) + 1):
+                    for tx in range(tx0, tx1 + 1):
+                        t = base + ty * tiles_x + tx
+                        keys[cursor[chunk, t]] = key
+                        cursor[chunk, t] += 1
 
 
 # Below this many keys a tile's keys are insertion-sorted; above, radix-sorted by their depth bits.
@@ -491,77 +506,79 @@ def _sort_by_depth_bits(segment, tmp, counts) -> None:
         segment[:] = src
 
 
-@njit(**_OPTS)
-def sort_tile_keys(lo, hi, offsets, keys, depths, n, tiles_per_cam, out) -> None:
-    """Sorts each tile's keys by depth, then Gaussian index, and writes out[k] = c * N + g.
+@njit(inline="always", **_OPTS)
+def _sort_tile(segment, depths, cam_base, tmp, counts) -> None:
+    """Sorts one tile's keys (float32 depth bits << 32 | g, all of one camera) by depth, then Gaussian index.
 
-    Keys are float32 depth bits << 32 | g (depths are positive, so the bits order like the values). They
-    arrive in index order (`scatter_tile_keys` writes a tile's keys in increasing c * N + g), so a stable
-    sort by the depth bits alone leaves equal depths in index order: the order of sorting the whole int64
-    keys, in a few radix passes instead of a comparison sort (4.8 -> 0.7 ms for the `cpu` preset's Stage-II
-    batch). Runs whose float32 depths tie are then re-sorted by the float64 depths [C * N], since float32
-    rounding merges depths that differ and the order of overlapping splats changes the image. Tiles
-    lo..hi-1 own keys[offsets[t]:offsets[t + 1]].
+    Depths are positive, so the bits order like the values. The keys arrive in index order
+    (`scatter_tile_keys`), so a stable sort by the depth bits alone leaves equal depths in index order: the
+    order of sorting the whole int64 keys, in a few radix passes instead of a comparison sort (4.8 -> 0.7 ms for
+    the `cpu` preset's Stage-II batch). Runs whose float32 depths tie are then re-sorted by the float64 depths
+    [C * N] (the camera's start at cam_base), since float32 rounding merges depths that differ and the order of
+    overlapping splats changes the image. tmp and counts are `_sort_by_depth_bits`'s scratch.
     """
-    longest = 0
-    for t in range(lo, hi):
-        longest = max(longest, offsets[t + 1] - offsets[t])
-    tmp = np.empty(longest, np.int64)
-    counts = np.empty(256, np.int64)
-    for t in range(lo, hi):
-        segment = keys[offsets[t] : offsets[t + 1]]
-        if segment.shape[0] >= _RADIX_MIN_KEYS:
-            _sort_by_depth_bits(segment, tmp, counts)
-        else:
-            for i in range(1, segment.shape[0]):
-                key = segment[i]
-                m = i
-                while m > 0 and segment[m - 1] > key:
-                    segment[m] = segment[m - 1]
-                    m -= 1
-                segment[m] = key
-        cam_base = (t // tiles_per_cam) * n
-        run = 0
-        for k in range(1, segment.shape[0] + 1):
-            if k < segment.shape[0] and segment[k] >> 32 == segment[run] >> 32:
-                continue
-            # Stable insertion sort of the run segment[run:k] (already in index order) by float64 depth.
-            for i in range(run + 1, k):
-                key = segment[i]
-                depth = depths[cam_base + (key & _KEY_INDEX_MASK)]
-                m = i
-                while m > run and depths[cam_base + (segment[m - 1] & _KEY_INDEX_MASK)] > depth:
-                    segment[m] = segment[m - 1]
-                    m -= 1
-                segment[m] = key
-            run = k
-        for k in range(segment.shape[0]):
-            out[offsets[t] + k] = cam_base + (segment[k] & _KEY_INDEX_MASK)
+    if segment.shape[0] >= _RADIX_MIN_KEYS:
+        _sort_by_depth_bits(segment, tmp, counts)
+    else:
+        for i in range(1, segment.shape[0]):
+            key = segment[i]
+            m = i
+            while m > 0 and segment[m - 1] > key:
+                segment[m] = segment[m - 1]
+                m -= 1
+            segment[m] = key
+    run = 0
+    for k in range(1, segment.shape[0] + 1):
+        if k < segment.shape[0] and segment[k] >> 32 == segment[run] >> 32:
+            continue
+        # Stable insertion sort of the run segment[run:k] (already in index order) by float64 depth.
+        for i in range(run + 1, k):
+            key = segment[i]
+            depth = depths[cam_base + (key & _KEY_INDEX_MASK)]
+            m = i
+            while m > run and depths[cam_base + (segment[m - 1] & _KEY_INDEX_MASK)] > depth:
+                segment[m] = segment[m - 1]
+                m -= 1
+            segment[m] = key
+        run = k
 
 
 @njit(**_OPTS)
-def slot_records(
-    lo, hi, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam, means2d, conics, opacities,
-    two_logs, slot_f, slot_i, slot_at, slot_areas,
+def tile_slots(
+    lo, hi, tile_offsets, keys, depths, n, tile_size, tiles_x, tiles_per_cam, rects, slot_offsets, means2d, conics,
+    opacities, two_logs, colors, ids, slot_f, slot_i, slot_c, slot_at, slot_areas,
 ) -> None:
-    """Float (SF_*) and int (SI_*) records of every slot k, in tile order, slot_at[s] = k and the pixel
-    count slot_areas[k] of the slot's rect.
+    """Sorts tiles lo..hi-1 front to back (`_sort_tile`) and fills their slots' records.
 
-    Tiles lo..hi-1 are filled. Compositing then reads a tile's splats front to back from consecutive
-    rows instead of gathering them from the whole model, where it would wait on cache misses.
+    Tile t owns keys[tile_offsets[t]:tile_offsets[t + 1]] and the slots k of that range. Per slot k of pair
+    cg = c * N + g: ids[k] = cg, the float (SF_*) and int (SI_*) records, its colour row slot_c[k] = colors[c, g]
+    (colors [C, N, D], or [1, N, D] shared by the cameras), the pixel count slot_areas[k] of the slot's rect, and
+    slot_at[s] = k. Compositing then reads a tile's splats front to back from consecutive rows instead of
+    gathering them from the whole model, where it would wait on cache misses.
     s = slot_offsets[cg] + (the tile's row-major place in the pair's tile rectangle) numbers the slots
     pair-major, so that per-pair sums over slots read slot_at[slot_offsets[cg]:slot_offsets[cg + 1]].
     """
+    longest = 0
     for t in range(lo, hi):
-        local = t % tiles_per_cam
+        longest = max(longest, tile_offsets[t + 1] - tile_offsets[t])
+    tmp = np.empty(longest, np.int64)
+    counts = np.empty(256, np.int64)
+    shared = colors.shape[0] == 1
+    shift = _tile_shift(tile_size)
+    for t in range(lo, hi):
+        c = t // tiles_per_cam
+        cam_base = c * n
+        _sort_tile(keys[tile_offsets[t] : tile_offsets[t + 1]], depths, cam_base, tmp, counts)
+        local = t - c * tiles_per_cam
         ty = local // tiles_x
         tx = local - ty * tiles_x
         x0 = tx * tile_size
         y0 = ty * tile_size
+        color_cam = 0 if shared else c
         for k in range(tile_offsets[t], tile_offsets[t + 1]):
-            cg = ids[k]
-            c = cg // n
-            g = cg - c * n
+            g = keys[k] & _KEY_INDEX_MASK
+            cg = cam_base + g
+            ids[k] = cg
             slot_f[k, SF_MX] = means2d[c, g, 0]
             slot_f[k, SF_MY] = means2d[c, g, 1]
             slot_f[k, SF_A] = conics[c, g, 0]
@@ -569,27 +586,17 @@ def slot_records(
             slot_f[k, SF_C] = conics[c, g, 2]
             slot_f[k, SF_OPACITY] = opacities[g]
             slot_f[k, SF_LIMIT] = 0.5 * two_logs[g] + _SIGMA_MARGIN
+            for d in range(colors.shape[2]):
+                slot_c[k, d] = colors[color_cam, g, d]
             u_lo, u_hi, v_lo, v_hi = rects[cg, 0], rects[cg, 1], rects[cg, 2], rects[cg, 3]
             slot_i[k, SI_U_LO] = max(u_lo, x0)
             slot_i[k, SI_U_HI] = min(u_hi, x0 + tile_size - 1)
             slot_i[k, SI_V_LO] = max(v_lo, y0)
             slot_i[k, SI_V_HI] = min(v_hi, y0 + tile_size - 1)
             slot_areas[k] = (slot_i[k, SI_U_HI] - slot_i[k, SI_U_LO] + 1) * (slot_i[k, SI_V_HI] - slot_i[k, SI_V_LO] + 1)
-            tx0 = u_lo // tile_size
-            tiles_w = u_hi // tile_size - tx0 + 1
-            slot_at[slot_offsets[cg] + (ty - v_lo // tile_size) * tiles_w + tx - tx0] = k
-
-
-@njit(**_OPTS)
-def gather_rows(lo, hi, ids, n, values, out) -> None:
-    """out[k] = values[c, g] for slot k of pair ids[k] = c * N + g; values [C, N, D], or [1, N, D] shared
-    by all cameras; out [n_isect, D]."""
-    shared = values.shape[0] == 1
-    for k in range(lo, hi):
-        c = ids[k] // n
-        g = ids[k] - c * n
-        for d in range(values.shape[2]):
-            out[k, d] = values[0 if shared else c, g, d]
+            tx0 = _tile_of(u_lo, tile_size, shift)
+            tiles_w = _tile_of(u_hi, tile_size, shift) - tx0 + 1
+            slot_at[slot_offsets[cg] + (ty - _tile_of(v_lo, tile_size, shift)) * tiles_w + tx - tx0] = k
 
 
 @njit(**_OPTS)

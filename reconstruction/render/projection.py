@@ -16,7 +16,18 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
-from reconstruction.parallel import parallel_for
+from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
+
+
+class TileFootprints(NamedTuple):
+    """Where each visible (camera, Gaussian) pair lands on a grid of square tiles: the binning's first pass, which the
+    projection kernel does while each splat is in registers (see `_cpu_kernels.project_forward`)."""
+
+    tile_size: int
+    two_logs: np.ndarray  # [N] float64, 2 ln(255 opacity) of the drawn Gaussians
+    rects: np.ndarray  # [C * N, 4] int32, pixel rect (u_lo, u_hi, v_lo, v_hi) of the alpha >= 1/255 ellipse
+    tile_counts: np.ndarray  # [C * N] int64, tiles each pair's rect touches (0: culled)
+    hist: np.ndarray  # [n_chunks, C * tiles_per_cam] int64, slots per tile of each chunk of Gaussians
 
 
 class Projection(NamedTuple):
@@ -26,6 +37,7 @@ class Projection(NamedTuple):
     conics: Tensor  # [C, N, 3] float64, inverse 2D covariance (a, b, c) = [[a, b], [b, c]]
     depths: Tensor  # [C, N] float64, camera-frame z
     radii: Tensor  # [C, N, 2] int32, opacity-aware half extents of the screen box in x and y
+    footprints: TileFootprints | None = None  # with a tile size asked for
 
 
 def to_numpy(tensor: Tensor) -> np.ndarray:
@@ -34,43 +46,60 @@ def to_numpy(tensor: Tensor) -> np.ndarray:
 
 
 class _Float64(torch.autograd.Function):
-    """float32 -> float64 cast whose gradient comes back in float32, both in numpy.
+    """float32 -> float64 casts whose gradients come back in float32, all in numpy, as one graph node.
 
     The same roundings as `Tensor.to`, but on the calling thread: torch's copy kernel wakes its sleeping OpenMP workers
-    for a few ten thousand elements, which cost ~55 us a cast against ~10 us for the copy itself.
+    for a few ten thousand elements, which cost ~55 us a cast against ~10 us for the copy itself; one node for all the
+    rasterizer's inputs also saves autograd ~20 us per input each way.
     """
 
     @staticmethod
-    def forward(ctx, tensor: Tensor) -> Tensor:
-        return torch.from_numpy(tensor.detach().numpy().astype(np.float64))
+    def forward(ctx, *tensors: Tensor) -> tuple[Tensor, ...]:
+        outs = tuple(torch.from_numpy(t.detach().numpy().astype(np.float64)) for t in tensors)
+        ctx.mark_non_differentiable(*(o for o, t in zip(outs, tensors) if not t.requires_grad))
+        ctx.set_materialize_grads(False)
+        return outs
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad: Tensor) -> Tensor:
-        return torch.from_numpy(grad.detach().numpy().astype(np.float32))
+    def backward(ctx, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
+        return tuple(None if g is None else torch.from_numpy(g.detach().numpy().astype(np.float32)) for g in grads)
 
 
-def to_float64(tensor: Tensor) -> Tensor:
-    """`tensor` as float64, differentiably (CPU float32 through numpy, anything else through `Tensor.to`)."""
-    if tensor.dtype == torch.float32 and tensor.device.type == "cpu":
-        return _Float64.apply(tensor)
-    return tensor.to(torch.float64)
+def to_float64(*tensors: Tensor) -> tuple[Tensor, ...]:
+    """`tensors` as float64, differentiably: CPU float32 ones through numpy in one graph node, float64 ones as they
+    are, anything else through `Tensor.to`."""
+    cast = [i for i, t in enumerate(tensors) if t.dtype == torch.float32 and t.device.type == "cpu"]
+    out = [None if i in cast else t.to(torch.float64) for i, t in enumerate(tensors)]
+    for i, t in zip(cast, _Float64.apply(*(tensors[i] for i in cast)) if cast else ()):
+        out[i] = t
+    return tuple(out)
 
 
 class _ProjectGaussians(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmats, opacities, Ks, active, width, height, near, far, eps2d):
+    def forward(ctx, means, quats, scales, viewmats, opacities, Ks, active, width, height, near, far, eps2d, tile_size):
         n_cams, n = viewmats.shape[0], means.shape[0]
         means2d = np.zeros((n_cams, n, 2))
         conics = np.zeros((n_cams, n, 3))
         depths = np.zeros((n_cams, n))
         radii = np.zeros((n_cams, n, 2), np.int32)
-        n_chunks = max(1, min(kernels.GAUSSIAN_CHUNKS, n))
+        # No sums run across Gaussians here, so the chunks follow the threads (they are the histogram's rows).
+        n_chunks = max(1, min(num_threads() * PARTS_PER_THREAD, n))
+        footprints = None
+        if tile_size:
+            tiles = n_cams * -(-width // tile_size) * -(-height // tile_size)
+            footprints = TileFootprints(
+                tile_size, np.empty(n), np.empty((n_cams * n, 4), np.int32), np.zeros(n_cams * n, np.int64),
+                np.zeros((n_chunks, tiles), np.int64),
+            )
         parallel_for(
             kernels.project_forward, n_chunks, n_chunks,
             to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(opacities), to_numpy(active),
-            to_numpy(viewmats), to_numpy(Ks), width, height, near, far, eps2d,
+            to_numpy(viewmats), to_numpy(Ks), width, height, near, far, eps2d, tile_size or 0,
             means2d, conics, depths, radii,
+            *(footprints[1:] if footprints else (np.empty(0), np.empty((0, 4), np.int32), np.empty(0, np.int64),
+                                                 np.empty((n_chunks, 0), np.int64))),
         )
         means2d_t, conics_t = torch.from_numpy(means2d), torch.from_numpy(conics)
         depths_t, radii_t = torch.from_numpy(depths), torch.from_numpy(radii)
@@ -78,11 +107,11 @@ class _ProjectGaussians(torch.autograd.Function):
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, conics_t, radii_t)
         ctx.image_size = (width, height)
-        return means2d_t, conics_t, depths_t, radii_t
+        return means2d_t, conics_t, depths_t, radii_t, footprints
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii):
+    def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, _v_footprints):
         means, quats, scales, viewmats, Ks, conics, radii = ctx.saved_tensors
         n, n_cams = means.shape[0], viewmats.shape[0]
         v_means2d = np.zeros((n_cams, n, 2)) if v_means2d is None else to_numpy(v_means2d)
@@ -105,7 +134,7 @@ class _ProjectGaussians(torch.autograd.Function):
             v_viewmats[:, :3, :] = torch.from_numpy(v_view_chunks.sum(axis=0))
         return (
             torch.from_numpy(v_means), torch.from_numpy(v_quats), torch.from_numpy(v_scales), v_viewmats,
-            *(None,) * 8,
+            *(None,) * 9,
         )
 
 
@@ -123,6 +152,7 @@ def project_gaussians(
     far_plane: float = 1e10,
     eps2d: float = 0.3,
     active: Tensor | None = None,
+    tile_size: int | None = None,
 ) -> Projection:
     """Projects Gaussians into pinhole cameras, as gsplat's `fully_fused_projection` (unpacked).
 
@@ -142,6 +172,7 @@ def project_gaussians(
         width, height: image size in pixels.
         near_plane, far_plane, eps2d: as in gsplat.
         active: optional [N] bool; inactive Gaussians are culled without copying anything.
+        tile_size: with a tile edge in pixels, also the `TileFootprints` the rasterizer's binning starts from.
 
     Returns:
         `Projection` (float64); means2d and conics carry gradients to means, quats, scales and viewmats.
@@ -152,7 +183,7 @@ def project_gaussians(
         active = torch.ones(means.shape[0], dtype=torch.bool)
     return Projection(
         *_ProjectGaussians.apply(
-            *(to_float64(t) for t in (means, quats, scales, viewmats, opacities, Ks)),
-            active, int(width), int(height), float(near_plane), float(far_plane), float(eps2d),
+            *to_float64(means, quats, scales, viewmats, opacities, Ks),
+            active, int(width), int(height), float(near_plane), float(far_plane), float(eps2d), int(tile_size or 0),
         )
     )

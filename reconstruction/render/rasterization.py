@@ -15,7 +15,7 @@ from torch.autograd.function import once_differentiable
 
 from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
-from reconstruction.render.projection import project_gaussians, to_float64, to_numpy
+from reconstruction.render.projection import Projection, project_gaussians, to_float64, to_numpy
 from reconstruction.render.scratch import ScratchPool
 from reconstruction.render.sh import eval_sh, num_sh_bases
 
@@ -40,6 +40,7 @@ class TileBins:
     ids: np.ndarray  # [n_isect] int64 pair c * N + g of each slot, depth-sorted within each tile
     slot_f: np.ndarray  # [n_isect, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
     slot_i: np.ndarray  # [n_isect, SI_COLUMNS] int32 records (pixel rect within the tile)
+    slot_c: np.ndarray  # [n_isect, D] float64 colour of each slot's Gaussian in its camera
     slot_offsets: np.ndarray  # [C * N + 1] int64, pair cg owns slot_at[slot_offsets[cg]:slot_offsets[cg + 1]]
     slot_at: np.ndarray  # [n_isect] int64 slots listed pair-major
     pair_offsets: np.ndarray  # [n_isect + 1] int64, room for each slot's whole pixel rect; a tile's pairs start at its first slot's
@@ -59,18 +60,12 @@ class TileBins:
     def n_pairs(self) -> int:
         return int(self.slot_offsets.shape[0] - 1)
 
-    def compositing_args(self, slot_c: np.ndarray) -> tuple:
-        """Leading arguments of the compositing kernels, with the slots' colours slot_c [n_isect, D]."""
+    def compositing_args(self) -> tuple:
+        """Leading arguments of the compositing kernels."""
         return (
-            self.slot_f, slot_c, self.slot_i, self.tile_offsets, self.work, self.work_offsets, self.tile_size,
+            self.slot_f, self.slot_c, self.slot_i, self.tile_offsets, self.work, self.work_offsets, self.tile_size,
             self.tiles_x,
         )
-
-    def gather(self, values: Tensor) -> np.ndarray:
-        """[C, N, D] (or [1, N, D] shared by the cameras) per Gaussian -> [n_isect, D] per slot."""
-        out = np.empty((self.n_isects, values.shape[2]))
-        parallel_for(kernels.gather_rows, out.shape[0], self.ids, values.shape[1], to_numpy(values), out, grain=_GRAIN)
-        return out
 
     def sum_slots(self, kernel, slot_values: np.ndarray, out: np.ndarray) -> np.ndarray:
         """out [C * N, ...] = per-pair sums of slot_values [n_isect, ...] by `kernel`."""
@@ -78,78 +73,65 @@ class TileBins:
         return out
 
 
-def bin_gaussians(
-    means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
-    tile_size: int,
-) -> TileBins:
-    """Lists each tile's splats sorted by depth, ties by Gaussian index, and gathers their slot records.
+def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: int, height: int) -> TileBins:
+    """Lists each tile's splats sorted by depth, ties by Gaussian index, and gathers their slot records and colours.
 
     Args:
-        means2d: [C, N, 2], conics: [C, N, 3], opacities: [N], depths: [C, N] (float64, from
-            `project_gaussians`); radii: [C, N, 2] int32.
+        proj: `project_gaussians` of C cameras with its `TileFootprints` (the tile size, each pair's pixel rect and
+            tile count, and the per-chunk tile histogram); opacities: [N] float64; colors: [C, N, D] float64, or
+            [1, N, D] shared by the cameras.
 
     Depths are compared in float64 (gsplat compares float32 depths, which merges near ties).
     """
-    n_cams, n = radii.shape[:2]
-    n_pairs = n_cams * n
+    fp = proj.footprints
+    tile_size = fp.tile_size
+    n_cams, n = proj.radii.shape[:2]
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
     tiles_per_cam = tiles_x * tiles_y
     n_tiles = n_cams * tiles_per_cam
-    means2d_np, conics_np, opacities_np = to_numpy(means2d), to_numpy(conics), to_numpy(opacities)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        two_logs = 2.0 * np.log(opacities_np / kernels.ALPHA_THRESHOLD)
-    rects = np.empty((n_pairs, 4), np.int32)
-    tile_counts = np.empty(n_pairs, np.int64)
-    parallel_for(
-        kernels.pixel_rects, n_pairs, means2d_np, conics_np, two_logs, to_numpy(radii), width, height, tile_size,
-        rects, tile_counts, grain=_GRAIN,
-    )
-    slot_offsets = np.zeros(n_pairs + 1, np.int64)
-    np.cumsum(tile_counts, out=slot_offsets[1:])
+    means2d_np, conics_np, opacities_np = to_numpy(proj.means2d), to_numpy(proj.conics), to_numpy(opacities)
+    slot_offsets = np.zeros(n_cams * n + 1, np.int64)
+    np.cumsum(fp.tile_counts, out=slot_offsets[1:])
     n_isects = int(slot_offsets[-1])
 
-    # Counting sort of all slots by tile: per-chunk histograms, then each chunk scatters from its own
-    # cursors, then every tile's keys are sorted by (depth, index). Keys are unique within a tile, so
-    # the chunking (one per part of the parallel loop) does not change the result.
-    n_chunks = max(1, min(num_threads() * PARTS_PER_THREAD, n_pairs))
-    tile_args = (rects, tile_counts, n)
-    hist = np.zeros((n_chunks, n_tiles), np.int64)
-    parallel_for(kernels.tile_histogram, n_chunks, n_chunks, *tile_args, tile_size, tiles_x, tiles_per_cam, hist)
+    # Counting sort of all slots by tile: the projection counted each chunk's slots per tile, each chunk scatters
+    # from its own cursors, then every tile's keys are sorted by (depth, index). Keys are unique within a tile, so
+    # the chunking does not change the result.
+    n_chunks = fp.hist.shape[0]
     cursor = np.zeros(n_chunks * n_tiles, np.int64)
-    np.cumsum(hist.T.reshape(-1)[:-1], out=cursor[1:])
+    np.cumsum(fp.hist.T.reshape(-1)[:-1], out=cursor[1:])
     tile_offsets = np.append(cursor[::n_chunks], n_isects)
     cursor = np.ascontiguousarray(cursor.reshape(n_tiles, n_chunks).T)
     # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
-    depths_np = to_numpy(depths).reshape(-1)
+    depths_np = to_numpy(proj.depths).reshape(-1)
     depth_bits = depths_np.astype(np.float32).view(np.int32).astype(np.int64)
     keys = np.empty(n_isects, np.int64)
     parallel_for(
-        kernels.scatter_tile_keys, n_chunks, n_chunks, *tile_args, depth_bits, tile_size, tiles_x, tiles_per_cam,
-        cursor, keys,
+        kernels.scatter_tile_keys, n_chunks, n_chunks, fp.rects, fp.tile_counts, n, depth_bits, tile_size, tiles_x,
+        tiles_per_cam, cursor, keys,
     )
     ids = np.empty_like(keys)
-    parallel_for(kernels.sort_tile_keys, n_tiles, tile_offsets, keys, depths_np, n, tiles_per_cam, ids)
-
     slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
     slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
+    slot_c = np.empty((n_isects, colors.shape[2]))
     slot_at = np.empty(n_isects, np.int64)
     slot_areas = np.empty(n_isects, np.int64)
     parallel_for(
-        kernels.slot_records, n_tiles, tile_offsets, ids, n, rects, slot_offsets, tile_size, tiles_x, tiles_per_cam,
-        means2d_np, conics_np, opacities_np, two_logs, slot_f, slot_i, slot_at, slot_areas,
+        kernels.tile_slots, n_tiles, tile_offsets, keys, depths_np, n, tile_size, tiles_x, tiles_per_cam, fp.rects,
+        slot_offsets, means2d_np, conics_np, opacities_np, fp.two_logs, to_numpy(colors), ids, slot_f, slot_i, slot_c,
+        slot_at, slot_areas,
     )
     pair_offsets = np.zeros(n_isects + 1, np.int64)
     np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
-        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_offsets, slot_at, pair_offsets, tile_offsets, work,
-        work_offsets,
+        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_c, slot_offsets, slot_at, pair_offsets, tile_offsets,
+        work, work_offsets,
     )
 
 
-def _composite(bins: TileBins, slot_c: np.ndarray, backgrounds: np.ndarray, width: int, height: int,
-               dtype: torch.dtype) -> tuple:
+def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int, dtype: torch.dtype) -> tuple:
     """Runs the compositing kernel: (render_colors [C, H, W, D] and render_alphas [C, H, W, 1] in `dtype`,
     out_colors [C, H, W, D] and transmittance [C, H, W] float64, and the pairs the backward reads: slot_starts,
     slot_counts [n_isect], pair_px, pair_vis (lent by `_SCRATCH`))."""
@@ -164,7 +146,7 @@ def _composite(bins: TileBins, slot_c: np.ndarray, backgrounds: np.ndarray, widt
     pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
     pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
     parallel_for(
-        kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(slot_c), backgrounds, width, height,
+        kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(), backgrounds, width, height,
         bins.pair_offsets, out_colors, transmittance, render_colors.numpy(), render_alphas.numpy()[..., 0], slot_starts,
         slot_counts, pair_px, pair_vis,
     )
@@ -179,8 +161,8 @@ def _give_back(pairs: tuple) -> None:
 class _RasterizeToPixels(torch.autograd.Function):
     """Compositing of the slots listed in `bins`.
 
-    means2d, conics and opacities are the tensors the bins were built from, taken as inputs so that
-    autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
+    means2d, conics, colors and opacities are the tensors the bins' slot records were gathered from, taken as inputs
+    so that autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
     The pairs the forward keeps (`keep_pairs`: a graph will be differentiated) go back to the pool after the first
     backward, for the next iteration's forward; a second backward through a retained graph composites again.
     """
@@ -188,9 +170,8 @@ class _RasterizeToPixels(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs):
         n_cams, n = means2d.shape[:2]
-        slot_c = bins.gather(colors)
         render_colors, render_alphas, out_colors, transmittance, pairs = _composite(
-            bins, slot_c, to_numpy(backgrounds), width, height, dtype
+            bins, to_numpy(backgrounds), width, height, dtype
         )
         counts = bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64))
 
@@ -198,7 +179,6 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.out_dtype = render_colors.numpy().dtype
         ctx.bins = bins
         ctx.shapes = (n_cams, n, colors.shape[0], width, height)
-        ctx.slot_c = slot_c
         ctx.out_colors = out_colors
         ctx.transmittance = transmittance
         ctx.pairs = pairs
@@ -219,9 +199,9 @@ class _RasterizeToPixels(torch.autograd.Function):
         n_cams, n, color_cams, width, height = ctx.shapes
         pairs = ctx.pairs
         if pairs is None:
-            pairs = _composite(bins, ctx.slot_c, to_numpy(backgrounds), width, height, torch.float64)[4]
+            pairs = _composite(bins, to_numpy(backgrounds), width, height, torch.float64)[4]
         ctx.pairs = None
-        depth = ctx.slot_c.shape[1]
+        depth = bins.slot_c.shape[1]
         n_cols = N_GRAD_GEOMETRY + depth
         v_image = (np.zeros((n_cams, height, width, depth), ctx.out_dtype) if v_render_colors is None
                    else to_numpy(v_render_colors))
@@ -229,7 +209,7 @@ class _RasterizeToPixels(torch.autograd.Function):
                     else to_numpy(v_render_alphas[..., 0]))
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         parallel_for(
-            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(ctx.slot_c), to_numpy(backgrounds),
+            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(), to_numpy(backgrounds),
             width, height, ctx.out_colors, ctx.transmittance, *pairs, v_image, v_alphas, slot_grads,
         )
         _give_back(pairs)
@@ -350,13 +330,11 @@ def rasterize(
     # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
     # from all paths are summed in float64 and rounded once, when autograd casts them back.
     dtype = colors.dtype
-    means, quats, scales, opacities, colors, viewmats = (
-        to_float64(t) for t in (means, quats, scales, opacities, colors, viewmats)
-    )
+    means, quats, scales, opacities, colors, viewmats = to_float64(means, quats, scales, opacities, colors, viewmats)
     n_cams = viewmats.shape[0]
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, active=active,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, active=active, tile_size=tile_size,
     )
     if sh_degree is not None:
         # gsplat's convention: direction from the camera centre to the mean, DC offset 0.5, clamped at 0.
@@ -369,7 +347,7 @@ def rasterize(
         backgrounds = torch.zeros(n_cams, colors.shape[-1], dtype=torch.float64)
     backgrounds = backgrounds.to(torch.float64).expand(n_cams, -1)
 
-    bins = bin_gaussians(proj.means2d, proj.conics, opacities, proj.radii, proj.depths, width, height, tile_size)
+    bins = bin_gaussians(proj, opacities, colors, width, height)
     # The images come out of the kernel in the caller's dtype (float64 for any other than float32).
     out_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float64
     # Without a graph to differentiate (no_grad, or nothing requires grad) the pairs go straight back to the pool.

@@ -345,7 +345,7 @@ def test_odd_image_sizes(width, height):
     assert_matches(scene)
 
 
-@pytest.mark.parametrize("tile_size", [8, 16, 64])
+@pytest.mark.parametrize("tile_size", [8, 12, 16, 64])
 def test_tile_size_does_not_change_the_image(tile_size):
     # 64: a tile row's live-pixel mask uses all 64 bits of its int64.
     scene = random_scene(80, seed=11, n_cams=1, width=40 if tile_size == 8 else 70, height=24)
