@@ -1,9 +1,10 @@
 """A part with a known dent: does `cadsplat inspect` FAIL it at the right place and PASS the undented part?
 
     python -m benchmarks.bench_dent [--preset preview] [--depth-mm 2] [--radius-mm 8] [--tolerance 1.5] [--work DIR]
+        [--part OBJ]
 
-The bundled sample's object (YCB medium clamp, sample/object, metres) is the nominal part and its own
-CAD model (a library of that one mesh). A patch of it, centred on the side-wall vertex the synthetic
+The bundled sample's object (YCB medium clamp, sample/object, metres; `--part`: another textured OBJ in metres, e.g.
+a shared YCB scan) is the nominal part and its own CAD model (a library of that one mesh). A patch of it, centred on the side-wall vertex the synthetic
 rig's cameras see most, is pushed inwards along the surface normal by up to `depth` (a cosine bump
 of `radius`). Both parts are photographed by the synthetic rig (`cadsplat synth`: 9 views, 320x240,
 the same cameras and pose), reconstructed against the nominal CAD with `preset`, and inspected at
@@ -25,7 +26,6 @@ import numpy as np
 from benchmarks._common import REPO, RESULTS, load_line
 
 SOURCE = REPO / "sample" / "object" / "050_medium_clamp.obj"
-MODEL_ID = "clamp"
 
 
 def read_obj_positions(text: str) -> tuple[np.ndarray, np.ndarray]:
@@ -72,12 +72,13 @@ def dent(vertices: np.ndarray, faces: np.ndarray, centre: np.ndarray, depth: flo
     return v - push[:, None] * normals
 
 
-def copy_part(text: str, vertices: np.ndarray, out_dir: Path) -> Path:
-    """The source OBJ with new positions, beside a copy of its material and texture."""
+def copy_part(source: Path, text: str, vertices: np.ndarray, out_dir: Path) -> Path:
+    """The source OBJ with new positions, beside a copy of the other files of its folder (material, texture)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name in ("textured.mtl", "texture_map.jpg"):
-        shutil.copy(SOURCE.parent / name, out_dir / name)
-    path = out_dir / SOURCE.name
+    for path in source.parent.iterdir():
+        if path.is_file() and path.suffix.lower() != ".obj":
+            shutil.copy(path, out_dir / path.name)
+    path = out_dir / source.name
     path.write_text(write_obj_positions(text, vertices))
     return path
 
@@ -96,7 +97,7 @@ def pick_dent_centre(vertices: np.ndarray, faces: np.ndarray, cameras) -> int:
 
 
 def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance_mm: float, max_unseen_pct: float,
-        views: int = 9, seed: int = 7, log=print) -> dict:
+        views: int = 9, seed: int = 7, source: Path = SOURCE, log=print) -> dict:
     """Synthesise, reconstruct and inspect the nominal and the dented part under `work`; returns the findings."""
     import trimesh
 
@@ -106,14 +107,15 @@ def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance
     from reconstruction.pipeline import reconstruct
     from rig.synthetic import synth_dataset
 
-    text = SOURCE.read_text()
+    text = source.read_text()
+    model_id = source.parent.name if source.stem == "textured" else source.stem
     vertices, faces = read_obj_positions(text)
-    nominal = copy_part(text, vertices, work / "nominal" / "object")
+    nominal = copy_part(source, text, vertices, work / "nominal" / "object")
     t = time.perf_counter()
     meshes = work / "library_meshes"
     meshes.mkdir(parents=True, exist_ok=True)
     welded = trimesh.Trimesh(vertices, faces, process=True)
-    welded.export(meshes / f"{MODEL_ID}.ply")
+    welded.export(meshes / f"{model_id}.ply")
     library = work / "library"
     build_library(meshes, library, progress=False, log=lambda *_: None)
     gt = synth_dataset(nominal, work / "nominal", views=views, heldout=0, seed=seed)
@@ -122,15 +124,15 @@ def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance
     cams = [Camera(K, w, h, np.zeros(0), np.array(c)) for c in gt["train_c2w_object"]]
     centre_index = pick_dent_centre(vertices, faces, cams)
     centre = vertices[centre_index]
-    dented_path = copy_part(text, dent(vertices, faces, centre, depth_mm * 1e-3, radius_mm * 1e-3), work / "dented" / "object")
+    dented_path = copy_part(source, text, dent(vertices, faces, centre, depth_mm * 1e-3, radius_mm * 1e-3), work / "dented" / "object")
     synth_dataset(dented_path, work / "dented", views=views, heldout=0, seed=seed)
     timings = {"synth_and_library_s": time.perf_counter() - t}
-    out: dict = {"dent_centre_mm": (centre * 1000).tolist(), "depth_mm": depth_mm, "radius_mm": radius_mm, "preset": preset,
+    out: dict = {"part": str(source), "model_id": model_id, "dent_centre_mm": (centre * 1000).tolist(), "depth_mm": depth_mm, "radius_mm": radius_mm, "preset": preset,
                  "tolerance_mm": tolerance_mm, "max_unseen_pct": max_unseen_pct, "views": views}
     for name in ("nominal", "dented"):
         t = time.perf_counter()
         log(f"reconstructing the {name} part ({preset})")
-        reconstruct(work / name / "train", library, work / name / "twin", preset=preset, model_id=MODEL_ID, seed=0, overwrite=True)
+        reconstruct(work / name / "train", library, work / name / "twin", preset=preset, model_id=model_id, seed=0, overwrite=True)
         timings[f"reconstruct_{name}_s"] = time.perf_counter() - t
         doc = inspect_twin_dir(work / name / "twin", work / name / "inspection", tolerance_mm=tolerance_mm,
                                max_unseen_pct=max_unseen_pct, turntable=8)
@@ -176,7 +178,8 @@ def write_markdown(res: dict, load: str, path: Path) -> str:
         "",
         f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; load {load}.",
         "",
-        "Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the",
+        (f"Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the"
+         if Path(res["part"]) == SOURCE else f"Nominal part and CAD: `{res['model_id']}` ({res['part']}, its own mesh as the"),
         f"library model). Dented part: the same mesh pushed in along its normal by up to {res['depth_mm']:g} mm (cosine bump,",
         f"radius {res['radius_mm']:g} mm) at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, the side-wall vertex the rig sees best.",
         f"Synthetic rig (`cadsplat synth`, {res['views']} views, 320x240, seed 7, same cameras and pose for both); reconstruction",
@@ -206,6 +209,7 @@ def main() -> None:
     ap.add_argument("--tolerance", type=float, default=1.5)
     ap.add_argument("--max-unseen", type=float, default=None, help="Default: the inspect command's default.")
     ap.add_argument("--work", type=Path, default=None, help="Keep the captures, twins and reports here (default: a temp dir).")
+    ap.add_argument("--part", type=Path, default=SOURCE, help="Textured OBJ (metres) of the nominal part (default: the sample's clamp).")
     ap.add_argument("--out", type=Path, default=None, help="Default: benchmarks/results/dent_<preset>.md")
     args = ap.parse_args()
     import tempfile
@@ -214,7 +218,7 @@ def main() -> None:
 
     work = args.work or Path(tempfile.mkdtemp(prefix="cadsplat-dent-"))
     res = run(work, preset=args.preset, depth_mm=args.depth_mm, radius_mm=args.radius_mm, tolerance_mm=args.tolerance,
-              max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen)
+              max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen, source=args.part)
     print(json.dumps(res, indent=1))
     load = f"1-min {load_line()}"
     print(write_markdown(res, load, args.out or RESULTS / f"dent_{args.preset}.md"))
