@@ -13,6 +13,7 @@ import os
 import select
 import signal
 
+import numpy as np
 import pytest
 import torch
 
@@ -423,6 +424,31 @@ def test_projection_meta_matches_gsplat_box_rule():
     cov_xx = proj.conics[0, :, 2] / (proj.conics[0, :, 0] * proj.conics[0, :, 2] - proj.conics[0, :, 1] ** 2)
     extent = torch.sqrt(2.0 * torch.log(255.0 * scene["opacities"].double()))
     assert torch.equal(proj.radii[0, vis, 0], torch.ceil(extent[vis] * cov_xx[vis].sqrt()).int())
+
+
+@pytest.mark.parametrize("tile_size", [8, 12])
+def test_projection_footprints_count_each_pairs_tiles(tile_size):
+    scene = random_scene(120, seed=16, n_cams=3)
+    args = [scene[k] for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")]
+    w, h = scene["width"], scene["height"]
+    plain = project_gaussians(*args, w, h)
+    proj = project_gaussians(*args, w, h, tile_size=tile_size)
+    assert plain.footprints is None
+    for a, b in zip(plain[:4], proj[:4]):
+        assert torch.equal(a, b)  # the footprints change nothing the projection returned before
+    fp = proj.footprints
+    n, tiles_x, tiles_y = 120, -(-w // tile_size), -(-h // tile_size)
+    visible = (proj.radii[..., 0] > 0).reshape(-1).numpy()
+    assert not fp.tile_counts[~visible].any()
+    expected = np.zeros(3 * tiles_x * tiles_y, np.int64)
+    for cg in np.flatnonzero(fp.tile_counts):
+        u_lo, u_hi, v_lo, v_hi = fp.rects[cg]
+        assert 0 <= u_lo <= u_hi < w and 0 <= v_lo <= v_hi < h
+        tx = np.arange(u_lo // tile_size, u_hi // tile_size + 1)
+        ty = np.arange(v_lo // tile_size, v_hi // tile_size + 1)
+        assert fp.tile_counts[cg] == len(tx) * len(ty)
+        np.add.at(expected, (cg // n) * tiles_x * tiles_y + (ty[:, None] * tiles_x + tx[None, :]).reshape(-1), 1)
+    assert np.array_equal(fp.hist.sum(0), expected)  # the chunks' histograms together count every slot once
 
 
 @pytest.mark.parametrize("per_camera", [False, True])  # numba kernels / plain-torch path
