@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit
 from scipy import sparse
 from torch.autograd.function import once_differentiable
 
+from reconstruction.parallel import parallel_for
 from reconstruction.ssim import ssim_map
 
 
@@ -153,12 +155,38 @@ def neighbour_graph(neighbours: np.ndarray) -> NeighbourGraph:
     return NeighbourGraph(lap.astype(np.float32), len(cols))
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _csr_rows(lo, hi, indptr, indices, data, x, out) -> None:
+    """out[i] = sum_jj data[jj] x[indices[jj]] over CSR row i, for rows lo..hi-1 (x [N, K], out [N, K]).
+
+    The order and precision of scipy's own CSR product (each row's entries in turn, y += a x in x's dtype), so the
+    result is the same to the bit; on two threads instead of one.
+    """
+    width = x.shape[1]
+    for i in range(lo, hi):
+        for k in range(width):
+            out[i, k] = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            j = indices[jj]
+            a = data[jj]
+            for k in range(width):
+                out[i, k] += a * x[j, k]
+
+
+def csr_matmul(matrix: sparse.csr_matrix, x: np.ndarray) -> np.ndarray:
+    """matrix [N, N] @ x [N, K] (same dtype), as scipy computes it, rows split over the kernel threads."""
+    x = np.ascontiguousarray(x)
+    out = np.empty((matrix.shape[0], x.shape[1]), x.dtype)
+    parallel_for(_csr_rows, matrix.shape[0], matrix.indptr, matrix.indices, matrix.data, x, out, grain=2048)
+    return out
+
+
 class _Quadratic(torch.autograd.Function):
     """tr(C^T L C) / pairs for a constant symmetric L; backward reuses L C."""
 
     @staticmethod
     def forward(ctx, c: torch.Tensor, laplacian: sparse.csr_matrix, pairs: int) -> torch.Tensor:
-        lc = torch.from_numpy(np.ascontiguousarray(laplacian @ c.detach().numpy()))
+        lc = torch.from_numpy(csr_matmul(laplacian, c.detach().numpy()))
         ctx.save_for_backward(lc)
         ctx.pairs = pairs
         return (c * lc).sum() / pairs

@@ -4,17 +4,19 @@ The kernels are cached on disk (`cache=True`) per argument type, so the first re
 fresh clone would otherwise spend ~20 s compiling. Rendering a few splats through the public
 `rasterize` in every mode training and rendering use (alpha only; SH degrees 0-3 over a background;
 with and without gradients), SSIM (the loss in float32 with gradients, the metric in float64), the photo-consistency
-term and the deformation field's anchor blend (float32, with gradients) compiles exactly the specialisations a run
-will ask for.
+term, the neighbour-smoothness product and the deformation field's anchor blend (float32, with gradients) compiles
+exactly the specialisations a run will ask for.
 """
 
 from __future__ import annotations
 
 import time
 
+import numpy as np
 import torch
 
 from reconstruction.deformation import blend_anchors
+from reconstruction.losses import neighbour_graph, sh_neighbour_loss
 from reconstruction.photo_consistency import consistency_loss, sample_colors
 from reconstruction.render.rasterization import rasterize
 from reconstruction.ssim import ssim_map
@@ -50,6 +52,8 @@ def compile_kernels() -> float:
     points = means.clone().requires_grad_(True)
     colors = sample_colors(image.detach(), points, viewmats.clone().requires_grad_(True), ks)
     consistency_loss(colors, torch.ones(2, n)).backward()
+    ring = neighbour_graph((np.arange(n)[:, None] + np.array([1, 2])) % n)
+    sh_neighbour_loss(torch.rand(n, 9, 3, generator=gen).requires_grad_(True), ring).backward()
     anchors = torch.rand(8, 3, generator=gen).requires_grad_(True)
     blend_anchors(anchors, torch.randint(0, 8, (n, 4), generator=gen), torch.full((n, 4), 0.25)).sum().backward()
     return time.perf_counter() - t0

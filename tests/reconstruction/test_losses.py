@@ -10,6 +10,7 @@ import torch
 from reconstruction.losses import (
     composite,
     composite_parts,
+    csr_matmul,
     dropout_active,
     dropout_fraction,
     fill_loss,
@@ -76,6 +77,16 @@ def test_sh_neighbour_loss_value_and_gradient_equal_the_pairwise_sum():
     (g,) = torch.autograd.grad(quadratic, sh)
     assert math.isclose(float(quadratic.detach()), float(pairwise.detach()), rel_tol=1e-5)
     torch.testing.assert_close(g, g_ref, rtol=1e-4, atol=1e-7)
+
+
+def test_csr_matmul_is_scipys_product_to_the_bit():
+    rng = np.random.default_rng(1)
+    n = 5000  # several parts per thread
+    graph = neighbour_graph(rng.integers(-1, n, (n, 9)))
+    for dtype in (np.float32, np.float64):
+        x = rng.standard_normal((n, 27)).astype(dtype)
+        matrix = graph.laplacian.astype(dtype)
+        assert np.array_equal(csr_matmul(matrix, x), matrix @ x)
 
 
 def test_mask_l1_and_composite():
