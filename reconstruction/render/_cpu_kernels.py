@@ -298,7 +298,7 @@ def project_forward(
                 depths[c, g] = mz
                 radii[c, g, 0] = rx
                 radii[c, g, 1] = ry
-                if tile_size == 0:
+                if tile_size <= 0:
                     continue
                 u_lo, u_hi, v_lo, v_hi = _pixel_rect(u, v, a, b, cc, two_log, width, height)
                 if u_lo > u_hi or v_lo > v_hi:
@@ -575,12 +575,12 @@ def _sort_tile(segment, depths, cam_base, tmp, counts) -> None:
 @njit(**_OPTS)
 def tile_slots(
     lo, hi, tile_offsets, keys, depths, n, tile_size, tiles_x, tiles_per_cam, rects, slot_offsets, means2d, conics,
-    opacities, two_logs, colors, ids, slot_f, slot_i, slot_c, slot_at, slot_areas,
+    opacities, two_logs, colors, slot_f, slot_i, slot_c, slot_at, slot_areas,
 ) -> None:
     """Sorts tiles lo..hi-1 front to back (`_sort_tile`) and fills their slots' records.
 
     Tile t owns keys[tile_offsets[t]:tile_offsets[t + 1]] and the slots k of that range. Per slot k of pair
-    cg = c * N + g: ids[k] = cg, the float (SF_*) and int (SI_*) records, its colour row slot_c[k] = colors[c, g]
+    cg = c * N + g: the float (SF_*) and int (SI_*) records, its colour row slot_c[k] = colors[c, g]
     (colors [C, N, D], or [1, N, D] shared by the cameras), the pixel count slot_areas[k] of the slot's rect, and
     slot_at[s] = k. Compositing then reads a tile's splats front to back from consecutive rows instead of
     gathering them from the whole model, where it would wait on cache misses.
@@ -619,7 +619,6 @@ def tile_slots(
                 _prefetch(flat_colors, depth * ((color_cam - c) * n + ahead))
             g = keys[k] & _KEY_INDEX_MASK
             cg = cam_base + g
-            ids[k] = cg
             slot_f[k, SF_MX] = means2d[c, g, 0]
             slot_f[k, SF_MY] = means2d[c, g, 1]
             slot_f[k, SF_A] = conics[c, g, 0]

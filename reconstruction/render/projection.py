@@ -175,10 +175,13 @@ def project_gaussians(
         tile_size: with a tile edge in pixels, also the `TileFootprints` the rasterizer's binning starts from.
 
     Returns:
-        `Projection` (float64); means2d and conics carry gradients to means, quats, scales and viewmats.
+        `Projection` (float64; five fields, `footprints` last and None without a tile size); means2d and conics
+        carry gradients to means, quats, scales and viewmats.
     """
     if not near_plane > 0.0:
         raise ValueError(f"near_plane must be positive, got {near_plane}")
+    if tile_size is not None and not tile_size >= 1:
+        raise ValueError(f"tile_size must be at least 1, got {tile_size}")
     if active is None:
         active = torch.ones(means.shape[0], dtype=torch.bool)
     return Projection(

@@ -37,7 +37,6 @@ class TileBins:
     tile_size: int
     tiles_x: int
     tiles_y: int
-    ids: np.ndarray  # [n_isect] int64 pair c * N + g of each slot, depth-sorted within each tile
     slot_f: np.ndarray  # [n_isect, SF_COLUMNS] float64 records (mean2d, conic, opacity, ...)
     slot_i: np.ndarray  # [n_isect, SI_COLUMNS] int32 records (pixel rect within the tile)
     slot_c: np.ndarray  # [n_isect, D] float64 colour of each slot's Gaussian in its camera
@@ -50,7 +49,7 @@ class TileBins:
 
     @property
     def n_isects(self) -> int:
-        return int(self.ids.shape[0])
+        return int(self.slot_f.shape[0])
 
     @property
     def n_bins(self) -> int:
@@ -111,7 +110,6 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
         kernels.scatter_tile_keys, n_chunks, n_chunks, fp.rects, fp.tile_counts, n, depth_bits, tile_size, tiles_x,
         tiles_per_cam, cursor, keys,
     )
-    ids = np.empty_like(keys)
     slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
     slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
     slot_c = np.empty((n_isects, colors.shape[2]))
@@ -119,14 +117,14 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
     slot_areas = np.empty(n_isects, np.int64)
     parallel_for(
         kernels.tile_slots, n_tiles, tile_offsets, keys, depths_np, n, tile_size, tiles_x, tiles_per_cam, fp.rects,
-        slot_offsets, means2d_np, conics_np, opacities_np, fp.two_logs, to_numpy(colors), ids, slot_f, slot_i, slot_c,
+        slot_offsets, means2d_np, conics_np, opacities_np, fp.two_logs, to_numpy(colors), slot_f, slot_i, slot_c,
         slot_at, slot_areas,
     )
     pair_offsets = np.zeros(n_isects + 1, np.int64)
     np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
-        tile_size, tiles_x, tiles_y, ids, slot_f, slot_i, slot_c, slot_offsets, slot_at, pair_offsets, tile_offsets,
+        tile_size, tiles_x, tiles_y, slot_f, slot_i, slot_c, slot_offsets, slot_at, pair_offsets, tile_offsets,
         work, work_offsets,
     )
 

@@ -449,6 +449,8 @@ def test_projection_footprints_count_each_pairs_tiles(tile_size):
         assert fp.tile_counts[cg] == len(tx) * len(ty)
         np.add.at(expected, (cg // n) * tiles_x * tiles_y + (ty[:, None] * tiles_x + tx[None, :]).reshape(-1), 1)
     assert np.array_equal(fp.hist.sum(0), expected)  # the chunks' histograms together count every slot once
+    with pytest.raises(ValueError, match="tile_size"):
+        project_gaussians(*args, w, h, tile_size=-tile_size)
 
 
 @pytest.mark.parametrize("per_camera", [False, True])  # numba kernels / plain-torch path
