@@ -609,14 +609,15 @@ def tile_slots(
         color_cam = 0 if shared else c
         for k in range(tile_offsets[t], tile_offsets[t + 1]):
             if k + _PREFETCH_AHEAD < tile_offsets[t + 1]:
-                ahead = cam_base + (keys[k + _PREFETCH_AHEAD] & _KEY_INDEX_MASK)
-                _prefetch(flat_means2d, 2 * ahead)
-                _prefetch(flat_conics, 3 * ahead)
-                _prefetch(flat_rects, 4 * ahead)
-                _prefetch(slot_offsets, ahead)
-                _prefetch(opacities, ahead - cam_base)
-                _prefetch(two_logs, ahead - cam_base)
-                _prefetch(flat_colors, depth * ((color_cam - c) * n + ahead))
+                g_ahead = keys[k + _PREFETCH_AHEAD] & _KEY_INDEX_MASK
+                pair_ahead = cam_base + g_ahead
+                _prefetch(flat_means2d, 2 * pair_ahead)
+                _prefetch(flat_conics, 3 * pair_ahead)
+                _prefetch(flat_rects, 4 * pair_ahead)
+                _prefetch(slot_offsets, pair_ahead)
+                _prefetch(opacities, g_ahead)
+                _prefetch(two_logs, g_ahead)
+                _prefetch(flat_colors, depth * (color_cam * n + g_ahead))
             g = keys[k] & _KEY_INDEX_MASK
             cg = cam_base + g
             slot_f[k, SF_MX] = means2d[c, g, 0]
