@@ -104,12 +104,12 @@ def _chunk_bounds(chunk: int, n_chunks: int, n: int) -> tuple[int, int]:
 
 @njit(inline="always", **_OPTS)
 def _rotation_and_factor(quat, scale, rot, factor) -> float:
-    """Writes R(q / |q|) into rot [3, 3] and M = R diag(scale) into factor [3, 3]; returns |q|."""
-    norm = math.sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3])
-    w = quat[0] / norm
-    x = quat[1] / norm
-    y = quat[2] / norm
-    z = quat[3] / norm
+    """Writes R(q / |q|) into rot [3, 3] and M = R diag(scale) into factor [3, 3]; returns 1 / |q|."""
+    inv_norm = 1.0 / math.sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3])
+    w = quat[0] * inv_norm
+    x = quat[1] * inv_norm
+    y = quat[2] * inv_norm
+    z = quat[3] * inv_norm
     rot[0, 0] = 1.0 - 2.0 * (y * y + z * z)
     rot[0, 1] = 2.0 * (x * y - w * z)
     rot[0, 2] = 2.0 * (x * z + w * y)
@@ -122,20 +122,22 @@ def _rotation_and_factor(quat, scale, rot, factor) -> float:
     for i in range(3):
         for j in range(3):
             factor[i, j] = rot[i, j] * scale[j]
-    return norm
+    return inv_norm
 
 
 @njit(inline="always", **_OPTS)
 def _covariance(factor, cov) -> None:
-    """cov = M M^T."""
+    """cov = M M^T (each entry below the diagonal is the same products as its mirror, so it is copied)."""
     for i in range(3):
-        for j in range(3):
+        for j in range(i, 3):
             cov[i, j] = factor[i, 0] * factor[j, 0] + factor[i, 1] * factor[j, 1] + factor[i, 2] * factor[j, 2]
+            cov[j, i] = cov[i, j]
 
 
 @njit(inline="always", **_OPTS)
-def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
-    """Camera-frame mean R m + t (returned) and covariance R cov R^T (written to cov_cam)."""
+def _to_camera(viewmat, mean, cov, tmp, cov_cam, lower: bool = True) -> tuple[float, float, float]:
+    """Camera-frame mean R m + t (returned) and covariance R cov R^T (written to cov_cam; its entries below the diagonal
+    only if `lower`: rounding makes them differ from their mirrors, and only the backward reads them)."""
     mx = viewmat[0, 0] * mean[0] + viewmat[0, 1] * mean[1] + viewmat[0, 2] * mean[2] + viewmat[0, 3]
     my = viewmat[1, 0] * mean[0] + viewmat[1, 1] * mean[1] + viewmat[1, 2] * mean[2] + viewmat[1, 3]
     mz = viewmat[2, 0] * mean[0] + viewmat[2, 1] * mean[1] + viewmat[2, 2] * mean[2] + viewmat[2, 3]
@@ -143,7 +145,7 @@ def _to_camera(viewmat, mean, cov, tmp, cov_cam) -> tuple[float, float, float]:
         for j in range(3):
             tmp[i, j] = viewmat[i, 0] * cov[0, j] + viewmat[i, 1] * cov[1, j] + viewmat[i, 2] * cov[2, j]
     for i in range(3):
-        for j in range(3):
+        for j in range(0 if lower else i, 3):
             cov_cam[i, j] = tmp[i, 0] * viewmat[j, 0] + tmp[i, 1] * viewmat[j, 1] + tmp[i, 2] * viewmat[j, 2]
     return mx, my, mz
 
@@ -165,13 +167,12 @@ def _clamp_limits(Ks, width: int, height: int) -> np.ndarray:
 
 
 @njit(inline="always", **_OPTS)
-def _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi):
-    """Non-zero entries (j00, j02, j11, j12) of the perspective Jacobian, with x/z and y/z clamped.
+def _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi):
+    """Non-zero entries (j00, j02, j11, j12) of the perspective Jacobian, with x/z and y/z clamped (rz = 1 / mz).
 
     The clamp keeps Gaussians far outside the view (and those straddling the near plane) from getting
     unbounded screen-space covariances; the clamped coordinate then follows z, not x or y.
     """
-    rz = 1.0 / mz
     tx = mz * min(x_hi, max(x_lo, mx * rz))
     ty = mz * min(y_hi, max(y_lo, my * rz))
     return fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
@@ -204,18 +205,16 @@ def _tile_of(px: int, tile_size: int, shift: int) -> int:
 
 
 @njit(inline="always", **_OPTS)
-def _pixel_rect(u, v, a, b, cc, two_log, width, height):
+def _pixel_rect(u, v, half_x, half_y, width, height):
     """Inclusive pixel range (u_lo, u_hi, v_lo, v_hi) of the centres inside the bounding box of the alpha >= 1/255
-    ellipse sigma <= ln(255 opacity) of a splat at (u, v) with conic (a, b, cc), clipped to the image; two_log is
-    2 ln(255 opacity). Empty when u_lo > u_hi or v_lo > v_hi.
+    ellipse sigma <= ln(255 opacity) of a splat at (u, v), clipped to the image. Empty when u_lo > u_hi or v_lo > v_hi.
 
-    The ellipse spans |dx| <= sqrt(2 ln(255 opacity) cov2d_xx) (likewise y): the extent gsplat's radius rounds up, so
-    the rect holds every pixel the radius box holds that could be shaded, and for small splats about half of them.
-    A pixel u belongs when its centre u + 0.5 is inside.
+    The ellipse spans |dx| <= half_x = sqrt(2 ln(255 opacity) cov2d_xx) (likewise y): the extent gsplat's radius rounds
+    up, so the rect holds every pixel the radius box holds that could be shaded, and for small splats about half of
+    them. A pixel u belongs when its centre u + 0.5 is inside.
     """
-    two_log_over_det = two_log / (a * cc - b * b)
-    ext_x = math.sqrt(two_log_over_det * cc) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
-    ext_y = math.sqrt(two_log_over_det * a) * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+    ext_x = half_x * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
+    ext_y = half_y * (1.0 + _EXTENT_MARGIN) + _EXTENT_MARGIN
     # Clip in float first so that huge extents cannot overflow the integer conversion.
     u_lo = math.ceil(max(u - ext_x - 0.5, -1.0))
     u_hi = math.floor(min(u + ext_x - 0.5, 1.0 * width))
@@ -262,34 +261,40 @@ def project_forward(
             _rotation_and_factor(quats[g], scales[g], rot, factor)
             _covariance(factor, cov)
             # gsplat 1.5.3's opacity-aware box: alpha >= 1/255 needs sigma <= ln(255 opacity).
-            two_log = 2.0 * math.log(opacity / ALPHA_THRESHOLD)
+            two_log = 2.0 * math.log(opacity * 255.0)
             extent = math.sqrt(two_log)
             if tile_size > 0:
                 two_logs[g] = two_log
             for c in range(n_cams):
-                mx, my, mz = _to_camera(viewmats[c], means[g], cov, tmp, cov_cam)
+                mx, my, mz = _to_camera(viewmats[c], means[g], cov, tmp, cov_cam, lower=False)
                 if not (mz > near and mz < far):
                     continue
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
-                j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
+                # One division per divisor and multiplications after (here, for |q| and for det): the projection's
+                # divisions and square roots were most of its time. Values move by an ulp.
+                rz = 1.0 / mz
+                j00, j02, j11, j12 = _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 s00, s01, s11 = _covariance2d(cov_cam, j00, j02, j11, j12, eps2d)
                 det = s00 * s11 - s01 * s01
                 if not det > 0.0:
                     continue
+                half_x = extent * math.sqrt(s00)
+                half_y = extent * math.sqrt(s11)
                 # Capped so that absurd covariances cannot overflow the integer conversion.
-                rx = math.ceil(min(extent * math.sqrt(s00), 1e9))
-                ry = math.ceil(min(extent * math.sqrt(s11), 1e9))
+                rx = math.ceil(min(half_x, 1e9))
+                ry = math.ceil(min(half_y, 1e9))
                 if rx <= 0 or ry <= 0:
                     continue
-                u = fx * mx / mz + cx
-                v = fy * my / mz + cy
+                u = fx * mx * rz + cx
+                v = fy * my * rz + cy
                 if u + rx <= 0.0 or u - rx >= width or v + ry <= 0.0 or v - ry >= height:
                     continue
-                a = s11 / det
-                b = -s01 / det
-                cc = s00 / det
+                inv_det = 1.0 / det
+                a = s11 * inv_det
+                b = -s01 * inv_det
+                cc = s00 * inv_det
                 means2d[c, g, 0] = u
                 means2d[c, g, 1] = v
                 conics[c, g, 0] = a
@@ -300,7 +305,7 @@ def project_forward(
                 radii[c, g, 1] = ry
                 if tile_size <= 0:
                     continue
-                u_lo, u_hi, v_lo, v_hi = _pixel_rect(u, v, a, b, cc, two_log, width, height)
+                u_lo, u_hi, v_lo, v_hi = _pixel_rect(u, v, half_x, half_y, width, height)
                 if u_lo > u_hi or v_lo > v_hi:
                     continue
                 cg = c * n + g
@@ -350,7 +355,7 @@ def project_backward(
                 seen = seen or radii[c, g, 0] > 0
             if not seen:
                 continue
-            qnorm = _rotation_and_factor(quats[g], scales[g], rot, factor)
+            inv_qnorm = _rotation_and_factor(quats[g], scales[g], rot, factor)
             _covariance(factor, cov)
             v_cov[:] = 0.0
             vmx_w = 0.0
@@ -363,7 +368,8 @@ def project_backward(
                 mx, my, mz = _to_camera(vm, means[g], cov, tmp, cov_cam)
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
-                j00, j02, j11, j12 = _jacobian(mx, my, mz, fx, fy, x_lo, x_hi, y_lo, y_hi)
+                rz = 1.0 / mz
+                j00, j02, j11, j12 = _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 a, b, cc = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2]
                 # dL/dQ as a symmetric matrix V (b appears twice in Q); dSigma = -Q V Q.
                 v00, v01, v11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
@@ -394,7 +400,6 @@ def project_backward(
                     v_w[1, k] = j11 * gj1k
                     v_w[2, k] = j02 * gj0k + j12 * gj1k
                 # Camera-frame mean: through mean2d and through J.
-                rz = 1.0 / mz
                 rz2 = rz * rz
                 rz3 = rz2 * rz
                 vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
@@ -446,10 +451,10 @@ def project_backward(
             for i in range(3):
                 for j in range(3):
                     v_factor[i, j] *= scales[g, j]
-            w = quats[g, 0] / qnorm
-            x = quats[g, 1] / qnorm
-            y = quats[g, 2] / qnorm
-            z = quats[g, 3] / qnorm
+            w = quats[g, 0] * inv_qnorm
+            x = quats[g, 1] * inv_qnorm
+            y = quats[g, 2] * inv_qnorm
+            z = quats[g, 3] * inv_qnorm
             r = v_factor
             vw = 2.0 * (-z * r[0, 1] + y * r[0, 2] + z * r[1, 0] - x * r[1, 2] - y * r[2, 0] + x * r[2, 1])
             vx = 2.0 * (
@@ -465,10 +470,10 @@ def project_backward(
                 + y * r[1, 2] + x * r[2, 0] + y * r[2, 1]
             )
             dot = w * vw + x * vx + y * vy + z * vz
-            v_quats[g, 0] = (vw - w * dot) / qnorm
-            v_quats[g, 1] = (vx - x * dot) / qnorm
-            v_quats[g, 2] = (vy - y * dot) / qnorm
-            v_quats[g, 3] = (vz - z * dot) / qnorm
+            v_quats[g, 0] = (vw - w * dot) * inv_qnorm
+            v_quats[g, 1] = (vx - x * dot) * inv_qnorm
+            v_quats[g, 2] = (vy - y * dot) * inv_qnorm
+            v_quats[g, 3] = (vz - z * dot) * inv_qnorm
 
 
 @njit(**_OPTS)
