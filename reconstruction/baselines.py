@@ -30,7 +30,7 @@ from calibration.camera import Camera
 from calibration.sim3 import Sim3
 from calibration.so3 import quat_to_matrix
 from reconstruction.losses import composite, photometric_loss
-from reconstruction.gaussians import Gaussians
+from reconstruction.gaussians import EPS2D_3DGS, Gaussians
 from reconstruction.render import num_sh_bases, rasterize
 from reconstruction.splats import SH_C0
 from reconstruction.twin import Twin, TwinCamera
@@ -151,6 +151,7 @@ class VanillaConfig:
     prune_opacity: float = 0.005
     prune_scale3d: float = 0.1  # of the scene scale, applied after the first opacity reset
     lambda_dssim: float = 0.2
+    eps2d: float = EPS2D_3DGS  # 3DGS's screen-space dilation; drawn with the same in evaluation
     lr_means: float = 1.6e-4  # times the scene scale, decayed exponentially to 1% at the end
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
@@ -328,7 +329,7 @@ def train_vanilla_3dgs(
         sh = torch.cat([params.sh0, params.shN], 1)[:, : num_sh_bases(degree)]
         rgb, _, meta = rasterize(
             params.means, params.quats, torch.exp(params.log_scales), torch.sigmoid(params.opacity_logits), sh,
-            viewmats[v : v + 1], Ks[v : v + 1], w, h, sh_degree=degree, backgrounds=bg,
+            viewmats[v : v + 1], Ks[v : v + 1], w, h, sh_degree=degree, backgrounds=bg, eps2d=cfg.eps2d,
         )
         meta["means2d"].retain_grad()
         loss = photometric_loss(rgb, composite(imgs[v : v + 1], msks[v : v + 1], bg), cfg.lambda_dssim)
@@ -359,7 +360,7 @@ def train_vanilla_3dgs(
             progress(it, cfg.iterations, losses[-1], len(params))
     history.append((cfg.iterations, len(params)))
     sh = torch.cat([params.sh0, params.shN], 1)
-    gaussians = Gaussians.from_arrays(params.means, params.quats, params.log_scales, params.opacity_logits, sh)
+    gaussians = Gaussians.from_arrays(params.means, params.quats, params.log_scales, params.opacity_logits, sh, cfg.eps2d)
     return VanillaResult(gaussians, cfg, history, events, losses, time.perf_counter() - t0)
 
 

@@ -11,6 +11,7 @@ tensors, for a batch of pinhole cameras. PNG-style straight alpha is `straight_r
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -24,6 +25,9 @@ from reconstruction.render import eval_sh, num_sh_bases, rasterize
 
 Array = np.ndarray | torch.Tensor
 WHITE = (1.0, 1.0, 1.0)
+# Screen-space variance (px^2) added to each splat's 2D covariance when it is drawn: 3DGS's (and gsplat's) 0.3.
+# A set fitted with another value carries it (`Gaussians.eps2d`), so that every render draws what was fitted.
+EPS2D_3DGS = 0.3
 # Directions the SH rotation is solved on: more than the 16 degree-3 bases, well spread.
 _SH_PROBE_DIRECTIONS = 64
 
@@ -31,15 +35,19 @@ _SH_PROBE_DIRECTIONS = 64
 @dataclass(frozen=True)
 class Gaussians:
     """N Gaussians: means [N, 3], quats [N, 4] wxyz (any norm), log_scales [N, 3], opacity_logits [N],
-    sh [N, K, 3] with K = (sh_degree + 1)^2 (DC in the 3DGS convention: colour = 0.5 + C0 * sh[:, 0])."""
+    sh [N, K, 3] with K = (sh_degree + 1)^2 (DC in the 3DGS convention: colour = 0.5 + C0 * sh[:, 0]); eps2d, the
+    screen-space variance (px^2) the set was fitted with and is drawn with."""
 
     means: Array
     quats: Array
     log_scales: Array
     opacity_logits: Array
     sh: Array
+    eps2d: float = EPS2D_3DGS
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.eps2d) and self.eps2d >= 0.0):
+            raise ValueError(f"Gaussians eps2d must be a finite variance >= 0 px^2, got {self.eps2d}")
         n = self.means.shape[0]
         k = self.sh.shape[1] if self.sh.ndim == 3 else -1
         expected = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,), "sh": (n, k, 3)}
@@ -57,14 +65,14 @@ class Gaussians:
         return round(self.sh.shape[1] ** 0.5) - 1
 
     @staticmethod
-    def from_arrays(means, quats, log_scales, opacity_logits, sh) -> "Gaussians":
+    def from_arrays(means, quats, log_scales, opacity_logits, sh, eps2d: float = EPS2D_3DGS) -> "Gaussians":
         """float32 numpy copies of array-likes (a twin read from disk, a trained model's detached state)."""
 
         def f32(a) -> np.ndarray:
             a = a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else a
             return np.array(a, dtype=np.float32)
 
-        return Gaussians(f32(means), f32(quats), f32(log_scales), f32(opacity_logits), f32(sh))
+        return Gaussians(f32(means), f32(quats), f32(log_scales), f32(opacity_logits), f32(sh), float(eps2d))
 
     def activated(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The rasterizer's inputs, float32 tensors: means [N, 3], quats [N, 4], scales [N, 3] = exp(log_scales),
@@ -78,7 +86,8 @@ class Gaussians:
 
     def subset(self, index: Array) -> "Gaussians":
         """The Gaussians selected by `index` ([M] int or [N] bool)."""
-        return Gaussians(self.means[index], self.quats[index], self.log_scales[index], self.opacity_logits[index], self.sh[index])
+        return Gaussians(self.means[index], self.quats[index], self.log_scales[index], self.opacity_logits[index], self.sh[index],
+                         self.eps2d)
 
     def with_sh_degree(self, degree: int) -> "Gaussians":
         """SH cut to or zero-padded up to `degree` (a degree-0 twin read by a viewer that expects degree 3)."""
@@ -86,7 +95,7 @@ class Gaussians:
         sh = np.asarray(self.sh)
         out = np.zeros((len(self), k, 3), np.float32)
         out[:, : min(k, sh.shape[1])] = sh[:, :k]
-        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, out)
+        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, out, self.eps2d)
 
     def transformed(self, sim3: Sim3 | np.ndarray) -> "Gaussians":
         """The Gaussians moved by a Sim(3) (or a rigid [4, 4]): means s R x + t, orientations R q,
@@ -98,16 +107,18 @@ class Gaussians:
         return Gaussians(
             t.apply(self.means).astype(np.float32), quats.astype(np.float32),
             (np.asarray(self.log_scales, np.float64) + np.log(t.scale)).astype(np.float32),
-            np.asarray(self.opacity_logits, np.float32), sh.astype(np.float32),
+            np.asarray(self.opacity_logits, np.float32), sh.astype(np.float32), self.eps2d,
         )
 
     @staticmethod
     def concatenate(sets: Sequence["Gaussians"]) -> "Gaussians":
-        """One set of several (SH padded to the highest degree among them)."""
+        """One set of several (SH padded to the highest degree among them, drawn with the largest eps2d among them:
+        a set fitted with less would otherwise draw its splats smaller than it was fitted to)."""
         degree = max(g.sh_degree for g in sets)
         sets = [g.with_sh_degree(degree) for g in sets]
         cat = lambda name: np.concatenate([np.asarray(getattr(g, name), np.float32) for g in sets])  # noqa: E731
-        return Gaussians(cat("means"), cat("quats"), cat("log_scales"), cat("opacity_logits"), cat("sh"))
+        return Gaussians(cat("means"), cat("quats"), cat("log_scales"), cat("opacity_logits"), cat("sh"),
+                         max(g.eps2d for g in sets))
 
 
 def sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:
@@ -163,7 +174,7 @@ def render(
     bg = None if background is None else torch.as_tensor(background, dtype=torch.float32).expand(len(viewmats), 3)
     rgb, alpha, _ = rasterize(
         means, quats, scales, opacities, sh, viewmats, torch.as_tensor(Ks, dtype=torch.float32), width, height,
-        sh_degree=gaussians.sh_degree, backgrounds=bg,
+        sh_degree=gaussians.sh_degree, backgrounds=bg, eps2d=gaussians.eps2d,
     )
     return rgb, alpha[..., 0]
 

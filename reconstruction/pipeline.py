@@ -292,7 +292,7 @@ def reconstruct(
         choices=choices,
         timings_s=timings,
         losses=losses,
-        gaussians=Gaussians.from_arrays(means, splats.gaussians.quats, model.log_scales, model.opacity_logits, sh),
+        gaussians=Gaussians.from_arrays(means, splats.gaussians.quats, model.log_scales, model.opacity_logits, sh, cfg.eps2d),
         means_canonical=splats.means,
         face_index=splats.face_index,
         barycentrics=splats.barycentrics,

@@ -126,6 +126,7 @@ class SplatModel(nn.Module):
         self.sh0 = nn.Parameter(sh[:, :1].clone())
         self.shN = nn.Parameter(sh[:, 1:].clone())
         self.sh_degree = g.sh_degree
+        self.eps2d = preset.eps2d
         # Scale bounds relative to the object: no splat collapses to nothing or swallows the object.
         radius = float(self.field.radius)
         self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
@@ -154,7 +155,7 @@ class SplatModel(nn.Module):
 
     def gaussians(self) -> Gaussians:
         """The current Gaussians (object frame) as tensors that carry the training graph."""
-        return Gaussians(self.means(), self.quats, self.log_scales, self.opacity_logits, self.sh())
+        return Gaussians(self.means(), self.quats, self.log_scales, self.opacity_logits, self.sh(), self.eps2d)
 
     def viewmats(self, c2w_init: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """World-to-camera [C, 4, 4] float32 of cameras `index` after the pose correction."""
@@ -395,7 +396,7 @@ def train(
             viewmats = model.viewmats(c2w_init, idx)
             on_photo = None if valid is None else valid[sel]
             if stage != "photo":
-                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
+                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
                 l_mask = mask_l1(alpha, cov[sel], on_photo)
                 loss = l_mask
                 last = {"mask": l_mask}
@@ -408,10 +409,10 @@ def train(
                 p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
                 active = dropout_active(n, p, gen)
                 rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[sel], w, h,
-                                          sh_degree=model.sh_degree, backgrounds=bg, active=active)
+                                          sh_degree=model.sh_degree, backgrounds=bg, active=active, eps2d=preset.eps2d)
                 if active is not None:
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
-                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h)
+                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
                 support = (alpha.detach()[..., 0] > 0) | in_mask[sel]
                 target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])

@@ -25,7 +25,7 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ import numpy as np
 from calibration.camera import Camera
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir
 from calibration.sim3 import Sim3
-from reconstruction.gaussians import Gaussians
+from reconstruction.gaussians import EPS2D_3DGS, Gaussians
 from reconstruction.mesh_io import MeshParts, parts_glb_bytes, read_mesh_parts
 
 TWIN_JSON = "twin.json"
@@ -110,7 +110,7 @@ class Twin:
 
     def __post_init__(self) -> None:
         g = self.gaussians
-        self.gaussians = Gaussians.from_arrays(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)
+        self.gaussians = Gaussians.from_arrays(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, g.eps2d)
         n = len(self.gaussians)
         shapes = {
             "means_canonical": (self.means_canonical, (n, 3)), "face_index": (self.face_index, (n,)),
@@ -262,6 +262,7 @@ def _twin_document(twin: Twin) -> dict:
         "cameras": [c.to_dict() for c in twin.cameras],
         "num_splats": twin.num_splats,
         "sh_degree": twin.gaussians.sh_degree,
+        "eps2d": twin.gaussians.eps2d,
         "part_names": list(twin.part_names),
         "preset": twin.preset,
         "choices": twin.choices,
@@ -414,7 +415,8 @@ def _twin_from(doc: dict, ply: Gaussians, canon: dict, root: Path) -> Twin:
         choices=doc.get("choices", {}),
         timings_s=doc.get("timings_s", {}),
         losses=doc.get("losses", {}),
-        gaussians=ply,
+        # Twins written before the field existed were all fitted with 3DGS's dilation.
+        gaussians=replace(ply, eps2d=float(doc.get("eps2d", EPS2D_3DGS))),
         means_canonical=canon["means_canonical"],
         face_index=canon["face_index"],
         barycentrics=canon["barycentrics"],

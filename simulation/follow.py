@@ -26,7 +26,7 @@ def splats_from_mesh(vertices: np.ndarray, faces: np.ndarray, face_rgb: np.ndarr
     s = init_splats(vertices, faces, n, sh_degree=0, face_part=face_part, seed=seed)
     sh = rgb_to_sh_dc(np.asarray(face_rgb)[s.face_index]).astype(np.float32)[:, None, :]
     g = s.gaussians
-    return replace(s, gaussians=Gaussians(g.means, g.quats, g.log_scales, np.full(len(s), OPAQUE_LOGIT, np.float32), sh))
+    return replace(s, gaussians=Gaussians(g.means, g.quats, g.log_scales, np.full(len(s), OPAQUE_LOGIT, np.float32), sh, g.eps2d))
 
 
 def render_bodies(

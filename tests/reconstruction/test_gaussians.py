@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -10,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import Camera, look_at_c2w
 from calibration.sim3 import Sim3
-from reconstruction.gaussians import Gaussians, camera_batch, render, sh_rotation, straight_rgba
+from reconstruction.gaussians import EPS2D_3DGS, Gaussians, camera_batch, render, sh_rotation, straight_rgba
 
 
 def random_gaussians(n: int = 400, degree: int = 3, seed: int = 0) -> Gaussians:
@@ -83,3 +85,22 @@ def test_bad_shapes_are_refused():
         Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, np.zeros((10, 5, 3), np.float32))
     with pytest.raises(ValueError, match="share an image size"):
         camera_batch([camera(), Camera.from_fov(1.0, 32, 32)])
+
+
+def test_a_set_is_drawn_with_the_dilation_it_was_fitted_with():
+    g = random_gaussians(n=200, degree=1)
+    sharp = replace(g, eps2d=0.1)
+    cams = camera_batch(camera())
+    _, alpha_3dgs = render(g, *cams)
+    _, alpha_sharp = render(sharp, *cams)
+    assert g.eps2d == EPS2D_3DGS == 0.3
+    # Less dilation draws each splat smaller: less coverage, and a different image.
+    assert float(alpha_sharp.sum()) < float(alpha_3dgs.sum())
+    # Every derived set keeps it, so a twin moved, cut or padded still draws what was fitted.
+    for derived in (sharp.subset(np.arange(50)), sharp.with_sh_degree(3), sharp.transformed(Sim3.identity()),
+                    Gaussians.from_arrays(sharp.means, sharp.quats, sharp.log_scales, sharp.opacity_logits, sharp.sh, sharp.eps2d)):
+        assert derived.eps2d == 0.1
+    assert Gaussians.concatenate([sharp, g]).eps2d == 0.3
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="eps2d"):
+            replace(g, eps2d=bad)

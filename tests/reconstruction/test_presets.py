@@ -74,3 +74,12 @@ def test_the_field_gets_fewer_frequency_bands_when_few_views_constrain_it():
     assert cpu3.field.bands == 6 and "3 views leave finer ones unconstrained" in choices3["deformation"]["why"]
     assert resolve_preset("cpu", replace(STATS, num_views=5, foreground_px=(6000,) * 5))[0].field.bands == 10
     assert resolve_preset("preview", three)[0].field.bands == 10
+
+
+def test_the_twin_presets_dilate_splats_by_about_a_pixel_footprint_and_say_why():
+    from reconstruction.gaussians import EPS2D_3DGS
+
+    assert PAPER.eps2d == EPS2D_3DGS == 0.3
+    for name in ("cpu", "preview"):
+        preset, choices = resolve_preset(name, STATS)
+        assert preset.eps2d == choices["eps2d"]["value"] == 0.1 and "footprint" in choices["eps2d"]["why"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -117,3 +118,19 @@ def test_bad_inputs_are_one_sentence(tmp_path):
         Twin(**{**t.__dict__, "gaussians": replace(t.gaussians, means=np.full((50, 3), np.nan, np.float32))})
     with pytest.raises(TwinError, match="shape"):
         Twin(**{**t.__dict__, "barycentrics": np.zeros((49, 3))})
+
+
+def test_the_dilation_a_twin_was_fitted_with_comes_back(tmp_path):
+    twin = make_twin()
+    sharp = replace(twin, gaussians=replace(twin.gaussians, eps2d=0.1))
+    assert load_twin(save_twin(sharp, tmp_path / "sharp")).gaussians.eps2d == 0.1
+    # A twin written before the field existed was fitted with 3DGS's dilation.
+    out = save_twin(twin, tmp_path / "old")
+    doc = json.loads((out / "twin.json").read_text())
+    del doc["eps2d"]
+    (out / "twin.json").write_text(json.dumps(doc))
+    assert load_twin(out, verify=False).gaussians.eps2d == 0.3
+    doc["eps2d"] = -1.0
+    (out / "twin.json").write_text(json.dumps(doc))
+    with pytest.raises(TwinError, match="eps2d"):
+        load_twin(out, verify=False)
