@@ -18,12 +18,14 @@ from reconstruction.gaussians import EPS2D_3DGS
 # Smoothness of the splats' own normal moves (cpu preset). Rig scenes, 5 scenes paired, the twin's surface against
 # the truth (exact symmetric distance, % of the diameter, summed): field only 2.14, lambda 10 / 100 / 1000: 2.16 / 1.91 / 1.96.
 LAMBDA_DISPLACEMENT = 100.0
-# Screen-space variance (px^2) the cpu and preview presets add to every splat: a pixel integrates over its own square,
-# whose variance is 1/12 px^2 per axis (Mip-Splatting's 2D filter takes 0.1). 3DGS's 0.3 widens every splat by a further
-# ~0.45 px, so no edge renders sharper than that and the 1-px rim inside a mask, most of a view's squared error, stays
+# Screen-space variance (px^2) the cpu preset adds to every splat: a pixel integrates over its own square, whose
+# variance is 1/12 px^2 per axis (Mip-Splatting's 2D filter takes 0.1). 3DGS's 0.3 (a 0.55 px standard deviation against
+# the pixel's own 0.29) keeps every edge soft, and the 1-px rim inside a mask, most of a view's squared error, stays
 # part-transparent (rig scenes, cpu, paired over 8 against 0.3: held-out fgPSNR +0.08..+0.58 dB, mean +0.34, IoU 0.974 ->
 # 0.975, LPIPS 0.086 -> 0.069, object-crop PSNR +0.13 dB; 3 views +0.08 dB, IoU 0.946 -> 0.948. At 0.03: +0.44 dB and
-# LPIPS 0.062, but object-crop PSNR -0.03 dB and SSIM down: the pixel's own footprint is the floor).
+# LPIPS 0.062, but object-crop PSNR -0.03 dB and SSIM down: the pixel's own footprint is the floor). Preview keeps 0.3:
+# its 50 Stage-II iterations left the smaller splats' silhouettes thin (at 0.1: fgPSNR +0.17 dB, but IoU 0.943 -> 0.939,
+# down on every scene and by 0.006-0.007 on three, object-crop PSNR -0.38 dB).
 EPS2D_PIXEL = 0.1
 DISPLACEMENT_WHY = ("each splat also moves along its CAD normal (smoothed over its neighbours): the field is too smooth "
                     "to follow what the CAD's decimation took away (rig scenes, toy airplane: 0.72 -> 0.53 % of the diameter "
@@ -248,15 +250,17 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
     lambda_dssim = 0.6 if preview else 0.2
     choices["lambda_dssim"] = _choice(lambda_dssim, "preview: SSIM carries more of the short fit's photometric loss"
                                       if preview else "the paper's (3DGS's) share of SSIM in the photometric loss")
-    choices["eps2d"] = _choice(EPS2D_PIXEL, f"each splat drawn {EPS2D_PIXEL} px^2 wider, about a pixel's own footprint (1/12 px^2), "
-                                            f"in training and in every render of the twin; 3DGS's {EPS2D_3DGS} blurred every edge")
+    eps2d = EPS2D_3DGS if preview else EPS2D_PIXEL
+    choices["eps2d"] = _choice(eps2d, f"preview: 3DGS's {EPS2D_3DGS} px^2; its short fit left smaller splats' silhouettes thin" if preview else
+                               f"each splat drawn {EPS2D_PIXEL} px^2 wider, about a pixel's own footprint (1/12 px^2), in training and "
+                               f"in every render of the twin; 3DGS's {EPS2D_3DGS} blurred every edge")
     preset = Preset(
         name=name, num_splats=n, sh_degree=degree, field=fc, iters_pose=iters[0], iters_deform=iters[1],
         iters_photo=iters[2], plateau=not preview, dropout_p0=0.0, dropout_anneal=anneal, lr=lr, lambda_sh=lambda_sh,
         refine_steps=50 if preview else 100, image_scale=scale, mask_scale=mask_scale, checkpoint_every=50,
         views_per_iter=0, init_opacity=0.9, pose_lr_final=0.1, pose_scale=False, lambda_fill=lambda_fill,
         lambda_consistency=1.0, consistency_blur_px=1.0, lambda_displacement=0.0 if preview else LAMBDA_DISPLACEMENT,
-        lambda_dssim=lambda_dssim, eps2d=EPS2D_PIXEL,
+        lambda_dssim=lambda_dssim, eps2d=eps2d,
     )
     if not preview:
         choices["displacement"] = _choice({"lr": lr["displacement"], "lambda": LAMBDA_DISPLACEMENT}, DISPLACEMENT_WHY)

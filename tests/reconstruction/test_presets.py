@@ -76,10 +76,11 @@ def test_the_field_gets_fewer_frequency_bands_when_few_views_constrain_it():
     assert resolve_preset("preview", three)[0].field.bands == 10
 
 
-def test_the_twin_presets_dilate_splats_by_about_a_pixel_footprint_and_say_why():
+def test_the_cpu_preset_dilates_splats_by_about_a_pixel_footprint_and_says_why():
     from reconstruction.gaussians import EPS2D_3DGS
 
-    assert PAPER.eps2d == EPS2D_3DGS == 0.3
-    for name in ("cpu", "preview"):
-        preset, choices = resolve_preset(name, STATS)
-        assert preset.eps2d == choices["eps2d"]["value"] == 0.1 and "footprint" in choices["eps2d"]["why"]
+    cpu, cpu_choices = resolve_preset("cpu", STATS)
+    preview, preview_choices = resolve_preset("preview", STATS)
+    assert cpu.eps2d == cpu_choices["eps2d"]["value"] == 0.1 and "footprint" in cpu_choices["eps2d"]["why"]
+    assert PAPER.eps2d == preview.eps2d == preview_choices["eps2d"]["value"] == EPS2D_3DGS == 0.3
+    assert "preview" in preview_choices["eps2d"]["why"]
