@@ -112,13 +112,14 @@ class Gaussians:
 
     @staticmethod
     def concatenate(sets: Sequence["Gaussians"]) -> "Gaussians":
-        """One set of several (SH padded to the highest degree among them, drawn with the largest eps2d among them:
-        a set fitted with less would otherwise draw its splats smaller than it was fitted to)."""
+        """One set of several (SH padded to the highest degree among them). One render draws with one dilation: the
+        smallest eps2d among them, so that the bare-mesh splats a simulation adds (never fitted, 3DGS's default) do
+        not blur a twin fitted with less; a set fitted with more then draws a little thinner."""
         degree = max(g.sh_degree for g in sets)
         sets = [g.with_sh_degree(degree) for g in sets]
         cat = lambda name: np.concatenate([np.asarray(getattr(g, name), np.float32) for g in sets])  # noqa: E731
         return Gaussians(cat("means"), cat("quats"), cat("log_scales"), cat("opacity_logits"), cat("sh"),
-                         max(g.eps2d for g in sets))
+                         min(g.eps2d for g in sets))
 
 
 def sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:

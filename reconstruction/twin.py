@@ -4,7 +4,8 @@
 twin.json               model id, Sim(3) init + refined, per-camera camera-to-object poses, preset,
                         choices (what the run chose and why), timings_s, losses, versions
 splats.ply              Inria 3DGS layout, deformed means, object frame (opens in 3DGS viewers);
-                        SH padded with zeros to degree 3, the degree fitted in a `sh_degree` comment
+                        SH padded with zeros to degree 3, the degree fitted in a `sh_degree` comment,
+                        the screen-space dilation fitted (`eps2d`, also in twin.json) in an `eps2d` one
 
 splats_canonical.npz    canonical means, face index, barycentrics, part label, part names
 deformation.pt          the deformation field's config + weights (torch state dict)
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -177,6 +179,9 @@ def ply_columns(sh_degree: int) -> list[str]:
 # kept in a `sh_degree N` header comment, which `read_splats_ply` uses to drop the padding again.
 PLY_SH_DEGREE = 3
 PLY_DEGREE_COMMENT = "sh_degree"
+# The screen-space dilation the splats were fitted with (`Gaussians.eps2d`), which Inria-layout viewers do not read
+# (they draw with 3DGS's 0.3): an `eps2d V` header comment keeps it for readers that do.
+PLY_EPS2D_COMMENT = "eps2d"
 
 
 def splats_to_ply_bytes(gaussians: Gaussians) -> bytes:
@@ -201,7 +206,8 @@ def splats_to_ply_bytes(gaussians: Gaussians) -> bytes:
     for i, c in enumerate(names):
         rec[c] = cols[:, i]
     buf = io.BytesIO()
-    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<", comments=[f"{PLY_DEGREE_COMMENT} {degree}"]).write(buf)
+    comments = [f"{PLY_DEGREE_COMMENT} {degree}", f"{PLY_EPS2D_COMMENT} {g.eps2d!r}"]
+    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<", comments=comments).write(buf)
     return buf.getvalue()
 
 
@@ -209,7 +215,7 @@ def read_splats_ply(path: str | os.PathLike) -> Gaussians:
     """The Gaussians of an Inria-layout 3DGS PLY (its normal columns are not read: they follow from the quats).
 
     The degree is the file's `sh_degree` comment when it has one and the bands above it are zero
-    (padding), else the one its f_rest columns make.
+    (padding), else the one its f_rest columns make; the dilation is its `eps2d` comment, else 3DGS's.
     """
     from plyfile import PlyData
 
@@ -228,6 +234,7 @@ def read_splats_ply(path: str | os.PathLike) -> Gaussians:
     if missing:
         raise TwinError(f"{path}: missing 3DGS columns {', '.join(missing[:4])}")
     declared = [int(w[1]) for w in (c.split() for c in ply.comments) if len(w) == 2 and w[0] == PLY_DEGREE_COMMENT and w[1].isdigit()]
+    eps2d = [w[1] for w in (c.split() for c in ply.comments) if len(w) == 2 and w[0] == PLY_EPS2D_COMMENT]
 
     def cols(*cs):
         return np.stack([np.asarray(v[c], np.float32) for c in cs], 1)
@@ -246,7 +253,24 @@ def read_splats_ply(path: str | os.PathLike) -> Gaussians:
         log_scales=cols("scale_0", "scale_1", "scale_2"),
         opacity_logits=np.asarray(v["opacity"], np.float32),
         sh=sh,
+        eps2d=_eps2d(_comment_number(eps2d[0]) if eps2d else EPS2D_3DGS, f"{path}: its {PLY_EPS2D_COMMENT} comment"),
     )
+
+
+def _eps2d(value, where: str) -> float:
+    """A stored dilation (a JSON number) as a float, or one TwinError naming `where`."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and value >= 0.0):
+        raise TwinError(f"{where} must be a screen-space variance >= 0 px^2, got {value!r}")
+    return float(value)
+
+
+def _comment_number(text: str) -> float | str:
+    """A PLY comment's word as a float, or the word itself when it is not one (for the error message)."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
 
 # ---------------------------------------------------------------------------------------- twin dir
@@ -416,7 +440,7 @@ def _twin_from(doc: dict, ply: Gaussians, canon: dict, root: Path) -> Twin:
         timings_s=doc.get("timings_s", {}),
         losses=doc.get("losses", {}),
         # Twins written before the field existed were all fitted with 3DGS's dilation.
-        gaussians=replace(ply, eps2d=float(doc.get("eps2d", EPS2D_3DGS))),
+        gaussians=replace(ply, eps2d=_eps2d(doc.get("eps2d", EPS2D_3DGS), "twin.json's eps2d")),
         means_canonical=canon["means_canonical"],
         face_index=canon["face_index"],
         barycentrics=canon["barycentrics"],

@@ -5,6 +5,7 @@ CPU tensors go through the numba kernels in `_cpu_kernels`; CUDA tensors go to `
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -316,6 +317,8 @@ def rasterize(
         raise ValueError(f"tile_size must be between 1 and {kernels.MAX_TILE_SIZE}, got {tile_size}")
     if not near_plane > 0.0:
         raise ValueError(f"near_plane must be positive, got {near_plane}")
+    if not (math.isfinite(eps2d) and eps2d >= 0.0):
+        raise ValueError(f"eps2d must be a finite screen-space variance >= 0 px^2, got {eps2d}")
     if means.is_cuda:
         from reconstruction.render._gsplat import rasterize_gsplat
 

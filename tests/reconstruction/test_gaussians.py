@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from calibration.camera import Camera, look_at_c2w
 from calibration.sim3 import Sim3
 from reconstruction.gaussians import EPS2D_3DGS, Gaussians, camera_batch, render, sh_rotation, straight_rgba
+from reconstruction.render import rasterize
 
 
 def random_gaussians(n: int = 400, degree: int = 3, seed: int = 0) -> Gaussians:
@@ -100,7 +101,9 @@ def test_a_set_is_drawn_with_the_dilation_it_was_fitted_with():
     for derived in (sharp.subset(np.arange(50)), sharp.with_sh_degree(3), sharp.transformed(Sim3.identity()),
                     Gaussians.from_arrays(sharp.means, sharp.quats, sharp.log_scales, sharp.opacity_logits, sharp.sh, sharp.eps2d)):
         assert derived.eps2d == 0.1
-    assert Gaussians.concatenate([sharp, g]).eps2d == 0.3
+    assert Gaussians.concatenate([sharp, g]).eps2d == 0.1
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="eps2d"):
             replace(g, eps2d=bad)
+        with pytest.raises(ValueError, match="eps2d"):
+            rasterize(*g.activated(), *cams[:2], 64, 48, sh_degree=g.sh_degree, eps2d=bad)

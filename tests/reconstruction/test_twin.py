@@ -20,6 +20,7 @@ from reconstruction.twin import (
     TwinError,
     load_twin,
     ply_columns,
+    read_splats_ply,
     save_twin,
     splat_normals,
 )
@@ -123,14 +124,18 @@ def test_bad_inputs_are_one_sentence(tmp_path):
 def test_the_dilation_a_twin_was_fitted_with_comes_back(tmp_path):
     twin = make_twin()
     sharp = replace(twin, gaussians=replace(twin.gaussians, eps2d=0.1))
-    assert load_twin(save_twin(sharp, tmp_path / "sharp")).gaussians.eps2d == 0.1
+    out = save_twin(sharp, tmp_path / "sharp")
+    assert load_twin(out).gaussians.eps2d == 0.1
+    # The PLY says it too, in a header comment Inria-layout readers skip.
+    assert "eps2d 0.1" in PlyData.read(str(out / "splats.ply")).comments and read_splats_ply(out / "splats.ply").eps2d == 0.1
     # A twin written before the field existed was fitted with 3DGS's dilation.
     out = save_twin(twin, tmp_path / "old")
     doc = json.loads((out / "twin.json").read_text())
     del doc["eps2d"]
     (out / "twin.json").write_text(json.dumps(doc))
     assert load_twin(out, verify=False).gaussians.eps2d == 0.3
-    doc["eps2d"] = -1.0
-    (out / "twin.json").write_text(json.dumps(doc))
-    with pytest.raises(TwinError, match="eps2d"):
-        load_twin(out, verify=False)
+    for bad in (-1.0, None, True, "0.1", [0.1]):
+        doc["eps2d"] = bad
+        (out / "twin.json").write_text(json.dumps(doc))
+        with pytest.raises(TwinError, match="eps2d"):
+            load_twin(out, verify=False)
