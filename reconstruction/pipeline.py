@@ -29,7 +29,7 @@ from reconstruction.presets import apply_ablations, resolve_preset, scene_stats
 from reconstruction.quality import check_masks, check_registration
 from reconstruction.registration import RegistrationResult, check_fits
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
-from reconstruction.surface import mask_area_offset, offset_along_normals, silhouette_surface, untangle
+from reconstruction.surface import mask_overlap_offset, offset_along_normals, silhouette_surface, untangle
 from reconstruction.train import ProgressFn, TrainResult, Views, train
 from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
 
@@ -307,14 +307,14 @@ def reconstruct(
                                                              twin.gaussians), parts.faces)
     # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step, measured on
     # the surface as it will be written (untangling moves folded faces back towards the CAD, outwards or in).
-    step = mask_area_offset(surface, parts.faces, [c.camera for c in twin_cams], masks, bracket=0.02 * float(model.field.radius))
+    step = mask_overlap_offset(surface, parts.faces, [c.camera for c in twin_cams], masks, bracket=0.02 * float(model.field.radius))
     surface, kept = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
     deformed = MeshParts(surface, parts.faces, parts.face_part, parts.part_names)
-    twin.choices["surface"] = {"value": "alpha 1/2, then the masks' area", "mask_step_mm": round(1000.0 * step, 3),
+    twin.choices["surface"] = {"value": "alpha 1/2, then the masks' overlap", "mask_step_mm": round(1000.0 * step, 3),
                                "pulled_back_vertices": int(np.sum(kept < 1.0)),
                                "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
                                       "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
-                                      "then by the step at which its silhouettes cover the masks' pixels (surface.mask_area_offset); "
+                                      "then by the step at which its silhouettes best overlap the masks (surface.mask_overlap_offset); "
                                       "then pulled back towards the CAD wherever a face came to cross another (surface.untangle)"}
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all

@@ -41,30 +41,47 @@ def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gauss
     return offset_along_normals(vertices, faces, float(np.median(alpha_half_reach(gaussians))))
 
 
-def silhouette_pixels(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera]) -> int:
-    """Pixels the mesh (vertices [V, 3], faces [F, 3]) covers, summed over `cameras`."""
+def silhouette_overlap(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray) -> float:
+    """Intersection over union, pooled over `cameras`, of the mesh's silhouettes (vertices [V, 3], faces [F, 3])
+    and `masks` [C, H, W] bool."""
     from reconstruction.inspect import rasterize_mesh
 
-    return int(sum(int(np.count_nonzero(rasterize_mesh(vertices, faces, cam)[1] >= 0)) for cam in cameras))
+    inter = union = 0
+    for cam, mask in zip(cameras, masks):
+        covered = rasterize_mesh(vertices, faces, cam)[1] >= 0
+        inter += int(np.count_nonzero(covered & mask))
+        union += int(np.count_nonzero(covered | mask))
+    return inter / max(union, 1)
 
 
-def mask_area_offset(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray,
-                     bracket: float, steps: int = 10) -> float:
+def mask_overlap_offset(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray,
+                        bracket: float, steps: int = 14) -> float:
     """The distance along the normals (within +-`bracket`, units of the vertices) at which the mesh's
-    silhouettes in `cameras` cover as many pixels as `masks` [V, H, W] bool do: the area grows with the
-    distance, so bisection finds it; a mesh that needs more than the bracket gets the bracket's end.
+    silhouettes in `cameras` best overlap `masks` [C, H, W] bool (pooled IoU; golden-section search, so the
+    answer lies within 0.1 % of the bracket of the best; a mesh that needs more gets the bracket's end).
 
     Splats blend into one another at the rim, so their union reaches past any single splat's own alpha-1/2
-    radius; the masks say by how much (rig scenes: the alpha-1/2 surface covers 0.967-1.000 of the mask pixels).
+    radius; the masks say by how much. Overlap, not area: where the fit left a part beside its place, a step
+    that matched the areas would shrink the whole part by the excess on one side and ignore the deficit on
+    the other (rig scenes: the spatula's neck sits 1-3 px beside its mask; matching areas took 0.49 mm off
+    every face and 16 % off its volume, best overlap 0.01 mm and +0.5 %).
     """
-    target = int(np.count_nonzero(masks))
+    def overlap(distance: float) -> float:
+        return silhouette_overlap(offset_along_normals(vertices, faces, distance), faces, cameras, masks)
+
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
     lo, hi = -float(bracket), float(bracket)
+    x1, x2 = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+    f1, f2 = overlap(x1), overlap(x2)
     for _ in range(steps):
-        mid = 0.5 * (lo + hi)
-        if silhouette_pixels(offset_along_normals(vertices, faces, mid), faces, cameras) < target:
-            lo = mid
+        if f1 < f2:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + ratio * (hi - lo)
+            f2 = overlap(x2)
         else:
-            hi = mid
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - ratio * (hi - lo)
+            f1 = overlap(x1)
     return 0.5 * (lo + hi)
 
 

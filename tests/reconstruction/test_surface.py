@@ -61,16 +61,34 @@ def test_a_rest_surface_that_crosses_itself_is_not_blamed_on_the_move():
     assert np.all(kept == 1.0) and np.allclose(out, rest * 1.01)
 
 
-def test_the_mask_area_step_finds_how_far_the_masks_reach_past_the_mesh():
+def _ball_and_cameras():
     from calibration.camera import Camera, look_at_c2w
-    from reconstruction.inspect import rasterize_mesh
-    from reconstruction.surface import mask_area_offset
 
     ball = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
-    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
     K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
     cams = [Camera(K, 320, 240, c2w=look_at_c2w(np.array(eye, float), np.zeros(3))) for eye in ([0.3, 0, 0.05], [0, 0.3, -0.05], [-0.2, -0.2, 0.1])]
+    return np.asarray(ball.vertices), np.asarray(ball.faces), cams
+
+
+def test_the_mask_step_finds_how_far_the_masks_reach_past_the_mesh():
+    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.surface import mask_overlap_offset
+
+    v, f, cams = _ball_and_cameras()
     masks = np.stack([rasterize_mesh(v * 1.04, f, cam)[1] >= 0 for cam in cams])  # the object is 2 mm larger all round
-    step = mask_area_offset(v, f, cams, masks, bracket=0.005)
+    step = mask_overlap_offset(v, f, cams, masks, bracket=0.005)
     assert abs(step - 0.002) < 0.0002  # a tenth of a millimetre: a fraction of the 0.7 mm pixel there
-    assert mask_area_offset(v, f, cams, np.ones_like(masks), bracket=0.005) > 0.0049  # masks that cover everything: the bracket
+    assert mask_overlap_offset(v, f, cams, np.ones_like(masks), bracket=0.005) > 0.0049  # masks that cover everything: the bracket
+
+
+def test_a_local_excess_does_not_shrink_the_rest_of_the_surface():
+    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.surface import mask_overlap_offset
+
+    v, f, cams = _ball_and_cameras()
+    masks = np.stack([rasterize_mesh(v, f, cam)[1] >= 0 for cam in cams])  # the object: the ball alone
+    # The mesh: the ball, right, plus a knob the object lacks. Matching the masks' areas would take the knob's
+    # area off the whole ball's outline (about 1 mm inwards); the best overlap leaves the ball where it is.
+    knob = v * 0.3 + [0.0, 0.0, 0.05]
+    with_knob_v, with_knob_f = np.vstack([v, knob]), np.vstack([f, f + len(v)])
+    assert abs(mask_overlap_offset(with_knob_v, with_knob_f, cams, masks, bracket=0.005)) < 0.0002
