@@ -306,16 +306,16 @@ def reconstruct(
     surface, _ = untangle(parts.vertices, silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces,
                                                              twin.gaussians), parts.faces)
     # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step, measured on
-    # the surface as it will be written (untangling moves folded faces back towards the CAD, outwards or in).
+    # the surface as it will be written (untangling smooths folded faces' moves, outwards or in).
     step = mask_overlap_offset(surface, parts.faces, [c.camera for c in twin_cams], masks, bracket=0.02 * float(model.field.radius))
-    surface, kept = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
+    surface, untangled = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
     deformed = MeshParts(surface, parts.faces, parts.face_part, parts.part_names)
     twin.choices["surface"] = {"value": "alpha 1/2, then the masks' overlap", "mask_step_mm": round(1000.0 * step, 3),
-                               "pulled_back_vertices": int(np.sum(kept < 1.0)),
+                               "untangled_vertices": int(np.sum(untangled)),
                                "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
                                       "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
                                       "then by the step at which its silhouettes best overlap the masks (surface.mask_overlap_offset); "
-                                      "then pulled back towards the CAD wherever a face came to cross another (surface.untangle)"}
+                                      "then, wherever a face came to cross another, the move smoothed over its neighbours (surface.untangle)"}
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     twin.choices["registration"] = {"value": reg.to_dict(), "source": "given" if registration is not None else "computed",

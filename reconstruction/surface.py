@@ -98,21 +98,53 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     return out
 
 
-def untangle(rest: np.ndarray, moved: np.ndarray, faces: np.ndarray, rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """`moved` [V, 3] pulled back towards `rest` [V, 3] (the same faces [F, 3]) around every face that
-    crosses another where it did not in `rest`: the vertices of such faces halve their move, round after
-    round, and after `rounds` go back to rest until nothing new crosses (rest itself is the end point).
-    Returns (vertices [V, 3], kept [V]: the fraction of its move each vertex kept)."""
+def vertex_neighbour_mean(faces: np.ndarray, n_vertices: int):
+    """[V, V] sparse row-stochastic matrix: row v averages over the vertices sharing an edge with v (faces [F, 3])."""
+    import scipy.sparse as sp
+
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    adjacency = sp.coo_matrix((np.ones(2 * len(edges)), (edges.reshape(-1), edges[:, ::-1].reshape(-1))),
+                              shape=(n_vertices, n_vertices)).tocsr()
+    adjacency.data[:] = 1.0
+    degree = np.asarray(adjacency.sum(axis=1)).reshape(-1)
+    return sp.diags(1.0 / np.maximum(degree, 1.0)) @ adjacency
+
+
+def untangle(rest: np.ndarray, moved: np.ndarray, faces: np.ndarray, smooth_rounds: int = 30,
+             pull_rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """`moved` [V, 3] with every face that crosses another where it did not in `rest` [V, 3] (the same faces
+    [F, 3]) undone, the moves kept as far as they can be.
+
+    First the move is smoothed where the surface folds: the crossing faces' vertices and their neighbours take
+    their neighbours' mean move, round after round. A fold is a move that changes faster across the surface than the
+    part is thick; the neighbours' mean keeps where the part went (rig scenes: a spatula's thin neck carried 3 mm
+    sideways by the fit, where pulling back towards the CAD undid the carry and left the mesh's silhouettes at IoU
+    0.89-0.95 against training masks the splats fit at 0.99). After `smooth_rounds`, the vertices of faces still
+    crossing halve their move towards `rest` for `pull_rounds` rounds, then go back to rest until nothing new
+    crosses (rest itself is the end point).
+    Returns (vertices [V, 3], untangled [V] bool: the vertices whose move changed).
+    """
     rest = np.asarray(rest, np.float64)
-    move = np.asarray(moved, np.float64) - rest
     faces = np.asarray(faces, np.int64)
+    move = np.asarray(moved, np.float64) - rest
     already = self_intersecting_faces(rest, faces)
-    kept = np.ones(len(rest))
-    for r in range(rounds + len(rest)):
-        out = rest + kept[:, None] * move
-        new = self_intersecting_faces(out, faces) & ~already
+    neighbour_mean = vertex_neighbour_mean(faces, len(rest))
+    untangled = np.zeros(len(rest), bool)
+    for _ in range(smooth_rounds):
+        new = self_intersecting_faces(rest + move, faces) & ~already
         if not new.any():
-            return out, kept
+            return rest + move, untangled
+        at = np.zeros(len(rest), bool)
+        at[faces[new].reshape(-1)] = True
+        at |= neighbour_mean @ at.astype(np.float64) > 0
+        move[at] = (neighbour_mean @ move)[at]
+        untangled |= at
+    kept = np.ones(len(rest))
+    for r in range(pull_rounds + len(rest)):
+        new = self_intersecting_faces(rest + kept[:, None] * move, faces) & ~already
+        if not new.any():
+            break
         at = np.unique(faces[new])
-        kept[at] = 0.5 * kept[at] if r < rounds else 0.0
-    return rest + kept[:, None] * move, kept
+        kept[at] = 0.5 * kept[at] if r < pull_rounds else 0.0
+        untangled[at] = True
+    return rest + kept[:, None] * move, untangled
