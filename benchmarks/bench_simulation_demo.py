@@ -142,7 +142,7 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
         lines.append(f"| {pair[0]} - {pair[1]} | {len(a)} | {len(b)} | {near} |")
     lines += ["", f"Wall time: twin bodies {prep_t:.0f} s (repair, mass, CoACD), true bodies {prep_r:.0f} s; "
               f"simulation {sim_t:.1f} s (twin) / {sim_r:.1f} s (true); Gaussian renders {render_s:.0f} s for {len(frames)} frames "
-              f"({sum(len(s['means']) for s in splats_t)} splats).", "",
+              f"({sum(len(s) for s in splats_t)} splats).", "",
               "![first](frame_first.png) ![last](frame_last.png) ![contacts](contacts.png)"]
     return "\n".join(lines) + "\n"
 

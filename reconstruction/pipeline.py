@@ -315,7 +315,8 @@ def reconstruct(
                                "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
                                       "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
                                       "then by the step at which its silhouettes best overlap the masks (surface.mask_overlap_offset); "
-                                      "then, wherever a face came to cross another, the move smoothed over its neighbours (surface.untangle)"}
+                                      "then, wherever a face came to cross another, the move smoothed over its neighbours, and pulled back "
+                                      "towards the CAD where smoothing leaves a fold (surface.untangle)"}
     timings["export"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     twin.choices["registration"] = {"value": reg.to_dict(), "source": "given" if registration is not None else "computed",

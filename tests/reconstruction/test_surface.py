@@ -92,6 +92,8 @@ def test_the_mask_step_finds_how_far_the_masks_reach_past_the_mesh():
     step = mask_overlap_offset(v, f, cams, masks, bracket=0.005)
     assert abs(step - 0.002) < 0.0002  # a tenth of a millimetre: a fraction of the 0.7 mm pixel there
     assert mask_overlap_offset(v, f, cams, np.ones_like(masks), bracket=0.005) > 0.0049  # masks that cover everything: the bracket
+    out_of_view = v + [0.0, 0.0, 5.0]
+    assert mask_overlap_offset(out_of_view, f, cams, masks, bracket=0.005) == 0.0  # nothing to overlap: nothing moves
 
 
 def test_a_local_excess_does_not_shrink_the_rest_of_the_surface():
@@ -105,3 +107,34 @@ def test_a_local_excess_does_not_shrink_the_rest_of_the_surface():
     knob = v * 0.3 + [0.0, 0.0, 0.05]
     with_knob_v, with_knob_f = np.vstack([v, knob]), np.vstack([f, f + len(v)])
     assert abs(mask_overlap_offset(with_knob_v, with_knob_f, cams, masks, bracket=0.005)) < 0.0002
+
+
+def test_a_face_that_crossed_in_rest_is_still_untangled_from_a_new_one():
+    # G crosses H in rest (allowed: the CAD's own); the move takes G through T as well, which is new.
+    g = [[0.0, -1, -1], [0, 1, -1], [0, 0, 1]]
+    h = [[-1.0, 0, 0], [0.2, 0, 0.2], [0.2, 0.1, -0.2]]
+    t = [[0.5, -1, -1], [0.5, 1, -1], [0.5, 0, 1]]
+    rest, faces = np.array(g + h + t), np.arange(9).reshape(3, 3)
+    moved = rest.copy()
+    moved[:3] = [[0.3, -1, -1], [0.3, 1, -1], [0.7, 0, 0.5]]
+    out, untangled = untangle(rest, moved, faces)
+    assert not self_intersecting_faces(out, faces)[2]
+    assert untangled.tolist() == [True] * 3 + [False] * 6  # only G's move changed
+
+
+def test_untangled_names_only_the_vertices_whose_move_changed():
+    rest, faces = slab()
+    moved = rest + [0.1, 0.0, 0.0]
+    patch = (rest[:, 2] > 0) & (np.linalg.norm(rest[:, :2], axis=1) < 0.2)
+    moved[patch, 2] -= 0.03
+    out, untangled = untangle(rest, moved, faces)
+    assert np.array_equal(untangled, np.any(out - rest != moved - rest, axis=1))
+
+
+def test_the_neighbour_mean_keeps_a_lone_vertex_and_ignores_degenerate_edges():
+    from reconstruction.surface import vertex_neighbour_mean
+
+    mean = vertex_neighbour_mean(np.array([[0, 1, 2], [0, 0, 1]]), 4).toarray()
+    np.testing.assert_allclose(mean.sum(axis=1), 1.0)
+    assert mean[3, 3] == 1.0 and mean[0, 0] == 0.0  # vertex 3 is on no face; [0, 0, 1] adds no self-edge
+    assert vertex_neighbour_mean(np.zeros((0, 3), np.int64), 2).toarray().tolist() == [[1.0, 0.0], [0.0, 1.0]]
