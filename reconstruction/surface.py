@@ -43,12 +43,13 @@ def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gauss
 
 def silhouette_overlap(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray) -> float:
     """Intersection over union, pooled over `cameras`, of the mesh's silhouettes (vertices [V, 3], faces [F, 3])
-    and `masks` [C, H, W] bool (0 when both are empty)."""
+    and `masks` [C, H, W] bool (0 when both are empty); views of mixed sizes sit top-left on the masks' canvas."""
     from reconstruction.inspect import rasterize_mesh
 
     inter = union = 0
     for cam, mask in zip(cameras, masks, strict=True):
         covered = rasterize_mesh(vertices, faces, cam)[1] >= 0
+        mask = cam.crop(mask)
         inter += int(np.count_nonzero(covered & mask))
         union += int(np.count_nonzero(covered | mask))
     return inter / max(union, 1)

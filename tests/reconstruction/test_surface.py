@@ -138,3 +138,16 @@ def test_the_neighbour_mean_keeps_a_lone_vertex_and_ignores_degenerate_edges():
     np.testing.assert_allclose(mean.sum(axis=1), 1.0)
     assert mean[3, 3] == 1.0 and mean[0, 0] == 0.0  # vertex 3 is on no face; [0, 0, 1] adds no self-edge
     assert vertex_neighbour_mean(np.zeros((0, 3), np.int64), 2).toarray().tolist() == [[1.0, 0.0], [0.0, 1.0]]
+
+
+def test_the_mask_step_takes_views_of_mixed_sizes_on_one_canvas():
+    from calibration.camera import Camera
+    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.surface import mask_overlap_offset
+
+    v, f, cams = _ball_and_cameras()
+    cams[1] = Camera(cams[1].K, 320, 200, c2w=cams[1].c2w)  # one portrait-cropped view, top-left on the 320x240 canvas
+    masks = np.zeros((3, 240, 320), bool)
+    for m, cam in zip(masks, cams):
+        m[: cam.height, : cam.width] = rasterize_mesh(v * 1.04, f, cam)[1] >= 0
+    assert abs(mask_overlap_offset(v, f, cams, masks, bracket=0.005) - 0.002) < 0.0002
