@@ -103,51 +103,68 @@ def _chunk_bounds(chunk: int, n_chunks: int, n: int) -> tuple[int, int]:
 
 
 @njit(inline="always", **_OPTS)
-def _rotation_and_factor(quat, scale, rot, factor) -> float:
-    """Writes R(q / |q|) into rot [3, 3] and M = R diag(scale) into factor [3, 3]; returns 1 / |q|."""
+def _unit_quaternion(quat):
+    """(1 / |q|, w, x, y, z) of q / |q| for a wxyz quaternion q [4]."""
     inv_norm = 1.0 / math.sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3])
-    w = quat[0] * inv_norm
-    x = quat[1] * inv_norm
-    y = quat[2] * inv_norm
-    z = quat[3] * inv_norm
-    rot[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    rot[0, 1] = 2.0 * (x * y - w * z)
-    rot[0, 2] = 2.0 * (x * z + w * y)
-    rot[1, 0] = 2.0 * (x * y + w * z)
-    rot[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    rot[1, 2] = 2.0 * (y * z - w * x)
-    rot[2, 0] = 2.0 * (x * z - w * y)
-    rot[2, 1] = 2.0 * (y * z + w * x)
-    rot[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-    for i in range(3):
-        for j in range(3):
-            factor[i, j] = rot[i, j] * scale[j]
-    return inv_norm
+    return inv_norm, quat[0] * inv_norm, quat[1] * inv_norm, quat[2] * inv_norm, quat[3] * inv_norm
 
 
 @njit(inline="always", **_OPTS)
-def _covariance(factor, cov) -> None:
-    """cov = M M^T (each entry below the diagonal is the same products as its mirror, so it is copied)."""
-    for i in range(3):
-        for j in range(i, 3):
-            cov[i, j] = factor[i, 0] * factor[j, 0] + factor[i, 1] * factor[j, 1] + factor[i, 2] * factor[j, 2]
-            cov[j, i] = cov[i, j]
+def _rotation_matrix(w, x, y, z):
+    """Row-major entries of R(q) for a unit wxyz quaternion."""
+    return (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
 
 
 @njit(inline="always", **_OPTS)
-def _to_camera(viewmat, mean, cov, tmp, cov_cam, lower: bool = True) -> tuple[float, float, float]:
-    """Camera-frame mean R m + t (returned) and covariance R cov R^T (written to cov_cam; its entries below the diagonal
-    only if `lower`: rounding makes them differ from their mirrors, and only the backward reads them)."""
-    mx = viewmat[0, 0] * mean[0] + viewmat[0, 1] * mean[1] + viewmat[0, 2] * mean[2] + viewmat[0, 3]
-    my = viewmat[1, 0] * mean[0] + viewmat[1, 1] * mean[1] + viewmat[1, 2] * mean[2] + viewmat[1, 3]
-    mz = viewmat[2, 0] * mean[0] + viewmat[2, 1] * mean[1] + viewmat[2, 2] * mean[2] + viewmat[2, 3]
-    for i in range(3):
-        for j in range(3):
-            tmp[i, j] = viewmat[i, 0] * cov[0, j] + viewmat[i, 1] * cov[1, j] + viewmat[i, 2] * cov[2, j]
-    for i in range(3):
-        for j in range(0 if lower else i, 3):
-            cov_cam[i, j] = tmp[i, 0] * viewmat[j, 0] + tmp[i, 1] * viewmat[j, 1] + tmp[i, 2] * viewmat[j, 2]
-    return mx, my, mz
+def _factor_product(m00, m01, m02, m10, m11, m12, m20, m21, m22):
+    """Upper triangle (c00, c01, c02, c11, c12, c22) of M M^T."""
+    return (
+        m00 * m00 + m01 * m01 + m02 * m02,
+        m00 * m10 + m01 * m11 + m02 * m12,
+        m00 * m20 + m01 * m21 + m02 * m22,
+        m10 * m10 + m11 * m11 + m12 * m12,
+        m10 * m20 + m11 * m21 + m12 * m22,
+        m20 * m20 + m21 * m21 + m22 * m22,
+    )
+
+
+@njit(inline="always", **_OPTS)
+def _covariance3d(quat, scale):
+    """Upper triangle of cov = M M^T, M = R(q / |q|) diag(scale). The projection carries its small matrices as
+    scalars, which the compiler keeps in registers; 3x3 scratch arrays went through memory (~15 % of its time)."""
+    _, w, x, y, z = _unit_quaternion(quat)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_matrix(w, x, y, z)
+    s0, s1, s2 = scale[0], scale[1], scale[2]
+    return _factor_product(r00 * s0, r01 * s1, r02 * s2, r10 * s0, r11 * s1, r12 * s2, r20 * s0, r21 * s1, r22 * s2)
+
+
+@njit(inline="always", **_OPTS)
+def _camera_covariance(vm, c00, c01, c02, c11, c12, c22):
+    """Upper triangle (w00, w01, w02, w11, w12, w22) of W = V cov V^T, V = vm[:3, :3], cov given by its upper triangle."""
+    r00, r01, r02 = vm[0, 0], vm[0, 1], vm[0, 2]
+    r10, r11, r12 = vm[1, 0], vm[1, 1], vm[1, 2]
+    r20, r21, r22 = vm[2, 0], vm[2, 1], vm[2, 2]
+    t00 = r00 * c00 + r01 * c01 + r02 * c02
+    t01 = r00 * c01 + r01 * c11 + r02 * c12
+    t02 = r00 * c02 + r01 * c12 + r02 * c22
+    t10 = r10 * c00 + r11 * c01 + r12 * c02
+    t11 = r10 * c01 + r11 * c11 + r12 * c12
+    t12 = r10 * c02 + r11 * c12 + r12 * c22
+    t20 = r20 * c00 + r21 * c01 + r22 * c02
+    t21 = r20 * c01 + r21 * c11 + r22 * c12
+    t22 = r20 * c02 + r21 * c12 + r22 * c22
+    return (
+        t00 * r00 + t01 * r01 + t02 * r02,
+        t00 * r10 + t01 * r11 + t02 * r12,
+        t00 * r20 + t01 * r21 + t02 * r22,
+        t10 * r10 + t11 * r11 + t12 * r12,
+        t10 * r20 + t11 * r21 + t12 * r22,
+        t20 * r20 + t21 * r21 + t22 * r22,
+    )
 
 
 @njit(inline="always", **_OPTS)
@@ -179,16 +196,11 @@ def _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi):
 
 
 @njit(inline="always", **_OPTS)
-def _covariance2d(cov_cam, j00, j02, j11, j12, eps2d):
-    """J W J^T + eps2d I as (s00, s01, s11)."""
-    s00 = j00 * j00 * cov_cam[0, 0] + 2.0 * j00 * j02 * cov_cam[0, 2] + j02 * j02 * cov_cam[2, 2] + eps2d
-    s01 = (
-        j00 * j11 * cov_cam[0, 1]
-        + j00 * j12 * cov_cam[0, 2]
-        + j02 * j11 * cov_cam[1, 2]
-        + j02 * j12 * cov_cam[2, 2]
-    )
-    s11 = j11 * j11 * cov_cam[1, 1] + 2.0 * j11 * j12 * cov_cam[1, 2] + j12 * j12 * cov_cam[2, 2] + eps2d
+def _covariance2d(w00, w01, w02, w11, w12, w22, j00, j02, j11, j12, eps2d):
+    """J W J^T + eps2d I as (s00, s01, s11), W given by its upper triangle."""
+    s00 = j00 * j00 * w00 + 2.0 * j00 * j02 * w02 + j02 * j02 * w22 + eps2d
+    s01 = j00 * j11 * w01 + j00 * j12 * w02 + j02 * j11 * w12 + j02 * j12 * w22
+    s11 = j11 * j11 * w11 + 2.0 * j11 * j12 * w12 + j12 * j12 * w22 + eps2d
     return s00, s01, s11
 
 
@@ -245,30 +257,29 @@ def project_forward(
     tiles_x = -(-width // tile_size) if tile_size > 0 else 0
     tiles_per_cam = tiles_x * (-(-height // tile_size)) if tile_size > 0 else 0
     shift = _tile_shift(tile_size)
-    rot = np.empty((3, 3))
-    factor = np.empty((3, 3))
-    cov = np.empty((3, 3))
-    tmp = np.empty((3, 3))
-    cov_cam = np.empty((3, 3))
     limits = _clamp_limits(Ks, width, height)
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
+        chunk_hist = hist[chunk]
         for g in range(lo, hi):
             opacity = opacities[g]
             # `not >=` also culls NaN opacities.
             if not active[g] or not opacity >= ALPHA_THRESHOLD:
                 continue
-            _rotation_and_factor(quats[g], scales[g], rot, factor)
-            _covariance(factor, cov)
+            c00, c01, c02, c11, c12, c22 = _covariance3d(quats[g], scales[g])
             # gsplat 1.5.3's opacity-aware box: alpha >= 1/255 needs sigma <= ln(255 opacity).
             two_log = 2.0 * math.log(opacity * 255.0)
             extent = math.sqrt(two_log)
             if tile_size > 0:
                 two_logs[g] = two_log
             for c in range(n_cams):
-                mx, my, mz = _to_camera(viewmats[c], means[g], cov, tmp, cov_cam, lower=False)
+                vm = viewmats[c]
+                mx = vm[0, 0] * means[g, 0] + vm[0, 1] * means[g, 1] + vm[0, 2] * means[g, 2] + vm[0, 3]
+                my = vm[1, 0] * means[g, 0] + vm[1, 1] * means[g, 1] + vm[1, 2] * means[g, 2] + vm[1, 3]
+                mz = vm[2, 0] * means[g, 0] + vm[2, 1] * means[g, 1] + vm[2, 2] * means[g, 2] + vm[2, 3]
                 if not (mz > near and mz < far):
                     continue
+                w00, w01, w02, w11, w12, w22 = _camera_covariance(vm, c00, c01, c02, c11, c12, c22)
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
@@ -276,7 +287,7 @@ def project_forward(
                 # divisions and square roots were most of its time. Values move by an ulp.
                 rz = 1.0 / mz
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi)
-                s00, s01, s11 = _covariance2d(cov_cam, j00, j02, j11, j12, eps2d)
+                s00, s01, s11 = _covariance2d(w00, w01, w02, w11, w12, w22, j00, j02, j11, j12, eps2d)
                 det = s00 * s11 - s01 * s01
                 if not det > 0.0:
                     continue
@@ -317,9 +328,13 @@ def project_forward(
                 ty0, ty1 = _tile_of(v_lo, tile_size, shift), _tile_of(v_hi, tile_size, shift)
                 tile_counts[cg] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
                 base = c * tiles_per_cam
+                # Most splats touch one tile; the loops' unpredictable trip counts cost a third of this kernel.
+                if tx0 == tx1 and ty0 == ty1:
+                    chunk_hist[base + ty0 * tiles_x + tx0] += 1
+                    continue
                 for ty in range(ty0, ty1 + 1):
                     for tx in range(tx0, tx1 + 1):
-                        hist[chunk, base + ty * tiles_x + tx] += 1
+                        chunk_hist[base + ty * tiles_x + tx] += 1
 
 
 @njit(fastmath=_FUSED, **_OPTS)
@@ -332,20 +347,11 @@ def project_backward(
     v_means2d [C, N, 2] and v_conics [C, N, 3] (gradients w.r.t. (a, b, c)) come in; v_means [N, 3],
     v_quats [N, 4], v_scales [N, 3] are written (zero-initialised by the caller) and, if want_viewmats,
     per-chunk viewmat gradients are accumulated into v_viewmats_chunks [n_chunks, C, 3, 4] (the caller
-    sums the chunks).
+    sums the chunks). Symmetric matrices (cov, W, their gradients) are carried as upper-triangle scalars.
     """
     n = means.shape[0]
     n_cams = viewmats.shape[0]
     n_chunks = v_viewmats_chunks.shape[0]
-    rot = np.empty((3, 3))
-    factor = np.empty((3, 3))
-    cov = np.empty((3, 3))
-    tmp = np.empty((3, 3))
-    cov_cam = np.empty((3, 3))
-    v_cov = np.empty((3, 3))
-    v_w = np.empty((3, 3))
-    rw = np.empty((3, 3))
-    v_factor = np.empty((3, 3))
     limits = _clamp_limits(Ks, width, height)
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
@@ -355,9 +361,15 @@ def project_backward(
                 seen = seen or radii[c, g, 0] > 0
             if not seen:
                 continue
-            inv_qnorm = _rotation_and_factor(quats[g], scales[g], rot, factor)
-            _covariance(factor, cov)
-            v_cov[:] = 0.0
+            inv_qnorm, w, x, y, z = _unit_quaternion(quats[g])
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_matrix(w, x, y, z)
+            s0, s1, s2 = scales[g, 0], scales[g, 1], scales[g, 2]
+            m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
+            m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
+            m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
+            c00, c01, c02, c11, c12, c22 = _factor_product(m00, m01, m02, m10, m11, m12, m20, m21, m22)
+            # dL/dcov, symmetric.
+            vc00 = vc01 = vc02 = vc11 = vc12 = vc22 = 0.0
             vmx_w = 0.0
             vmy_w = 0.0
             vmz_w = 0.0
@@ -365,7 +377,10 @@ def project_backward(
                 if radii[c, g, 0] <= 0:
                     continue
                 vm = viewmats[c]
-                mx, my, mz = _to_camera(vm, means[g], cov, tmp, cov_cam)
+                mx = vm[0, 0] * means[g, 0] + vm[0, 1] * means[g, 1] + vm[0, 2] * means[g, 2] + vm[0, 3]
+                my = vm[1, 0] * means[g, 0] + vm[1, 1] * means[g, 1] + vm[1, 2] * means[g, 2] + vm[1, 3]
+                mz = vm[2, 0] * means[g, 0] + vm[2, 1] * means[g, 1] + vm[2, 2] * means[g, 2] + vm[2, 3]
+                w00, w01, w02, w11, w12, w22 = _camera_covariance(vm, c00, c01, c02, c11, c12, c22)
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
                 rz = 1.0 / mz
@@ -388,17 +403,17 @@ def project_backward(
                 gj11 = g11 * j11
                 gj12 = g01 * j02 + g11 * j12
                 # dL/dJ = 2 G J W (only the structurally non-zero entries matter).
-                vj00 = 2.0 * (gj00 * cov_cam[0, 0] + gj01 * cov_cam[1, 0] + gj02 * cov_cam[2, 0])
-                vj02 = 2.0 * (gj00 * cov_cam[0, 2] + gj01 * cov_cam[1, 2] + gj02 * cov_cam[2, 2])
-                vj11 = 2.0 * (gj10 * cov_cam[0, 1] + gj11 * cov_cam[1, 1] + gj12 * cov_cam[2, 1])
-                vj12 = 2.0 * (gj10 * cov_cam[0, 2] + gj11 * cov_cam[1, 2] + gj12 * cov_cam[2, 2])
-                # dL/dW = J^T G J.
-                for k in range(3):
-                    gj0k = gj00 if k == 0 else (gj01 if k == 1 else gj02)
-                    gj1k = gj10 if k == 0 else (gj11 if k == 1 else gj12)
-                    v_w[0, k] = j00 * gj0k
-                    v_w[1, k] = j11 * gj1k
-                    v_w[2, k] = j02 * gj0k + j12 * gj1k
+                vj00 = 2.0 * (gj00 * w00 + gj01 * w01 + gj02 * w02)
+                vj02 = 2.0 * (gj00 * w02 + gj01 * w12 + gj02 * w22)
+                vj11 = 2.0 * (gj10 * w01 + gj11 * w11 + gj12 * w12)
+                vj12 = 2.0 * (gj10 * w02 + gj11 * w12 + gj12 * w22)
+                # dL/dW = J^T G J, symmetric.
+                a00 = j00 * gj00
+                a01 = j00 * gj01
+                a02 = j00 * gj02
+                a11 = j11 * gj11
+                a12 = j11 * gj12
+                a22 = j02 * gj02 + j12 * gj12
                 # Camera-frame mean: through mean2d and through J.
                 rz2 = rz * rz
                 rz3 = rz2 * rz
@@ -416,59 +431,65 @@ def project_backward(
                     vmz += 2.0 * fy * my * rz3 * vj12
                 else:
                     vmz += fy * (mz * min(y_hi, max(y_lo, my * rz))) * rz3 * vj12
-                # W = R cov R^T: dL/dcov += R^T v_w R and dL/dR += 2 v_w R cov; m_cam = R m + t.
-                for i in range(3):
-                    for j in range(3):
-                        rw[i, j] = vm[0, i] * v_w[0, j] + vm[1, i] * v_w[1, j] + vm[2, i] * v_w[2, j]
-                for i in range(3):
-                    for j in range(3):
-                        v_cov[i, j] += rw[i, 0] * vm[0, j] + rw[i, 1] * vm[1, j] + rw[i, 2] * vm[2, j]
+                # W = V cov V^T (V = vm[:3, :3]): dL/dcov += V^T A V, with B = V^T A first.
+                b00 = vm[0, 0] * a00 + vm[1, 0] * a01 + vm[2, 0] * a02
+                b01 = vm[0, 0] * a01 + vm[1, 0] * a11 + vm[2, 0] * a12
+                b02 = vm[0, 0] * a02 + vm[1, 0] * a12 + vm[2, 0] * a22
+                b10 = vm[0, 1] * a00 + vm[1, 1] * a01 + vm[2, 1] * a02
+                b11 = vm[0, 1] * a01 + vm[1, 1] * a11 + vm[2, 1] * a12
+                b12 = vm[0, 1] * a02 + vm[1, 1] * a12 + vm[2, 1] * a22
+                b20 = vm[0, 2] * a00 + vm[1, 2] * a01 + vm[2, 2] * a02
+                b21 = vm[0, 2] * a01 + vm[1, 2] * a11 + vm[2, 2] * a12
+                b22 = vm[0, 2] * a02 + vm[1, 2] * a12 + vm[2, 2] * a22
+                vc00 += b00 * vm[0, 0] + b01 * vm[1, 0] + b02 * vm[2, 0]
+                vc01 += b00 * vm[0, 1] + b01 * vm[1, 1] + b02 * vm[2, 1]
+                vc02 += b00 * vm[0, 2] + b01 * vm[1, 2] + b02 * vm[2, 2]
+                vc11 += b10 * vm[0, 1] + b11 * vm[1, 1] + b12 * vm[2, 1]
+                vc12 += b10 * vm[0, 2] + b11 * vm[1, 2] + b12 * vm[2, 2]
+                vc22 += b20 * vm[0, 2] + b21 * vm[1, 2] + b22 * vm[2, 2]
                 if want_viewmats:
-                    # tmp still holds R cov from `_to_camera`.
+                    # dL/dV = 2 A V cov + (dL/dm_cam) m^T, and dL/dt = dL/dm_cam.
+                    v_view = v_viewmats_chunks[chunk, c]
                     vmc = (vmx, vmy, vmz)
                     for i in range(3):
-                        for j in range(3):
-                            v_viewmats_chunks[chunk, c, i, j] += (
-                                2.0 * (v_w[i, 0] * tmp[0, j] + v_w[i, 1] * tmp[1, j] + v_w[i, 2] * tmp[2, j])
-                                + vmc[i] * means[g, j]
-                            )
-                        v_viewmats_chunks[chunk, c, i, 3] += vmc[i]
+                        ai0 = a00 if i == 0 else (a01 if i == 1 else a02)
+                        ai1 = a01 if i == 0 else (a11 if i == 1 else a12)
+                        ai2 = a02 if i == 0 else (a12 if i == 1 else a22)
+                        # Row i of A V.
+                        av0 = ai0 * vm[0, 0] + ai1 * vm[1, 0] + ai2 * vm[2, 0]
+                        av1 = ai0 * vm[0, 1] + ai1 * vm[1, 1] + ai2 * vm[2, 1]
+                        av2 = ai0 * vm[0, 2] + ai1 * vm[1, 2] + ai2 * vm[2, 2]
+                        v_view[i, 0] += 2.0 * (av0 * c00 + av1 * c01 + av2 * c02) + vmc[i] * means[g, 0]
+                        v_view[i, 1] += 2.0 * (av0 * c01 + av1 * c11 + av2 * c12) + vmc[i] * means[g, 1]
+                        v_view[i, 2] += 2.0 * (av0 * c02 + av1 * c12 + av2 * c22) + vmc[i] * means[g, 2]
+                        v_view[i, 3] += vmc[i]
                 vmx_w += vm[0, 0] * vmx + vm[1, 0] * vmy + vm[2, 0] * vmz
                 vmy_w += vm[0, 1] * vmx + vm[1, 1] * vmy + vm[2, 1] * vmz
                 vmz_w += vm[0, 2] * vmx + vm[1, 2] * vmy + vm[2, 2] * vmz
             v_means[g, 0] = vmx_w
             v_means[g, 1] = vmy_w
             v_means[g, 2] = vmz_w
-            # cov = M M^T with M = R diag(s): dL/dM = 2 v_cov M.
-            for i in range(3):
-                for j in range(3):
-                    v_factor[i, j] = 2.0 * (
-                        v_cov[i, 0] * factor[0, j] + v_cov[i, 1] * factor[1, j] + v_cov[i, 2] * factor[2, j]
-                    )
-            for j in range(3):
-                v_scales[g, j] = v_factor[0, j] * rot[0, j] + v_factor[1, j] * rot[1, j] + v_factor[2, j] * rot[2, j]
-            # dL/dR, then through R(q) of the unit quaternion, then through the normalisation.
-            for i in range(3):
-                for j in range(3):
-                    v_factor[i, j] *= scales[g, j]
-            w = quats[g, 0] * inv_qnorm
-            x = quats[g, 1] * inv_qnorm
-            y = quats[g, 2] * inv_qnorm
-            z = quats[g, 3] * inv_qnorm
-            r = v_factor
-            vw = 2.0 * (-z * r[0, 1] + y * r[0, 2] + z * r[1, 0] - x * r[1, 2] - y * r[2, 0] + x * r[2, 1])
-            vx = 2.0 * (
-                y * r[0, 1] + z * r[0, 2] + y * r[1, 0] - 2.0 * x * r[1, 1] - w * r[1, 2]
-                + z * r[2, 0] + w * r[2, 1] - 2.0 * x * r[2, 2]
-            )
-            vy = 2.0 * (
-                -2.0 * y * r[0, 0] + x * r[0, 1] + w * r[0, 2] + x * r[1, 0] + z * r[1, 2]
-                - w * r[2, 0] + z * r[2, 1] - 2.0 * y * r[2, 2]
-            )
-            vz = 2.0 * (
-                -2.0 * z * r[0, 0] - w * r[0, 1] + x * r[0, 2] + w * r[1, 0] - 2.0 * z * r[1, 1]
-                + y * r[1, 2] + x * r[2, 0] + y * r[2, 1]
-            )
+            # cov = M M^T with M = R diag(s): dL/dM = 2 dL/dcov M.
+            f00 = 2.0 * (vc00 * m00 + vc01 * m10 + vc02 * m20)
+            f01 = 2.0 * (vc00 * m01 + vc01 * m11 + vc02 * m21)
+            f02 = 2.0 * (vc00 * m02 + vc01 * m12 + vc02 * m22)
+            f10 = 2.0 * (vc01 * m00 + vc11 * m10 + vc12 * m20)
+            f11 = 2.0 * (vc01 * m01 + vc11 * m11 + vc12 * m21)
+            f12 = 2.0 * (vc01 * m02 + vc11 * m12 + vc12 * m22)
+            f20 = 2.0 * (vc02 * m00 + vc12 * m10 + vc22 * m20)
+            f21 = 2.0 * (vc02 * m01 + vc12 * m11 + vc22 * m21)
+            f22 = 2.0 * (vc02 * m02 + vc12 * m12 + vc22 * m22)
+            v_scales[g, 0] = f00 * r00 + f10 * r10 + f20 * r20
+            v_scales[g, 1] = f01 * r01 + f11 * r11 + f21 * r21
+            v_scales[g, 2] = f02 * r02 + f12 * r12 + f22 * r22
+            # dL/dR = dL/dM diag(s), then through R(q) of the unit quaternion, then through the normalisation.
+            q00, q01, q02 = f00 * s0, f01 * s1, f02 * s2
+            q10, q11, q12 = f10 * s0, f11 * s1, f12 * s2
+            q20, q21, q22 = f20 * s0, f21 * s1, f22 * s2
+            vw = 2.0 * (-z * q01 + y * q02 + z * q10 - x * q12 - y * q20 + x * q21)
+            vx = 2.0 * (y * q01 + z * q02 + y * q10 - 2.0 * x * q11 - w * q12 + z * q20 + w * q21 - 2.0 * x * q22)
+            vy = 2.0 * (-2.0 * y * q00 + x * q01 + w * q02 + x * q10 + z * q12 - w * q20 + z * q21 - 2.0 * y * q22)
+            vz = 2.0 * (-2.0 * z * q00 - w * q01 + x * q02 + w * q10 - 2.0 * z * q11 + y * q12 + x * q20 + y * q21)
             dot = w * vw + x * vx + y * vy + z * vz
             v_quats[g, 0] = (vw - w * dot) * inv_qnorm
             v_quats[g, 1] = (vx - x * dot) * inv_qnorm
@@ -490,6 +511,7 @@ def scatter_tile_keys(
     shift = _tile_shift(tile_size)
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
+        chunk_cursor = cursor[chunk]
         for g in range(lo, hi):
             for c in range(n_cams):
                 cg = c * n + g
@@ -498,11 +520,17 @@ def scatter_tile_keys(
                 key = (depth_bits[cg] << 32) | g
                 base = c * tiles_per_cam
                 tx0, tx1 = _tile_of(rects[cg, 0], tile_size, shift), _tile_of(rects[cg, 1], tile_size, shift)
-                for ty in range(_tile_of(rects[cg, 2], tile_size, shift), _tile_of(rects[cg, 3], tile_size, shift) + 1):
+                ty0, ty1 = _tile_of(rects[cg, 2], tile_size, shift), _tile_of(rects[cg, 3], tile_size, shift)
+                if tile_counts[cg] == 1:
+                    t = base + ty0 * tiles_x + tx0
+                    keys[chunk_cursor[t]] = key
+                    chunk_cursor[t] += 1
+                    continue
+                for ty in range(ty0, ty1 + 1):
                     for tx in range(tx0, tx1 + 1):
                         t = base + ty * tiles_x + tx
-                        keys[cursor[chunk, t]] = key
-                        cursor[chunk, t] += 1
+                        keys[chunk_cursor[t]] = key
+                        chunk_cursor[t] += 1
 
 
 # Below this many keys a tile's keys are insertion-sorted; above, radix-sorted by their depth bits.
