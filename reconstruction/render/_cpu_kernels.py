@@ -63,6 +63,8 @@ SF_COLUMNS = 7
 # Columns of a slot's int record: its splat's pixel rect clipped to the slot's tile (inclusive).
 SI_U_LO, SI_U_HI, SI_V_LO, SI_V_HI = range(4)
 SI_COLUMNS = 4
+# Per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity.
+N_GRAD_GEOMETRY = 6
 
 # nogil: the kernels run on plain threads (see `reconstruction.parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -1013,22 +1015,37 @@ def rasterize_backward(
 
 
 @njit(**_OPTS)
-def sum_slot_rows(lo, hi, slot_values, slot_offsets, slot_at, out) -> None:
-    """out[cg, :] = sum of slot_values[k, :] over pair cg's slots, in slot order; out [C * N, K]."""
-    width = out.shape[1]
-    flat_values = slot_values.reshape(-1)
+def sum_slot_gradients(lo, hi, slot_grads, slot_offsets, slot_at, v_means2d, v_conics, v_opacities, v_colors) -> None:
+    """Per-pair sums of `rasterize_backward`'s slot_grads [n_isect, 6 + D] over pair cg's slots, in slot order, written
+    straight into the inputs' gradient layouts: v_means2d [C * N, 2], v_conics [C * N, 3], v_opacities [C * N],
+    v_colors [C * N, D] (contiguous arrays the caller hands to torch, instead of strided copies of one [C * N, 6 + D])."""
+    width = slot_grads.shape[1]
+    flat_grads = slot_grads.reshape(-1)
     last = slot_offsets[hi]
     for cg in range(lo, hi):
-        for col in range(width):
-            out[cg, col] = 0.0
+        mx = my = a = b = c = opacity = 0.0
+        for d in range(width - N_GRAD_GEOMETRY):
+            v_colors[cg, d] = 0.0
         for s in range(slot_offsets[cg], slot_offsets[cg + 1]):
             if s + _PREFETCH_AHEAD < last:
                 row = slot_at[s + _PREFETCH_AHEAD] * width
-                _prefetch(flat_values, row)
-                _prefetch(flat_values, row + width - 1)
+                _prefetch(flat_grads, row)
+                _prefetch(flat_grads, row + width - 1)
             k = slot_at[s]
-            for col in range(width):
-                out[cg, col] += slot_values[k, col]
+            mx += slot_grads[k, 0]
+            my += slot_grads[k, 1]
+            a += slot_grads[k, 2]
+            b += slot_grads[k, 3]
+            c += slot_grads[k, 4]
+            opacity += slot_grads[k, 5]
+            for d in range(width - N_GRAD_GEOMETRY):
+                v_colors[cg, d] += slot_grads[k, N_GRAD_GEOMETRY + d]
+        v_means2d[cg, 0] = mx
+        v_means2d[cg, 1] = my
+        v_conics[cg, 0] = a
+        v_conics[cg, 1] = b
+        v_conics[cg, 2] = c
+        v_opacities[cg] = opacity
 
 
 @njit(**_OPTS)

@@ -26,7 +26,6 @@ _GRAIN = 4096
 # tile tests in vain: the `cpu` preset's Stage-II batch (10 views at 320x240, 15k splats) lists 228k tile
 # intersections at 32 px against 327k at 16 and renders forward+backward ~9 % faster; the image is the same.
 CPU_TILE_SIZE = 32
-N_GRAD_GEOMETRY = 6  # per-slot gradient columns before the colour channels: mean2d x, y, conic a, b, c, opacity
 # The compositing kernels' (slot, pixel) pairs and per-slot gradients, reused from call to call.
 _SCRATCH = ScratchPool()
 
@@ -201,7 +200,7 @@ class _RasterizeToPixels(torch.autograd.Function):
             pairs = _composite(bins, to_numpy(backgrounds), width, height, torch.float64)[4]
         ctx.pairs = None
         depth = bins.slot_c.shape[1]
-        n_cols = N_GRAD_GEOMETRY + depth
+        n_cols = kernels.N_GRAD_GEOMETRY + depth
         v_image = (np.zeros((n_cams, height, width, depth), ctx.out_dtype) if v_render_colors is None
                    else to_numpy(v_render_colors))
         v_alphas = (np.zeros((n_cams, height, width), ctx.out_dtype) if v_render_alphas is None
@@ -212,20 +211,29 @@ class _RasterizeToPixels(torch.autograd.Function):
             width, height, ctx.out_colors, ctx.transmittance, *pairs, v_image, v_alphas, slot_grads,
         )
         _give_back(pairs)
-        grads = bins.sum_slots(kernels.sum_slot_rows, slot_grads, np.empty((n_cams * n, n_cols))).reshape(n_cams, n, n_cols)
+        v_means2d = np.empty((n_cams, n, 2))
+        v_conics = np.empty((n_cams, n, 3))
+        v_opacities = np.empty((n_cams, n))
+        v_colors = np.empty((n_cams, n, depth))
+        parallel_for(
+            kernels.sum_slot_gradients, bins.n_pairs, slot_grads, bins.slot_offsets, bins.slot_at,
+            v_means2d.reshape(-1, 2), v_conics.reshape(-1, 3), v_opacities.reshape(-1), v_colors.reshape(-1, depth),
+            grain=_GRAIN,
+        )
         _SCRATCH.give("slot_grads", slot_grads)
-        # Split and summed over cameras in numpy: these arrays are small, and each torch op on them woke torch's
-        # sleeping OpenMP workers (~60-300 us a call, more than the arithmetic).
-        v_colors = grads[..., N_GRAD_GEOMETRY:]
-        v_colors = v_colors.sum(0, keepdims=True) if color_cams == 1 and n_cams > 1 else np.ascontiguousarray(v_colors)
+        # Summed over cameras in numpy: these arrays are small, and each torch op on them woke torch's sleeping OpenMP
+        # workers (~60-300 us a call, more than the arithmetic).
+        if color_cams == 1 and n_cams > 1:
+            v_colors = v_colors.sum(0, keepdims=True)
         v_backgrounds = None
         if ctx.needs_input_grad[4]:
             v_backgrounds = torch.einsum(
                 "chw,chwd->cd", torch.from_numpy(ctx.transmittance), torch.from_numpy(v_image).to(torch.float64)
             )
         return (
-            torch.from_numpy(np.ascontiguousarray(grads[..., 0:2])), torch.from_numpy(np.ascontiguousarray(grads[..., 2:5])),
-            torch.from_numpy(v_colors), torch.from_numpy(grads[..., 5].sum(0)), v_backgrounds, None, None, None, None, None,
+            torch.from_numpy(v_means2d), torch.from_numpy(v_conics), torch.from_numpy(v_colors),
+            torch.from_numpy(v_opacities[0] if n_cams == 1 else v_opacities.sum(0)), v_backgrounds,
+            None, None, None, None, None,
         )
 
 
