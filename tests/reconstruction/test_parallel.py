@@ -1,0 +1,56 @@
+"""The parallel-for's helper team: every index once, errors reach the caller, concurrent and nested callers."""
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from reconstruction import parallel
+from reconstruction.parallel import parallel_for
+
+
+@pytest.fixture
+def two_threads():
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(before)
+
+
+def _mark(lo, hi, out):
+    out[lo:hi] += 1
+
+
+def test_every_index_is_run_once(two_threads):
+    out = np.zeros(1000, np.int64)
+    parallel_for(_mark, 1000, out)
+    assert (out == 1).all()
+
+
+def test_an_error_on_a_helper_reaches_the_caller_and_the_team_recovers(two_threads):
+    def fail_on_last_part(lo, hi, n):
+        if hi == n:
+            raise ValueError("bad part")
+
+    for _ in range(5):  # whichever thread takes the last part, the caller sees the error
+        with pytest.raises(ValueError, match="bad part"):
+            parallel_for(fail_on_last_part, 100, 100)
+    out = np.zeros(100, np.int64)
+    parallel_for(_mark, 100, out)
+    assert (out == 1).all() and not parallel._team.busy.locked()
+
+
+def test_concurrent_and_nested_callers_each_cover_their_range(two_threads):
+    outs = [np.zeros(4000, np.int64) for _ in range(4)]
+
+    def nested(lo, hi, out):
+        # A callable that itself calls parallel_for: the team is busy with its caller, so it runs inline.
+        parallel_for(_mark, hi - lo, out[lo:hi])
+
+    threads = [threading.Thread(target=parallel_for, args=(nested, 4000, out)) for out in outs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all((out == 1).all() for out in outs)
