@@ -339,7 +339,7 @@ def rasterize(
     # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
     # from all paths are summed in float64 and rounded once, when autograd casts them back.
     dtype = colors.dtype
-    means, quats, scales, opacities, colors, viewmats = to_float64(means, quats, scales, opacities, colors, viewmats)
+    means, quats, scales, opacities, colors, viewmats, Ks = to_float64(means, quats, scales, opacities, colors, viewmats, Ks)
     n_cams = viewmats.shape[0]
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height,
