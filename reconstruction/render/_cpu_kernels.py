@@ -105,10 +105,16 @@ def _chunk_bounds(chunk: int, n_chunks: int, n: int) -> tuple[int, int]:
 
 
 @njit(inline="always", **_OPTS)
+def _unit_quaternion_of(qw, qx, qy, qz):
+    """(1 / |q|, w, x, y, z) of q / |q| for a wxyz quaternion q."""
+    inv_norm = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return inv_norm, qw * inv_norm, qx * inv_norm, qy * inv_norm, qz * inv_norm
+
+
+@njit(inline="always", **_OPTS)
 def _unit_quaternion(quat):
-    """(1 / |q|, w, x, y, z) of q / |q| for a wxyz quaternion q [4]."""
-    inv_norm = 1.0 / math.sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3])
-    return inv_norm, quat[0] * inv_norm, quat[1] * inv_norm, quat[2] * inv_norm, quat[3] * inv_norm
+    """`_unit_quaternion_of` a quaternion row quat [4]."""
+    return _unit_quaternion_of(quat[0], quat[1], quat[2], quat[3])
 
 
 @njit(inline="always", **_OPTS)
@@ -135,21 +141,8 @@ def _factor_product(m00, m01, m02, m10, m11, m12, m20, m21, m22):
 
 
 @njit(inline="always", **_OPTS)
-def _covariance3d(quat, scale):
-    """Upper triangle of cov = M M^T, M = R(q / |q|) diag(scale). The projection carries its small matrices as
-    scalars, which the compiler keeps in registers; 3x3 scratch arrays went through memory (~15 % of its time)."""
-    _, w, x, y, z = _unit_quaternion(quat)
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_matrix(w, x, y, z)
-    s0, s1, s2 = scale[0], scale[1], scale[2]
-    return _factor_product(r00 * s0, r01 * s1, r02 * s2, r10 * s0, r11 * s1, r12 * s2, r20 * s0, r21 * s1, r22 * s2)
-
-
-@njit(inline="always", **_OPTS)
-def _camera_covariance(vm, c00, c01, c02, c11, c12, c22):
-    """Upper triangle (w00, w01, w02, w11, w12, w22) of W = V cov V^T, V = vm[:3, :3], cov given by its upper triangle."""
-    r00, r01, r02 = vm[0, 0], vm[0, 1], vm[0, 2]
-    r10, r11, r12 = vm[1, 0], vm[1, 1], vm[1, 2]
-    r20, r21, r22 = vm[2, 0], vm[2, 1], vm[2, 2]
+def _camera_covariance(r00, r01, r02, r10, r11, r12, r20, r21, r22, c00, c01, c02, c11, c12, c22):
+    """Upper triangle (w00, w01, w02, w11, w12, w22) of W = R cov R^T, R given row-major, cov by its upper triangle."""
     t00 = r00 * c00 + r01 * c01 + r02 * c02
     t01 = r00 * c01 + r01 * c11 + r02 * c12
     t02 = r00 * c02 + r01 * c12 + r02 * c22
@@ -237,6 +230,41 @@ def _pixel_rect(u, v, half_x, half_y, width, height):
     return max(0, u_lo), min(width - 1, u_hi), max(0, v_lo), min(height - 1, v_hi)
 
 
+@njit(inline="always", **_OPTS)
+def _chunk_covariances(lo, hi, means, quats, scales, opacities, active, cols, cov, two_log) -> None:
+    """The per-Gaussian part of the projection for Gaussians lo..hi-1, as columns (structure of arrays) that the camera
+    pass reads with vector loads: cols [11, >= hi - lo] (the world mean, the quaternion and the scales, copied so that
+    the covariances below run on contiguous columns, then sqrt(two_log), the box's extent in standard deviations), the
+    covariance's upper triangle cov [6, >= hi - lo], and two_log [>= hi - lo] = 2 ln(255 opacity), 0 for a Gaussian that
+    is not drawn (gsplat 1.5.3's opacity-aware box: alpha >= 1/255 needs sigma <= ln(255 opacity))."""
+    for i in range(hi - lo):
+        g = lo + i
+        for k in range(3):
+            cols[k, i] = means[g, k]
+        for k in range(4):
+            cols[3 + k, i] = quats[g, k]
+        for k in range(3):
+            cols[7 + k, i] = scales[g, k]
+        opacity = opacities[g]
+        # `not >=` also culls NaN opacities.
+        two_log[i] = 2.0 * math.log(opacity * 255.0) if active[g] and opacity >= ALPHA_THRESHOLD else 0.0
+    # Branch-free over whole columns: 8 Gaussians a vector.
+    for i in range(hi - lo):
+        _, w, x, y, z = _unit_quaternion_of(cols[3, i], cols[4, i], cols[5, i], cols[6, i])
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_matrix(w, x, y, z)
+        s0, s1, s2 = cols[7, i], cols[8, i], cols[9, i]
+        cols[10, i] = math.sqrt(two_log[i])
+        c00, c01, c02, c11, c12, c22 = _factor_product(
+            r00 * s0, r01 * s1, r02 * s2, r10 * s0, r11 * s1, r12 * s2, r20 * s0, r21 * s1, r22 * s2
+        )
+        cov[0, i] = c00
+        cov[1, i] = c01
+        cov[2, i] = c02
+        cov[3, i] = c11
+        cov[4, i] = c12
+        cov[5, i] = c22
+
+
 @njit(fastmath=_FUSED, **_OPTS)
 def project_forward(
     chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far,
@@ -253,6 +281,9 @@ def project_forward(
     tile count tile_counts [C * N] (zero-initialised; zero for culled pairs and rects without a pixel centre), and
     hist [n_chunks, C * tiles_per_cam] (zero-initialised), the slots of chunk's pairs per tile: a counting
     sort's histogram. Chunks are fixed ranges of Gaussians, all cameras each.
+
+    Each chunk runs in passes: the per-Gaussian covariances, then per camera one branch-free pass over all of the
+    chunk's Gaussians (the arithmetic, 8 Gaussians a vector) and one that culls and writes (the branches).
     """
     n = means.shape[0]
     n_cams = viewmats.shape[0]
@@ -260,59 +291,80 @@ def project_forward(
     tiles_per_cam = tiles_x * (-(-height // tile_size)) if tile_size > 0 else 0
     shift = _tile_shift(tile_size)
     limits = _clamp_limits(Ks, width, height)
+    longest = 0
+    for chunk in range(chunk_lo, chunk_hi):
+        lo, hi = _chunk_bounds(chunk, n_chunks, n)
+        longest = max(longest, hi - lo)
+    cols = np.empty((11, longest))
+    cov = np.empty((6, longest))
+    two_log = np.empty(longest)
+    # Per camera: depth, pixel position, the half extents of the alpha >= 1/255 box, the conic and the 2D determinant.
+    screen = np.empty((9, longest))
     for chunk in range(chunk_lo, chunk_hi):
         lo, hi = _chunk_bounds(chunk, n_chunks, n)
         chunk_hist = hist[chunk]
-        for g in range(lo, hi):
-            opacity = opacities[g]
-            # `not >=` also culls NaN opacities.
-            if not active[g] or not opacity >= ALPHA_THRESHOLD:
-                continue
-            c00, c01, c02, c11, c12, c22 = _covariance3d(quats[g], scales[g])
-            # gsplat 1.5.3's opacity-aware box: alpha >= 1/255 needs sigma <= ln(255 opacity).
-            two_log = 2.0 * math.log(opacity * 255.0)
-            extent = math.sqrt(two_log)
-            if tile_size > 0:
-                two_logs[g] = two_log
-            for c in range(n_cams):
-                vm = viewmats[c]
-                mx = vm[0, 0] * means[g, 0] + vm[0, 1] * means[g, 1] + vm[0, 2] * means[g, 2] + vm[0, 3]
-                my = vm[1, 0] * means[g, 0] + vm[1, 1] * means[g, 1] + vm[1, 2] * means[g, 2] + vm[1, 3]
-                mz = vm[2, 0] * means[g, 0] + vm[2, 1] * means[g, 1] + vm[2, 2] * means[g, 2] + vm[2, 3]
-                if not (mz > near and mz < far):
-                    continue
-                w00, w01, w02, w11, w12, w22 = _camera_covariance(vm, c00, c01, c02, c11, c12, c22)
-                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-                cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
-                x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
-                # One division per divisor and multiplications after (here, for |q| and for det): the projection's
-                # divisions and square roots were most of its time. Values move by an ulp.
+        _chunk_covariances(lo, hi, means, quats, scales, opacities, active, cols, cov, two_log)
+        if tile_size > 0:
+            for i in range(hi - lo):
+                if two_log[i] != 0.0:
+                    two_logs[lo + i] = two_log[i]
+        for c in range(n_cams):
+            # The camera as scalars: loop-invariant values the compiler need not reload after each store.
+            r00, r01, r02, t0 = viewmats[c, 0, 0], viewmats[c, 0, 1], viewmats[c, 0, 2], viewmats[c, 0, 3]
+            r10, r11, r12, t1 = viewmats[c, 1, 0], viewmats[c, 1, 1], viewmats[c, 1, 2], viewmats[c, 1, 3]
+            r20, r21, r22, t2 = viewmats[c, 2, 0], viewmats[c, 2, 1], viewmats[c, 2, 2], viewmats[c, 2, 3]
+            fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+            cx, cy = Ks[c, 0, 2], Ks[c, 1, 2]
+            x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
+            for i in range(hi - lo):
+                p0, p1, p2 = cols[0, i], cols[1, i], cols[2, i]
+                mx = r00 * p0 + r01 * p1 + r02 * p2 + t0
+                my = r10 * p0 + r11 * p1 + r12 * p2 + t1
+                mz = r20 * p0 + r21 * p1 + r22 * p2 + t2
+                w00, w01, w02, w11, w12, w22 = _camera_covariance(
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22, cov[0, i], cov[1, i], cov[2, i], cov[3, i], cov[4, i],
+                    cov[5, i],
+                )
+                # One division per divisor and multiplications after: the projection's divisions and square roots
+                # were most of its time. Values move by an ulp.
                 rz = 1.0 / mz
                 j00, j02, j11, j12 = _jacobian(mx, my, mz, rz, fx, fy, x_lo, x_hi, y_lo, y_hi)
                 s00, s01, s11 = _covariance2d(w00, w01, w02, w11, w12, w22, j00, j02, j11, j12, eps2d)
                 det = s00 * s11 - s01 * s01
-                if not det > 0.0:
+                inv_det = 1.0 / det
+                # Square roots of negative variances are NaN here; the culling pass drops those splats (det <= 0).
+                screen[0, i] = mz
+                screen[1, i] = fx * mx * rz + cx
+                screen[2, i] = fy * my * rz + cy
+                screen[3, i] = cols[10, i] * math.sqrt(s00)
+                screen[4, i] = cols[10, i] * math.sqrt(s11)
+                screen[5, i] = s11 * inv_det
+                screen[6, i] = -s01 * inv_det
+                screen[7, i] = s00 * inv_det
+                screen[8, i] = det
+            for i in range(hi - lo):
+                if two_log[i] == 0.0:
                     continue
-                half_x = extent * math.sqrt(s00)
-                half_y = extent * math.sqrt(s11)
+                mz = screen[0, i]
+                if not (mz > near and mz < far):
+                    continue
+                if not screen[8, i] > 0.0:
+                    continue
+                half_x, half_y = screen[3, i], screen[4, i]
                 # Capped so that absurd covariances cannot overflow the integer conversion.
                 rx = math.ceil(min(half_x, 1e9))
                 ry = math.ceil(min(half_y, 1e9))
                 if rx <= 0 or ry <= 0:
                     continue
-                u = fx * mx * rz + cx
-                v = fy * my * rz + cy
+                u, v = screen[1, i], screen[2, i]
                 if u + rx <= 0.0 or u - rx >= width or v + ry <= 0.0 or v - ry >= height:
                     continue
-                inv_det = 1.0 / det
-                a = s11 * inv_det
-                b = -s01 * inv_det
-                cc = s00 * inv_det
+                g = lo + i
                 means2d[c, g, 0] = u
                 means2d[c, g, 1] = v
-                conics[c, g, 0] = a
-                conics[c, g, 1] = b
-                conics[c, g, 2] = cc
+                conics[c, g, 0] = screen[5, i]
+                conics[c, g, 1] = screen[6, i]
+                conics[c, g, 2] = screen[7, i]
                 depths[c, g] = mz
                 radii[c, g, 0] = rx
                 radii[c, g, 1] = ry
@@ -382,7 +434,10 @@ def project_backward(
                 mx = vm[0, 0] * means[g, 0] + vm[0, 1] * means[g, 1] + vm[0, 2] * means[g, 2] + vm[0, 3]
                 my = vm[1, 0] * means[g, 0] + vm[1, 1] * means[g, 1] + vm[1, 2] * means[g, 2] + vm[1, 3]
                 mz = vm[2, 0] * means[g, 0] + vm[2, 1] * means[g, 1] + vm[2, 2] * means[g, 2] + vm[2, 3]
-                w00, w01, w02, w11, w12, w22 = _camera_covariance(vm, c00, c01, c02, c11, c12, c22)
+                w00, w01, w02, w11, w12, w22 = _camera_covariance(
+                    vm[0, 0], vm[0, 1], vm[0, 2], vm[1, 0], vm[1, 1], vm[1, 2], vm[2, 0], vm[2, 1], vm[2, 2],
+                    c00, c01, c02, c11, c12, c22,
+                )
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
                 rz = 1.0 / mz
