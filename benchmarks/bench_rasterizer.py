@@ -277,7 +277,8 @@ def run_one(mesh_path: Path, size: int, n: int, focal: float, torch_iters: int) 
     ours()
     ms, cpu_ms = time_iterations(ours, min_seconds=2.0, min_iters=3, max_iters=50)
     peak = peak_rss_mib()
-    colors, alphas, meta = (v.detach() if isinstance(v, torch.Tensor) else v for v in ours())
+    with torch.no_grad():
+        colors, alphas, meta = rasterize(*params.values(), viewmat, K, size, size, visibility_counts=True)
     pairs = int(meta["visibility_counts"].sum())
 
     def baseline():

@@ -41,7 +41,7 @@ def _visibility_counts(gsplat, meta: dict[str, Any], render_alphas: Tensor) -> T
 def rasterize_gsplat(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
     width: int, height: int, *, near_plane: float, far_plane: float, eps2d: float, sh_degree: int | None,
-    backgrounds: Tensor | None, tile_size: int, active: Tensor | None,
+    backgrounds: Tensor | None, tile_size: int, active: Tensor | None, visibility_counts: bool = False,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Same contract as `reconstruction.render.rasterize`, on CUDA tensors."""
     gsplat = _import_gsplat()
@@ -55,7 +55,8 @@ def rasterize_gsplat(
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
         tile_size=tile_size, backgrounds=backgrounds, rasterize_mode="classic", camera_model="pinhole",
     )
-    meta["visibility_counts"] = _visibility_counts(gsplat, meta, render_alphas)
+    if visibility_counts:
+        meta["visibility_counts"] = _visibility_counts(gsplat, meta, render_alphas)
     meta["n_isects"] = int(meta["flatten_ids"].shape[0])
     meta["n_cameras"] = viewmats.shape[0]
     return render_colors, render_alphas, meta

@@ -161,17 +161,21 @@ class _RasterizeToPixels(torch.autograd.Function):
 
     means2d, conics, colors and opacities are the tensors the bins' slot records were gathered from, taken as inputs
     so that autograd routes their gradients; colors are [C, N, D] or [1, N, D] shared by all cameras.
+    With `want_counts`, the third output is each Gaussian's shaded pixel count [C, N] (else an empty tensor).
     The pairs the forward keeps (`keep_pairs`: a graph will be differentiated) go back to the pool after the first
     backward, for the next iteration's forward; a second backward through a retained graph composites again.
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs):
+    def forward(
+        ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs, want_counts
+    ):
         n_cams, n = means2d.shape[:2]
         render_colors, render_alphas, out_colors, transmittance, pairs = _composite(
             bins, to_numpy(backgrounds), width, height, dtype
         )
-        counts = bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64))
+        counts = (bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64)) if want_counts
+                  else np.empty(0, np.int64))
 
         ctx.save_for_backward(backgrounds)
         ctx.out_dtype = render_colors.numpy().dtype
@@ -183,7 +187,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         if not keep_pairs:
             _give_back(pairs)
             ctx.pairs = None
-        counts_t = torch.from_numpy(counts).view(n_cams, n)
+        counts_t = torch.from_numpy(counts).view(n_cams, n) if want_counts else torch.from_numpy(counts)
         ctx.mark_non_differentiable(counts_t)
         # An image the loss does not use (the colours of an alpha-only pass) comes back as None, not as zeros to fill.
         ctx.set_materialize_grads(False)
@@ -233,7 +237,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         return (
             torch.from_numpy(v_means2d), torch.from_numpy(v_conics), torch.from_numpy(v_colors),
             torch.from_numpy(v_opacities[0] if n_cams == 1 else v_opacities.sum(0)), v_backgrounds,
-            None, None, None, None, None,
+            None, None, None, None, None, None,
         )
 
 
@@ -286,6 +290,7 @@ def rasterize(
     backgrounds: Tensor | None = None,
     tile_size: int | None = None,
     active: Tensor | None = None,
+    visibility_counts: bool = False,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Renders 3D Gaussians into C pinhole cameras, as `gsplat.rasterization` in `classic` mode (unpacked).
 
@@ -308,11 +313,13 @@ def rasterize(
             change the image. None: `CPU_TILE_SIZE` on CPU, gsplat's 16 on a GPU.
         active: optional [N] bool; only these Gaussians are drawn and receive gradients (splat
             dropout without copying the model).
+        visibility_counts: also count the pixels each Gaussian shaded (meta["visibility_counts"]); off by
+            default, since training does not read them (a per-pair pass on CPU, a second rasterization on a GPU).
 
     Returns:
         render_colors [C, H, W, D], render_alphas [C, H, W, 1] and meta with radii [C, N, 2] int32,
-        means2d [C, N, 2], conics [C, N, 3], depths [C, N], visibility_counts [C, N] (pixels each
-        Gaussian shaded), n_isects, tile_size, width, height, n_cameras. On CPU, means2d and conics
+        means2d [C, N, 2], conics [C, N, 3], depths [C, N], n_isects, tile_size, width, height, n_cameras,
+        and with `visibility_counts` the counts [C, N] int64. On CPU, means2d and conics
         are float64 graph tensors, so `meta["means2d"].retain_grad()` gives screen-space gradients.
 
     Gradients flow to means, quats, scales, opacities, colors, viewmats and backgrounds (not Ks).
@@ -333,7 +340,7 @@ def rasterize(
         return rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, tile_size=tile_size,
-            active=active,
+            active=active, visibility_counts=visibility_counts,
         )
 
     # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
@@ -364,18 +371,20 @@ def rasterize(
         t.requires_grad for t in (proj.means2d, proj.conics, colors, opacities, backgrounds)
     )
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype, keep_pairs
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype, keep_pairs,
+        visibility_counts,
     )
     meta = {
         "radii": proj.radii,
         "means2d": proj.means2d,
         "conics": proj.conics,
         "depths": proj.depths.to(dtype),
-        "visibility_counts": counts,
         "n_isects": bins.n_isects,
         "tile_size": tile_size,
         "width": width,
         "height": height,
         "n_cameras": n_cams,
     }
+    if visibility_counts:
+        meta["visibility_counts"] = counts
     return render_colors.to(dtype), render_alphas.to(dtype), meta

@@ -213,7 +213,13 @@ def test_random_scene_matches_reference(sh_degree):
     scene = random_scene(150, seed=1 if sh_degree is None else 2, sh_degree=sh_degree)
     _, alphas, meta, _ = assert_matches(scene)
     assert alphas.max() > 0.9  # the scene is not trivially empty
-    assert meta["visibility_counts"].shape == (2, 150) and meta["visibility_counts"].sum() > 0
+    assert "visibility_counts" not in meta  # training does not read them: counted only on request
+    args = [scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")]
+    counted_colors, _, counted = rasterize(*args, scene["width"], scene["height"], sh_degree=sh_degree,
+                                           backgrounds=scene["backgrounds"], visibility_counts=True)
+    assert counted["visibility_counts"].shape == (2, 150) and counted["visibility_counts"].sum() > 0
+    assert torch.equal(counted_colors, rasterize(*args, scene["width"], scene["height"], sh_degree=sh_degree,
+                                                 backgrounds=scene["backgrounds"])[0])
 
 
 def test_batched_views_with_empty_tiles_match_reference():
@@ -334,7 +340,7 @@ def test_everything_off_screen():
 def test_no_gaussians_at_all():
     scene = random_scene(0, seed=19, n_cams=2, width=9, height=7)
     args = [scene[k] for k in PARAMS[:-1]] + [scene["Ks"]]
-    colors, alphas, meta = rasterize(*args, 9, 7, backgrounds=scene["backgrounds"])
+    colors, alphas, meta = rasterize(*args, 9, 7, backgrounds=scene["backgrounds"], visibility_counts=True)
     assert torch.equal(colors, scene["backgrounds"][:, None, None, :].expand_as(colors)) and alphas.eq(0).all()
     assert meta["radii"].shape == (2, 0, 2) and meta["visibility_counts"].shape == (2, 0)
 
@@ -501,7 +507,7 @@ def test_cuda_backend_agrees_with_cpu():
         inputs = {k: scene[k].to(device).requires_grad_(True) for k in PARAMS}
         colors, alphas, meta = rasterize(
             *[inputs[k] for k in PARAMS[:-1]], scene["Ks"].to(device), 64, 48, sh_degree=3,
-            backgrounds=inputs["backgrounds"],
+            backgrounds=inputs["backgrounds"], visibility_counts=True,
         )
         (colors.square().sum() + alphas.sum()).backward()
         outs[device] = (colors, alphas, meta["visibility_counts"], {k: inputs[k].grad for k in PARAMS})
