@@ -48,7 +48,7 @@ BUCKETS = {
     "raster_fwd_compositing": "rasterizer forward: compositing",
     "raster_fwd_other": "rasterizer forward: casts, checks",
     "raster_bwd": "rasterizer backward",
-    "ssim": "SSIM (forward + backward)",
+    "ssim": "SSIM + L1 sums (forward + backward)",
     "sh_loss": "SH-neighbour loss (forward + backward)",
     "consistency": "photo-consistency, Stage I (forward + backward)",
     "field": "deformation MLP (forward + backward)",
@@ -56,7 +56,7 @@ BUCKETS = {
     "optimizer": "Adam / optimizer (zero_grad, step, finite check, clamp)",
     "glue": "autograd engine glue",
     "checkpoint": "checkpoint write",
-    "else": "everything else (L1 / mask losses, activations, Python)",
+    "else": "everything else (mask losses, crops, activations, Python)",
 }
 RASTERIZER = ("raster_fwd_projection", "raster_fwd_binning", "raster_fwd_compositing", "raster_fwd_other", "raster_bwd")
 # Profiler event names (the benchmark's labels, autograd Functions, torch's optimizer events) -> bucket.
@@ -176,7 +176,7 @@ def labels() -> Iterator[None]:
     targets = [
         (train, "rasterize", "cs:rasterize"), (rasterization, "project_gaussians", "cs:projection"),
         (rasterization, "eval_sh", "cs:sh_colours"), (rasterization, "bin_gaussians", "cs:binning"),
-        (losses, "ssim_map", "cs:ssim"), (train, "sh_neighbour_loss", "cs:sh_loss"),
+        (losses, "ssim_l1_sums", "cs:ssim"), (train, "sh_neighbour_loss", "cs:sh_loss"),
         (train, "sample_colors", "cs:consistency"), (train, "consistency_loss", "cs:consistency"),
         (deformation.DeformationField, "forward", "cs:field"), (train.SplatModel, "viewmats", "cs:pose"),
         (train.SplatModel, "clamp_", "cs:optimizer"), (train, "_grads_finite", "cs:optimizer"),

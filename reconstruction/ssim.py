@@ -96,9 +96,10 @@ def _blur(src, g, line, rows, dst):
 
 
 @njit(**_OPTS)
-def _ssim_forward(lo, hi, x, y, g, s, moments):
-    """Planes [lo, hi) of x, y [P, H, W]: the SSIM map s [P, H, W] and the blurred moments [P, 5, H, W]
-    (m_x, m_y, e_xx, e_yy, e_xy) the backward reuses."""
+def _ssim_forward(lo, hi, x, y, g, s, moments, sums):
+    """Planes [lo, hi) of x, y [P, H, W]: the SSIM map s [P, H, W], the blurred moments [P, 5, H, W]
+    (m_x, m_y, e_xx, e_yy, e_xy) the backward reuses, and per plane sums [P, 2] = (sum of the map, sum |x - y|),
+    accumulated in float64."""
     _, h, w = x.shape
     r = g.shape[0] // 2
     lines = np.zeros((5, w + 2 * r), x.dtype)
@@ -118,19 +119,31 @@ def _ssim_forward(lo, hi, x, y, g, s, moments):
         for q in range(5):
             _column_pass(rows[q], g, mp[q])
         sp = s[p]
+        map_sum = 0.0
+        l1_sum = 0.0
         for yy in range(h):
             mx, my, exx, eyy, exy = mp[0, yy], mp[1, yy], mp[2, yy], mp[3, yy], mp[4, yy]
-            out = sp[yy]
+            out, a, b = sp[yy], xp[yy], yp[yy]
+            row_map = 0.0
+            row_l1 = 0.0
             for k in range(w):
                 mxy, mxx, myy = mx[k] * my[k], mx[k] * mx[k], my[k] * my[k]
                 a1, a2 = 2 * mxy + C1, 2 * (exy[k] - mxy) + C2
                 b1, b2 = mxx + myy + C1, exx[k] - mxx + eyy[k] - myy + C2
                 out[k] = a1 * a2 / (b1 * b2)
+                row_map += out[k]
+                row_l1 += abs(a[k] - b[k])
+            map_sum += row_map
+            l1_sum += row_l1
+        sums[p, 0] = map_sum
+        sums[p, 1] = l1_sum
 
 
 @njit(**_OPTS)
-def _ssim_backward(lo, hi, x, y, g, moments, grad, want_x, want_y, gx, gy):
-    """Planes [lo, hi): gx, gy [P, H, W] = the gradients of sum(grad * SSIM map) (module docstring)."""
+def _ssim_backward(lo, hi, x, y, g, moments, grad, map_weight, l1_weight, want_x, want_y, gx, gy):
+    """Planes [lo, hi): gx, gy [P, H, W] = the gradients of sum(grad * SSIM map) (module docstring), or with grad of
+    shape [0, 0, 0] of map_weight * sum(SSIM map); plus l1_weight * sum |x - y|."""
+    constant = grad.shape[0] == 0
     _, h, w = x.shape
     r = g.shape[0] // 2
     line = np.zeros(w + 2 * r, x.dtype)
@@ -138,14 +151,14 @@ def _ssim_backward(lo, hi, x, y, g, moments, grad, want_x, want_y, gx, gy):
     partial = np.empty((4, h, w), x.dtype)  # G dS/de_xy, G dS/de_xx (= dS/de_yy), G dS/dm_x, G dS/dm_y
     blurred = np.empty((4, h, w), x.dtype)
     for p in range(lo, hi):
-        mp, gp = moments[p], grad[p]
+        mp = moments[p]
         for yy in range(h):
-            mx, my, exx, eyy, exy, gr = mp[0, yy], mp[1, yy], mp[2, yy], mp[3, yy], mp[4, yy], gp[yy]
+            mx, my, exx, eyy, exy = mp[0, yy], mp[1, yy], mp[2, yy], mp[3, yy], mp[4, yy]
             for k in range(w):
                 mxy, mxx, myy = mx[k] * my[k], mx[k] * mx[k], my[k] * my[k]
                 a1, a2 = 2 * mxy + C1, 2 * (exy[k] - mxy) + C2
                 b1, b2 = mxx + myy + C1, exx[k] - mxx + eyy[k] - myy + C2
-                gd = gr[k] / (b1 * b2)
+                gd = (map_weight if constant else grad[p, yy, k]) / (b1 * b2)
                 s = a1 * a2 / (b1 * b2)
                 da, db = 2 * (a2 - a1) * gd, 2 * (b2 - b1) * s * gd
                 partial[0, yy, k] = 2 * a1 * gd
@@ -162,11 +175,15 @@ def _ssim_backward(lo, hi, x, y, g, moments, grad, want_x, want_y, gx, gy):
             if want_x:
                 out, b_m = gx[p, yy], blurred[2, yy]
                 for k in range(w):
-                    out[k] = b_m[k] + 2 * a[k] * b_sq[k] + b[k] * b_xy[k]
+                    d = a[k] - b[k]
+                    sign = 1.0 if d > 0.0 else (-1.0 if d < 0.0 else 0.0)
+                    out[k] = b_m[k] + 2 * a[k] * b_sq[k] + b[k] * b_xy[k] + l1_weight * sign
             if want_y:
                 out, b_m = gy[p, yy], blurred[3, yy]
                 for k in range(w):
-                    out[k] = b_m[k] + 2 * b[k] * b_sq[k] + a[k] * b_xy[k]
+                    d = a[k] - b[k]
+                    sign = 1.0 if d > 0.0 else (-1.0 if d < 0.0 else 0.0)
+                    out[k] = b_m[k] + 2 * b[k] * b_sq[k] + a[k] * b_xy[k] - l1_weight * sign
 
 
 def _planes(t: torch.Tensor) -> torch.Tensor:
@@ -174,13 +191,33 @@ def _planes(t: torch.Tensor) -> torch.Tensor:
     return t.detach().permute(0, 3, 1, 2).reshape(-1, *t.shape[1:3]).contiguous()
 
 
+def _forward_planes(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> tuple:
+    """(x, y planes [3C, H, W], the map [3C, H, W], moments [3C, 5, H, W], per-plane sums [3C, 2]) of [C, H, W, 3]."""
+    x, y = _planes(a), _planes(b)
+    s = torch.empty_like(x)
+    moments = torch.empty((len(x), 5, *x.shape[1:]), dtype=x.dtype)
+    sums = np.empty((len(x), 2))
+    parallel_for(_ssim_forward, len(x), x.numpy(), y.numpy(), g.numpy(), s.numpy(), moments.numpy(), sums)
+    return x, y, s, moments, sums
+
+
+def _backward_planes(ctx, grad: torch.Tensor | None, map_weight: float, l1_weight: float):
+    """The inputs' gradients [C, H, W, 3] from the planes `_forward_planes` saved in ctx."""
+    x, y, g, moments = ctx.saved_tensors
+    want_x, want_y = ctx.needs_input_grad[:2]
+    gx, gy = torch.empty_like(x), torch.empty_like(x)
+    grad = x.new_empty((0, 0, 0)) if grad is None else grad.to(x.dtype).reshape(x.shape).contiguous()
+    parallel_for(_ssim_backward, len(x), x.numpy(), y.numpy(), g.numpy(), moments.numpy(), grad.numpy(),
+                 map_weight, l1_weight, want_x, want_y, gx.numpy(), gy.numpy())
+    c, h, w, _ = ctx.layout
+    back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
+    return back(gx) if want_x else None, back(gy) if want_y else None, None
+
+
 class _SSIMMap(torch.autograd.Function):
     @staticmethod
     def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        x, y = _planes(a), _planes(b)
-        s = torch.empty_like(x)
-        moments = torch.empty((len(x), 5, *x.shape[1:]), dtype=x.dtype)
-        parallel_for(_ssim_forward, len(x), x.numpy(), y.numpy(), g.numpy(), s.numpy(), moments.numpy())
+        x, y, s, moments, _ = _forward_planes(a, b, g)
         ctx.save_for_backward(x, y, g, moments)
         ctx.layout = a.shape
         return s.reshape(a.shape[0], 3, *a.shape[1:3])
@@ -188,15 +225,25 @@ class _SSIMMap(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: torch.Tensor):
-        x, y, g, moments = ctx.saved_tensors
-        want_x, want_y = ctx.needs_input_grad[:2]
-        gx, gy = torch.empty_like(x), torch.empty_like(x)
-        grad = grad.to(x.dtype).reshape(x.shape).contiguous()
-        parallel_for(_ssim_backward, len(x), x.numpy(), y.numpy(), g.numpy(), moments.numpy(), grad.numpy(),
-                     want_x, want_y, gx.numpy(), gy.numpy())
-        c, h, w, _ = ctx.layout
-        back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
-        return back(gx) if want_x else None, back(gy) if want_y else None, None
+        return _backward_planes(ctx, grad, 0.0, 0.0)
+
+
+class _SSIMAndL1Sums(torch.autograd.Function):
+    """(sum of the SSIM map, sum |a - b|) in the map's one pass, and their gradients in its backward's: the training
+    loss needs only these sums, and as torch ops the L1 and the map's sum were ~8 more passes over the batch."""
+
+    @staticmethod
+    def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor):
+        x, y, _, moments, sums = _forward_planes(a, b, g)
+        ctx.save_for_backward(x, y, g, moments)
+        ctx.layout = a.shape
+        map_sum, l1_sum = sums.sum(0)
+        return a.new_tensor(map_sum), a.new_tensor(l1_sum)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_map: torch.Tensor | None, g_l1: torch.Tensor | None):
+        return _backward_planes(ctx, None, 0.0 if g_map is None else float(g_map), 0.0 if g_l1 is None else float(g_l1))
 
 
 def _ssim_map_torch(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -224,3 +271,16 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
     if a.is_cuda or dtype not in (torch.float32, torch.float64):
         return _ssim_map_torch(a, b, g)
     return _SSIMMap.apply(a, b, g)
+
+
+def ssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sum of `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's two
+    terms in one pass each way on CPU."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window}")
+    dtype = torch.promote_types(a.dtype, b.dtype)
+    a, b = a.to(dtype), b.to(dtype)
+    g = gaussian_window(window, sigma, dtype).to(a.device)
+    if a.is_cuda or dtype not in (torch.float32, torch.float64):
+        return _ssim_map_torch(a, b, g).sum(), (a - b).abs().sum()
+    return _SSIMAndL1Sums.apply(a, b, g)

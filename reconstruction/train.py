@@ -33,8 +33,8 @@ from torch import nn
 
 from calibration.fileio import atomic_write_bytes
 from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
-from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, fill_loss, mask_l1, neighbour_graph, photometric_loss,
-                                   neighbour_smoothness, sh_neighbour_loss)
+from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, mask_l1, neighbour_graph, photometric_loss,
+                                   neighbour_smoothness, sh_neighbour_loss, silhouette_losses)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
@@ -418,12 +418,11 @@ def train(
                 target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])
                 l_rgb = photometric_loss(rgb, target, preset.lambda_dssim, support=support,
                                          valid=on_photo)
-                l_mask = mask_l1(alpha, cov[sel], on_photo)
+                l_mask, l_fill = silhouette_losses(alpha, cov[sel], on_photo)
                 l_sh = sh_neighbour_loss(sh, sh_graph)
                 loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
                 last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
                 if preset.lambda_fill:
-                    l_fill = fill_loss(alpha, cov[sel])
                     loss = loss + preset.lambda_fill * l_fill
                     last["fill"] = l_fill
             if preset.lambda_displacement and stage != "pose":

@@ -3,9 +3,9 @@
 The kernels are cached on disk (`cache=True`) per argument type, so the first reconstruction of a
 fresh clone would otherwise spend ~20 s compiling. Rendering a few splats through the public
 `rasterize` in every mode training and rendering use (alpha only; SH degrees 0-3 over a background;
-with and without gradients), SSIM (the loss in float32 with gradients, the metric in float64), the photo-consistency
-term, the neighbour-smoothness product and the deformation field's anchor blend (float32, with gradients) compiles
-exactly the specialisations a run will ask for.
+with and without gradients), SSIM (the loss's SSIM + L1 sums in float32 with gradients, the metric in float64),
+the silhouette losses, the photo-consistency term, the neighbour-smoothness product and the deformation field's
+anchor blend (float32, with gradients) compiles exactly the specialisations a run will ask for.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ import numpy as np
 import torch
 
 from reconstruction.deformation import blend_anchors
-from reconstruction.losses import neighbour_graph, sh_neighbour_loss
+from reconstruction.losses import neighbour_graph, sh_neighbour_loss, silhouette_losses
 from reconstruction.photo_consistency import consistency_loss, sample_colors
 from reconstruction.render.rasterization import rasterize
-from reconstruction.ssim import ssim_map
+from reconstruction.ssim import ssim_l1_sums, ssim_map
 
 
 def compile_kernels() -> float:
@@ -49,6 +49,9 @@ def compile_kernels() -> float:
     image = torch.rand(2, h, w, 3, generator=gen).requires_grad_(True)
     ssim_map(image, torch.rand(2, h, w, 3, generator=gen)).sum().backward()
     ssim_map(image.detach().double(), image.detach().double())  # the evaluation metric's float64 map
+    sum(ssim_l1_sums(image, torch.rand(2, h, w, 3, generator=gen))).backward()
+    alpha = torch.rand(2, h, w, 1, generator=gen).requires_grad_(True)
+    sum(silhouette_losses(alpha, torch.rand(2, h, w, generator=gen), torch.ones(2, h, w, dtype=torch.bool))).backward()
     points = means.clone().requires_grad_(True)
     colors = sample_colors(image.detach(), points, viewmats.clone().requires_grad_(True), ks)
     consistency_loss(colors, torch.ones(2, n)).backward()

@@ -18,6 +18,7 @@ from reconstruction.losses import (
     neighbour_graph,
     photometric_loss,
     sh_neighbour_loss,
+    silhouette_losses,
     ssim,
     support_windows,
 )
@@ -207,3 +208,24 @@ def test_composite_parts_give_the_composite_over_any_background():
     fg, bg_weight = composite_parts(image, mask)
     for background in (torch.rand(2, 3, generator=gen), torch.zeros(2, 3)):
         assert torch.allclose(fg + background[:, None, None, :] * bg_weight, composite(image, mask, background), atol=1e-7)
+
+
+def test_fused_silhouette_losses_match_their_formulas_and_gradients():
+    # The float32 CPU path (one numba pass each way) against the same losses as torch ops in float64.
+    g = torch.Generator().manual_seed(3)
+    alpha = torch.rand(3, 20, 30, 1, generator=g)
+    alpha[0, :5] = 0.0  # ties |A - M| = 0 where the mask is 0 too: no gradient there, as torch's abs
+    mask = (torch.rand(3, 20, 30, generator=g) > 0.6).float() * torch.rand(3, 20, 30, generator=g).clamp_min(0.5)
+    mask[0, :5] = 0.0
+    valid = torch.rand(3, 20, 30, generator=g) > 0.2
+    for v in (None, valid):
+        fast = alpha.clone().requires_grad_(True)
+        l_mask, l_fill = silhouette_losses(fast, mask, v)
+        (0.7 * l_mask + 0.3 * l_fill).backward()
+        ref = alpha.double().requires_grad_(True)
+        r_mask, r_fill = silhouette_losses(ref, mask, v)
+        (0.7 * r_mask + 0.3 * r_fill).backward()
+        assert l_mask.dtype == torch.float32 and fast.grad.shape == alpha.shape
+        assert math.isclose(l_mask.item(), r_mask.item(), rel_tol=1e-6)
+        assert math.isclose(l_fill.item(), r_fill.item(), rel_tol=1e-6)
+        torch.testing.assert_close(fast.grad.double(), ref.grad, rtol=1e-6, atol=1e-9)
