@@ -16,7 +16,7 @@ from scipy import sparse
 from torch.autograd.function import once_differentiable
 
 from reconstruction.parallel import parallel_for
-from reconstruction.ssim import ssim_l1_sums, ssim_map
+from reconstruction.ssim import dssim_l1_sums, ssim_map
 
 
 def _hw(t: torch.Tensor) -> torch.Tensor:
@@ -61,11 +61,11 @@ class _SilhouetteLosses(torch.autograd.Function):
     @staticmethod
     def forward(ctx, alpha: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor | None):
         n_views = alpha.shape[0]
-        pixels = _hw(alpha).shape  # mask and valid broadcast to it
         a = alpha.detach().contiguous().reshape(n_views, -1).numpy()
-        m = mask.detach().to(alpha.dtype).broadcast_to(pixels).contiguous().reshape(n_views, -1).numpy()
-        v = (np.zeros((0, 0), np.bool_) if valid is None
-             else valid.broadcast_to(pixels).contiguous().reshape(n_views, -1).numpy())
+        m = mask.detach().contiguous().reshape(n_views, -1).numpy()
+        v = np.zeros((0, 0), np.bool_) if valid is None else valid.contiguous().reshape(n_views, -1).numpy()
+        # Saved so that autograd notices an in-place change of alpha before the backward reads it.
+        ctx.save_for_backward(alpha)
         sums = np.empty((n_views, 4))
         parallel_for(_silhouette_sums, n_views, a, m, v, sums)
         l1, count, under, mass = sums.sum(0)
@@ -76,6 +76,7 @@ class _SilhouetteLosses(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_l1: torch.Tensor | None, g_fill: torch.Tensor | None):
+        ctx.saved_tensors  # noqa: B018 (the version check)
         a, m, v = ctx.arrays
         w_l1 = 0.0 if g_l1 is None else float(g_l1) / ctx.count
         w_fill = 0.0 if g_fill is None else float(g_fill) / ctx.mass
@@ -94,22 +95,20 @@ def silhouette_losses(alpha: torch.Tensor, mask: torch.Tensor,
     saturate inside the mask. L_mask spreads its weight over the whole image, so the object's rim pixels (a few %
     of it) stay at alpha 0.5-0.9, and a render composited on white shows them washed out.
     """
-    if alpha.dtype != torch.float32 or alpha.device.type != "cpu":
-        diff = (_hw(alpha) - _hw(mask).to(alpha.dtype)).abs()
-        l1 = diff.mean() if valid is None else diff[valid].sum() / valid.sum().clamp_min(1)
-        m = _hw(mask).to(alpha.dtype)
-        return l1, (m * (1 - _hw(alpha))).sum() / m.sum().clamp_min(1.0)
-    return _SilhouetteLosses.apply(alpha, _hw(mask), valid)
+    m = _hw(mask).to(alpha.dtype)
+    fused = (alpha.dtype == torch.float32 and alpha.device.type == "cpu" and not m.requires_grad
+             and m.shape == _hw(alpha).shape and (valid is None or valid.shape == m.shape))
+    if fused:
+        return _SilhouetteLosses.apply(alpha, m, valid)
+    # Anything else (a GPU, float64, a mask to differentiate or one that broadcasts) through torch ops.
+    diff = (_hw(alpha) - m).abs()
+    l1 = diff.mean() if valid is None else diff[valid].sum() / valid.sum().clamp_min(1)
+    return l1, (m * (1 - _hw(alpha))).sum() / m.sum().clamp_min(1.0)
 
 
 def mask_l1(alpha: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
     """L_mask of `silhouette_losses`."""
     return silhouette_losses(alpha, mask, valid)[0]
-
-
-def fill_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """L_fill of `silhouette_losses`."""
-    return silhouette_losses(alpha, mask)[1]
 
 
 def composite_parts(image: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -200,9 +199,8 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     corners, h, w = support_windows(support, 2 * (window // 2))
     r, t = crop_windows(render, corners, h, w), crop_windows(target, corners, h, w)
     total = float(render.numel())
-    ssim_sum, l1_sum = ssim_l1_sums(r, t, window, 1.5)
-    # sum (1 - SSIM) over the windows' r.numel() map entries.
-    return ((1 - lambda_dssim) * l1_sum + lambda_dssim * (r.numel() - ssim_sum)) / total
+    dssim_sum, l1_sum = dssim_l1_sums(r, t, window, 1.5)
+    return ((1 - lambda_dssim) * l1_sum + lambda_dssim * dssim_sum) / total
 
 
 @dataclass(frozen=True)

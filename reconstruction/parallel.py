@@ -39,20 +39,34 @@ class _Team:
         self._errors: list[BaseException | None] = []
 
     def run(self, task: Callable[[], None], helpers: int) -> None:
-        """task() on the calling thread and on `helpers` helper threads; re-raises the first error. Call with `busy`."""
+        """task() on the calling thread and on `helpers` helper threads; re-raises the first error. Call with `busy`.
+
+        Every helper woken is waited for, even through a KeyboardInterrupt (raised once they are done): a helper
+        left running would report "done" to a later call, which would then return before its outputs are written.
+        """
         while len(self._wake) < helpers:
             self._start_helper()
         self._task = task
-        for i in range(helpers):
-            self._wake[i].release()
+        woken = 0
         try:
+            for i in range(helpers):
+                self._wake[i].release()
+                woken = i + 1
             task()
         finally:
-            for i in range(helpers):
-                self._done[i].acquire()
+            interrupted = None
+            for i in range(woken):
+                while True:
+                    try:
+                        self._done[i].acquire()
+                        break
+                    except BaseException as error:
+                        interrupted = interrupted or error
             self._task = None
             errors = [error for error in self._errors[:helpers] if error is not None]
             self._errors[:helpers] = [None] * helpers
+            if interrupted is not None:
+                raise interrupted
         if errors:
             raise errors[0]
 
@@ -61,20 +75,21 @@ class _Team:
         wake, done = threading.Lock(), threading.Lock()
         wake.acquire()
         done.acquire()
+        # Listed only once the thread runs: a thread that fails to start must not be waited for.
+        threading.Thread(target=self._serve, args=(i, wake, done), name=f"cadsplat-render-{i}", daemon=True).start()
         self._wake.append(wake)
         self._done.append(done)
         self._errors.append(None)
-        threading.Thread(target=self._serve, args=(i,), name=f"cadsplat-render-{i}", daemon=True).start()
 
-    def _serve(self, i: int) -> None:
+    def _serve(self, i: int, wake: threading.Lock, done: threading.Lock) -> None:
         while True:
-            self._wake[i].acquire()
+            wake.acquire()
             try:
                 self._task()
             except BaseException as error:  # handed to the caller, which re-raises it
                 self._errors[i] = error
             finally:
-                self._done[i].release()
+                done.release()
 
 
 _team = _Team()

@@ -58,7 +58,7 @@ class Preset:
     lambda_mask: float = 1.0
     lambda_sh: float = 1.0
     pose_scale: bool = True  # the global pose correction learns its log-scale (else the registration's scale stays)
-    lambda_fill: float = 0.0  # Stage II: weight of `losses.fill_loss` (alpha saturation inside the mask); 0 is the paper
+    lambda_fill: float = 0.0  # Stage II: weight of L_fill in `losses.silhouette_losses` (alpha saturation inside the mask); 0 is the paper
     lambda_displacement: float = 0.0  # weight of the neighbour smoothness of the splats' own normal moves (lr["displacement"])
     lambda_consistency: float = 0.0  # Stage I: weight of multi-view photo-consistency (`photo_consistency`); 0 is the paper
     consistency_blur_px: float = 1.0  # Gaussian blur of the images it samples (reach of its gradients)

@@ -207,8 +207,10 @@ def _backward_planes(ctx, grad: torch.Tensor | None, map_weight: float, l1_weigh
     want_x, want_y = ctx.needs_input_grad[:2]
     gx, gy = torch.empty_like(x), torch.empty_like(x)
     grad = x.new_empty((0, 0, 0)) if grad is None else grad.to(x.dtype).reshape(x.shape).contiguous()
+    # The weights in the planes' dtype: a Python float would make numba carry a float32 backward in float64.
+    scalar = x.numpy().dtype.type
     parallel_for(_ssim_backward, len(x), x.numpy(), y.numpy(), g.numpy(), moments.numpy(), grad.numpy(),
-                 map_weight, l1_weight, want_x, want_y, gx.numpy(), gy.numpy())
+                 scalar(map_weight), scalar(l1_weight), want_x, want_y, gx.numpy(), gy.numpy())
     c, h, w, _ = ctx.layout
     back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
     return back(gx) if want_x else None, back(gy) if want_y else None, None
@@ -228,22 +230,25 @@ class _SSIMMap(torch.autograd.Function):
         return _backward_planes(ctx, grad, 0.0, 0.0)
 
 
-class _SSIMAndL1Sums(torch.autograd.Function):
-    """(sum of the SSIM map, sum |a - b|) in the map's one pass, and their gradients in its backward's: the training
-    loss needs only these sums, and as torch ops the L1 and the map's sum were ~8 more passes over the batch."""
+class _DSSIMAndL1Sums(torch.autograd.Function):
+    """(sum of 1 - SSIM map, sum |a - b|) in the map's one pass, and their gradients in its backward's: the training
+    loss needs only these sums, and as torch ops the L1 and the map's sum were ~8 more passes over the batch. The sums
+    are taken in float64 (1 - SSIM is small where the fit is good: subtracting a float32 sum from the count would
+    cancel its digits)."""
 
     @staticmethod
     def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor):
-        x, y, _, moments, sums = _forward_planes(a, b, g)
+        x, y, s, moments, sums = _forward_planes(a, b, g)
         ctx.save_for_backward(x, y, g, moments)
         ctx.layout = a.shape
         map_sum, l1_sum = sums.sum(0)
-        return a.new_tensor(map_sum), a.new_tensor(l1_sum)
+        return a.new_tensor(s.numel() - map_sum), a.new_tensor(l1_sum)
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, g_map: torch.Tensor | None, g_l1: torch.Tensor | None):
-        return _backward_planes(ctx, None, 0.0 if g_map is None else float(g_map), 0.0 if g_l1 is None else float(g_l1))
+    def backward(ctx, g_dssim: torch.Tensor | None, g_l1: torch.Tensor | None):
+        return _backward_planes(ctx, None, 0.0 if g_dssim is None else -float(g_dssim),
+                                0.0 if g_l1 is None else float(g_l1))
 
 
 def _ssim_map_torch(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -273,14 +278,14 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
     return _SSIMMap.apply(a, b, g)
 
 
-def ssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sum of `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's two
-    terms in one pass each way on CPU."""
+def dssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sum of 1 - `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's
+    two terms in one pass each way on CPU."""
     if window < 1 or window % 2 == 0:
         raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window}")
     dtype = torch.promote_types(a.dtype, b.dtype)
     a, b = a.to(dtype), b.to(dtype)
     g = gaussian_window(window, sigma, dtype).to(a.device)
     if a.is_cuda or dtype not in (torch.float32, torch.float64):
-        return _ssim_map_torch(a, b, g).sum(), (a - b).abs().sum()
-    return _SSIMAndL1Sums.apply(a, b, g)
+        return (1 - _ssim_map_torch(a, b, g)).sum(), (a - b).abs().sum()
+    return _DSSIMAndL1Sums.apply(a, b, g)

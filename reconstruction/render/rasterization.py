@@ -221,7 +221,8 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_colors = np.empty((n_cams, n, depth))
         parallel_for(
             kernels.sum_slot_gradients, bins.n_pairs, slot_grads, bins.slot_offsets, bins.slot_at,
-            v_means2d.reshape(-1, 2), v_conics.reshape(-1, 3), v_opacities.reshape(-1), v_colors.reshape(-1, depth),
+            v_means2d.reshape(n_cams * n, 2), v_conics.reshape(n_cams * n, 3), v_opacities.reshape(n_cams * n),
+            v_colors.reshape(n_cams * n, depth),
             grain=_GRAIN,
         )
         _SCRATCH.give("slot_grads", slot_grads)

@@ -19,7 +19,7 @@ from reconstruction.deformation import blend_anchors
 from reconstruction.losses import neighbour_graph, sh_neighbour_loss, silhouette_losses
 from reconstruction.photo_consistency import consistency_loss, sample_colors
 from reconstruction.render.rasterization import rasterize
-from reconstruction.ssim import ssim_l1_sums, ssim_map
+from reconstruction.ssim import dssim_l1_sums, ssim_map
 
 
 def compile_kernels() -> float:
@@ -49,7 +49,7 @@ def compile_kernels() -> float:
     image = torch.rand(2, h, w, 3, generator=gen).requires_grad_(True)
     ssim_map(image, torch.rand(2, h, w, 3, generator=gen)).sum().backward()
     ssim_map(image.detach().double(), image.detach().double())  # the evaluation metric's float64 map
-    sum(ssim_l1_sums(image, torch.rand(2, h, w, 3, generator=gen))).backward()
+    sum(dssim_l1_sums(image, torch.rand(2, h, w, 3, generator=gen))).backward()
     alpha = torch.rand(2, h, w, 1, generator=gen).requires_grad_(True)
     sum(silhouette_losses(alpha, torch.rand(2, h, w, generator=gen), torch.ones(2, h, w, dtype=torch.bool))).backward()
     points = means.clone().requires_grad_(True)

@@ -54,3 +54,21 @@ def test_concurrent_and_nested_callers_each_cover_their_range(two_threads):
     for t in threads:
         t.join()
     assert all((out == 1).all() for out in outs)
+
+
+def test_a_helper_that_fails_to_start_is_not_waited_for(two_threads, monkeypatch):
+    parallel._forget_team()  # a team with no helpers yet
+    real_start = threading.Thread.start
+
+    def no_threads_left(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(threading.Thread, "start", no_threads_left)
+    with pytest.raises(RuntimeError, match="can't start"):
+        parallel_for(_mark, 100, np.zeros(100, np.int64))
+    monkeypatch.setattr(threading.Thread, "start", real_start)
+    out = np.zeros(100, np.int64)
+    caller = threading.Thread(target=parallel_for, args=(_mark, 100, out))
+    caller.start()
+    caller.join(timeout=30)
+    assert not caller.is_alive() and (out == 1).all()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from reconstruction.ssim import _ssim_map_torch, gaussian_window, ssim_l1_sums, ssim_map
+from reconstruction.ssim import _ssim_map_torch, gaussian_window, dssim_l1_sums, ssim_map
 
 
 def _pair(dtype: torch.dtype, shape=(2, 23, 31, 3), seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -59,16 +59,16 @@ def test_an_even_window_is_one_sentence():
 
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
 def test_fused_sums_match_the_map_and_l1_through_torch_ops(dtype, tol):
-    # The training loss's (sum SSIM, sum |a - b|) in one pass, against torch ops; identical rows make |a - b| = 0
+    # The training loss's (sum 1 - SSIM, sum |a - b|) in one pass, against torch ops; identical rows make |a - b| = 0
     # there (no L1 gradient), as torch's abs.
     a, b = _pair(dtype)
     window = gaussian_window(11, 1.5, dtype)
     x, y = a.clone().requires_grad_(True), b.clone().requires_grad_(True)
-    ssim_sum, l1_sum = ssim_l1_sums(x, y)
-    (0.3 * ssim_sum + 0.7 * l1_sum).backward()
+    dssim_sum, l1_sum = dssim_l1_sums(x, y)
+    (0.3 * dssim_sum + 0.7 * l1_sum).backward()
     rx, ry = a.clone().requires_grad_(True), b.clone().requires_grad_(True)
-    r_ssim, r_l1 = _ssim_map_torch(rx, ry, window).sum(), (rx - ry).abs().sum()
+    r_ssim, r_l1 = (1 - _ssim_map_torch(rx, ry, window)).sum(), (rx - ry).abs().sum()
     (0.3 * r_ssim + 0.7 * r_l1).backward()
-    assert abs(ssim_sum.item() - r_ssim.item()) <= tol * r_ssim.item()
+    assert abs(dssim_sum.item() - r_ssim.item()) <= tol * r_ssim.item()
     assert abs(l1_sum.item() - r_l1.item()) <= tol * r_l1.item()
     assert float((x.grad - rx.grad).abs().max()) <= tol and float((y.grad - ry.grad).abs().max()) <= tol
