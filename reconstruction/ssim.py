@@ -265,27 +265,27 @@ def _ssim_map_torch(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.
     return ((2 * mx * my + C1) * (2 * sxy + C2)) / ((mx * mx + my * my + C1) * (sxx + syy + C2))
 
 
-def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Per-pixel SSIM [C, 3, H, W] of images a, b [C, H, W, 3] (Gaussian window, zero padding at the
-    borders, as 3DGS), differentiable in both."""
+def _prepared(a: torch.Tensor, b: torch.Tensor, window: int, sigma: float) -> tuple:
+    """(a, b in their common dtype, the window [window], whether the numba kernels take them)."""
     if window < 1 or window % 2 == 0:
         raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window}")
     dtype = torch.promote_types(a.dtype, b.dtype)
     a, b = a.to(dtype), b.to(dtype)
     g = gaussian_window(window, sigma, dtype).to(a.device)
-    if a.is_cuda or dtype not in (torch.float32, torch.float64):
-        return _ssim_map_torch(a, b, g)
-    return _SSIMMap.apply(a, b, g)
+    return a, b, g, not a.is_cuda and dtype in (torch.float32, torch.float64)
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Per-pixel SSIM [C, 3, H, W] of images a, b [C, H, W, 3] (Gaussian window, zero padding at the
+    borders, as 3DGS), differentiable in both."""
+    a, b, g, fused = _prepared(a, b, window, sigma)
+    return _SSIMMap.apply(a, b, g) if fused else _ssim_map_torch(a, b, g)
 
 
 def dssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
     """(sum of 1 - `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's
     two terms in one pass each way on CPU."""
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window}")
-    dtype = torch.promote_types(a.dtype, b.dtype)
-    a, b = a.to(dtype), b.to(dtype)
-    g = gaussian_window(window, sigma, dtype).to(a.device)
-    if a.is_cuda or dtype not in (torch.float32, torch.float64):
-        return (1 - _ssim_map_torch(a, b, g)).sum(), (a - b).abs().sum()
-    return _DSSIMAndL1Sums.apply(a, b, g)
+    a, b, g, fused = _prepared(a, b, window, sigma)
+    if fused:
+        return _DSSIMAndL1Sums.apply(a, b, g)
+    return (1 - _ssim_map_torch(a, b, g)).sum(), (a - b).abs().sum()
