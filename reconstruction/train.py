@@ -130,6 +130,10 @@ class SplatModel(nn.Module):
         # Scale bounds relative to the object: no splat collapses to nothing or swallows the object.
         radius = float(self.field.radius)
         self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
+        # And relative to the splat's own start, its neighbours' spacing (`preset.max_scale_growth`): [N, 1] or None.
+        growth = preset.max_scale_growth
+        self.log_scale_max = (None if growth is None else
+                              self.log_scales.detach().amax(1, keepdim=True) + math.log(growth))
 
     def means(self) -> torch.Tensor:
         """Deformed means [N, 3] = μ + D(γ(μ)) + d n: the field, then each splat's move along its normal."""
@@ -177,6 +181,8 @@ class SplatModel(nn.Module):
 
     @torch.no_grad()
     def clamp_(self) -> None:
+        if self.log_scale_max is not None:
+            torch.minimum(self.log_scales, self.log_scale_max, out=self.log_scales)
         self.log_scales.clamp_(*self.log_scale_range)
         self.opacity_logits.clamp_(-12.0, 12.0)
 

@@ -84,3 +84,15 @@ def test_the_cpu_preset_dilates_splats_by_about_a_pixel_footprint_and_says_why()
     assert cpu.eps2d == cpu_choices["eps2d"]["value"] == 0.1 and "footprint" in cpu_choices["eps2d"]["why"]
     assert PAPER.eps2d == preview.eps2d == preview_choices["eps2d"]["value"] == EPS2D_3DGS == 0.3
     assert "preview" in preview_choices["eps2d"]["why"]
+
+
+def test_stage_two_runs_longer_only_with_a_full_rig_and_scales_are_bounded():
+    from dataclasses import replace
+
+    full, full_choices = resolve_preset("cpu", STATS)
+    five, five_choices = resolve_preset("cpu", replace(STATS, num_views=5, foreground_px=(6000,) * 5))
+    assert full.iters_photo == 200 and "8 or more views" in full_choices["iteration_caps"]["why"]
+    assert five.iters_photo == 150 and "fewer than 8 views" in five_choices["iteration_caps"]["why"]
+    assert resolve_preset("preview", STATS)[0].iters_photo == 50
+    assert full.max_scale_growth == full_choices["max_scale_growth"]["value"] == 2.0
+    assert PAPER.max_scale_growth is None

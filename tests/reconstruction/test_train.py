@@ -197,6 +197,31 @@ def test_splats_move_along_their_normals_and_the_mesh_follows_them():
     assert float(loss.detach()) > 0 and model.displacement.grad[7] > 0 and model.displacement.grad.abs().argmax() == 7
 
 
+def test_scales_grow_to_at_most_the_preset_multiple_of_their_start():
+    from reconstruction.train import SplatModel
+
+    _, parts, _ = sample_scene()
+    splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
+    preset = replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128), max_scale_growth=2.0)
+    model = SplatModel(splats, preset, 3, "global")
+    start = model.log_scales.detach().clone()
+    with torch.no_grad():
+        model.log_scales.add_(torch.linspace(-1.0, 3.0, len(start))[:, None])
+        model.clamp_()
+    limit = start.amax(1, keepdim=True) + np.log(2.0)
+    assert bool((model.log_scales <= limit + 1e-6).all())
+    # Shrinking and growth below the bound are untouched; only the axes past it are cut, to it.
+    grown = start + torch.linspace(-1.0, 3.0, len(start))[:, None]
+    np.testing.assert_allclose(model.log_scales.detach().numpy(), torch.minimum(grown, limit).numpy(), atol=1e-6)
+    assert bool((model.log_scales[:100] < limit[:100] - 0.1).all())
+    # Without a bound (the paper) only the object-relative range applies.
+    free = SplatModel(splats, replace(preset, max_scale_growth=None), 3, "global")
+    with torch.no_grad():
+        free.log_scales.add_(1.0)
+        free.clamp_()
+    assert bool((free.log_scales > start.amax(1, keepdim=True) + np.log(2.0)).any())
+
+
 def test_normal_moves_that_a_pose_could_make_are_projected_out():
     """A translation or a rotation of the whole part written as moves along the normals is the pose's to make:
     left in, the splats and the cameras drift together (per-camera rig scenes: screwdriver held-out IoU 0.852)."""
