@@ -93,6 +93,9 @@ def test_stage_two_runs_longer_only_with_a_full_rig_and_scales_are_bounded():
     five, five_choices = resolve_preset("cpu", replace(STATS, num_views=5, foreground_px=(6000,) * 5))
     assert full.iters_photo == 200 and "8 or more views" in full_choices["iteration_caps"]["why"]
     assert five.iters_photo == 150 and "fewer than 8 views" in five_choices["iteration_caps"]["why"]
-    assert resolve_preset("preview", STATS)[0].iters_photo == 50
-    assert full.max_scale_growth == full_choices["max_scale_growth"]["value"] == 2.0
+    for views, photo in ((7, 150), (8, 200)):
+        assert resolve_preset("cpu", replace(STATS, num_views=views, foreground_px=(6000,) * views))[0].iters_photo == photo
+    preview = resolve_preset("preview", STATS)[0]
+    assert preview.iters_photo == 50
+    assert full.max_scale_growth == full_choices["max_scale_growth"]["value"] == preview.max_scale_growth == 2.0
     assert PAPER.max_scale_growth is None

@@ -202,7 +202,8 @@ def test_scales_grow_to_at_most_the_preset_multiple_of_their_start():
 
     _, parts, _ = sample_scene()
     splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
-    preset = replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128), max_scale_growth=2.0)
+    preset = replace(tiny_preset(), field=FieldConfig(2, 16, 4, 128))
+    assert preset.max_scale_growth == 2.0
     model = SplatModel(splats, preset, 3, "global")
     start = model.log_scales.detach().clone()
     with torch.no_grad():
@@ -213,7 +214,6 @@ def test_scales_grow_to_at_most_the_preset_multiple_of_their_start():
     # Shrinking and growth below the bound are untouched; only the axes past it are cut, to it.
     grown = start + torch.linspace(-1.0, 3.0, len(start))[:, None]
     np.testing.assert_allclose(model.log_scales.detach().numpy(), torch.minimum(grown, limit).numpy(), atol=1e-6)
-    assert bool((model.log_scales[:100] < limit[:100] - 0.1).all())
     # Without a bound (the paper) only the object-relative range applies.
     free = SplatModel(splats, replace(preset, max_scale_growth=None), 3, "global")
     with torch.no_grad():
