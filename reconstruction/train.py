@@ -441,6 +441,9 @@ def train(
                 loss.backward()
             if math.isfinite(value) and _grads_finite(trainable):
                 opt.step()
+                if stage == "photo" and preset.shn_decay:
+                    with torch.no_grad():
+                        model.shN.mul_(1.0 - preset.lr["shN"] * preset.shn_decay)
                 model.clamp_()
             else:
                 state["skipped"] += 1
