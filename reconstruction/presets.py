@@ -273,8 +273,9 @@ def resolve_preset(name: str, stats: SceneStats) -> tuple[Preset, dict]:
                                                       f"spacing to its nearest splats: larger ones cover what their neighbours own")
     # Stage II pulls the higher SH bands towards zero at their own rate (decoupled decay, 1 per unit of rate: about 0.45x
     # over 200 undisputed steps), so view dependence stays only where the photographs keep asking for it. Rig scenes, all
-    # views (degree 2), paired over 8: held-out fgPSNR -0.02..+0.08 dB, mean +0.03, up on 6 of 8, IoU +0.0001; 3 views
-    # draw degree 0 and are unchanged. Preview's 50 iterations were not measured with it.
+    # views (degree 2), paired over 8: held-out fgPSNR -0.02..+0.08 dB, mean +0.03, up on 6 of 8, IoU +0.0001; 5 views
+    # (degree 1) +0.02..+0.12 dB, mean +0.06, up on 8 of 8; 3 views draw degree 0 and are unchanged; 3x the decay gained
+    # +0.005 dB more. Preview's 50 iterations were not measured with it.
     shn_decay = 0.0 if preview else 1.0
     choices["shn_decay"] = _choice(shn_decay, "preview: off (not measured)" if preview else
                                    "the higher SH bands decay towards no view dependence unless the photographs hold them up")
