@@ -130,10 +130,16 @@ class SplatModel(nn.Module):
         # Scale bounds relative to the object: no splat collapses to nothing or swallows the object.
         radius = float(self.field.radius)
         self.log_scale_range = (math.log(1e-5 * radius), math.log(0.5 * radius))
-        # And relative to the splat's own start, its neighbours' spacing (`preset.max_scale_growth`): [N, 1] or None.
-        growth = preset.max_scale_growth
-        self.log_scale_max = (None if growth is None else
-                              self.log_scales.detach().amax(1, keepdim=True) + math.log(growth))
+        # And relative to the splat's own start, its neighbours' spacing (`preset.max_scale_growth`), and the disk's
+        # normal axis (local z, `splats.disk_log_scales`) relative to its own start (`preset.max_normal_growth`):
+        # [N, 1], [N, 3] or None.
+        start = self.log_scales.detach()
+        growth, normal_growth = preset.max_scale_growth, preset.max_normal_growth
+        self.log_scale_max = None if growth is None else start.amax(1, keepdim=True) + math.log(growth)
+        if normal_growth is not None:
+            tangent = self.log_scale_max if growth is not None else torch.full_like(start[:, :1], math.inf)
+            normal = torch.minimum(tangent, start[:, 2:] + math.log(normal_growth))
+            self.log_scale_max = torch.cat([tangent, tangent, normal], 1)
 
     def means(self) -> torch.Tensor:
         """Deformed means [N, 3] = μ + D(γ(μ)) + d n: the field, then each splat's move along its normal."""

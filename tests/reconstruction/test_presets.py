@@ -99,3 +99,16 @@ def test_stage_two_runs_longer_only_with_a_full_rig_and_scales_are_bounded():
     assert preview.iters_photo == 50
     assert full.max_scale_growth == full_choices["max_scale_growth"]["value"] == preview.max_scale_growth == 2.0
     assert PAPER.max_scale_growth is None
+
+
+def test_disks_keep_their_thickness_only_below_five_views():
+    from dataclasses import replace
+
+    three, choices = resolve_preset("cpu", replace(STATS, num_views=3, foreground_px=(6000,) * 3))
+    assert three.max_normal_growth == choices["max_normal_growth"]["value"] == 1.0
+    assert "edge-on" in choices["max_normal_growth"]["why"]
+    five, five_choices = resolve_preset("cpu", replace(STATS, num_views=5, foreground_px=(6000,) * 5))
+    assert five.max_normal_growth is None and five_choices["max_normal_growth"]["value"] is None
+    assert resolve_preset("cpu", STATS)[0].max_normal_growth is None
+    assert resolve_preset("preview", replace(STATS, num_views=3, foreground_px=(6000,) * 3))[0].max_normal_growth is None
+    assert PAPER.max_normal_growth is None
