@@ -395,6 +395,10 @@ def train(
         if stage == "photo":
             target_fg, target_bg_weight = composite_parts(imgs, cov)
             in_mask = cov > 0
+        # Only the pose learns in the first stage: the splats (field, moves, activations) are the same every iteration.
+        if stage == "pose":
+            with torch.no_grad():
+                fixed_splats = model.gaussians().activated()
         last: dict = {}
         it = state["it"]
         while it < cap:
@@ -404,7 +408,7 @@ def train(
             idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
             # Every view in the batch: the stacks themselves, not an indexed copy of each per iteration.
             sel = slice(None) if batch == v else idx
-            means, quats, scales, opac, sh = model.gaussians().activated()
+            means, quats, scales, opac, sh = fixed_splats if stage == "pose" else model.gaussians().activated()
             viewmats = model.viewmats(c2w_init, idx)
             on_photo = None if valid is None else valid[sel]
             if stage != "photo":

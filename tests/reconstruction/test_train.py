@@ -77,6 +77,24 @@ def test_short_run_is_finite_and_pose_moves_towards_truth(tmp_path):
     assert not preset.pose_scale and float(res.model.pose.rig_log_scale) == 0.0
 
 
+def test_the_pose_stage_evaluates_the_frozen_splats_once(monkeypatch):
+    """Only the pose learns in the first stage: the field and the splats' activations are computed once for the
+    stage, not once per iteration, and the pose still moves."""
+    from reconstruction.deformation import DeformationField
+
+    views, parts, _ = sample_scene(n_views=3)
+    splats = init_splats(parts.vertices, parts.faces, 1000, sh_degree=0, seed=0)
+    calls = []
+    forward = DeformationField.forward
+    monkeypatch.setattr(DeformationField, "forward", lambda self: calls.append(1) or forward(self))
+    seen = []
+    res = train(views, splats, tiny_preset(pose=12, deform=0, photo=0),
+                progress=lambda stage, it, cap, loss: seen.append(len(calls)) if stage == "pose" else None)
+    assert res.iterations["pose"] == 12
+    assert len(seen) == 12 and seen[0] == seen[-1] <= 2  # the consistency weights' look, and the stage's one
+    assert float(res.model.pose.rig_t.detach().abs().sum()) > 0
+
+
 def test_checkpoint_resumes_where_it_stopped(tmp_path):
     views, parts, _ = sample_scene(n_views=3)
     splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
