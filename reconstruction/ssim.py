@@ -186,14 +186,55 @@ def _ssim_backward(lo, hi, x, y, g, moments, grad, map_weight, l1_weight, want_x
                     out[k] = b_m[k] + 2 * b[k] * b_sq[k] + a[k] * b_xy[k] - l1_weight * sign
 
 
+@njit(**{**_OPTS, "fastmath": False})
+def _gather_windows(lo, hi, src, corners, planes):
+    """Planes [lo, hi) of planes [3C, h, w] = each view's window of src [C, H, W, 3], channel-major: plane 3c + k
+    is channel k of view c's window, whose top-left corner is corners [C, 2] (y0, x0)."""
+    _, h, w = planes.shape
+    for p in range(lo, hi):
+        c, k = p // 3, p % 3
+        y0, x0 = corners[c, 0], corners[c, 1]
+        out, view = planes[p], src[c]
+        for y in range(h):
+            row, dst = view[y0 + y], out[y]
+            for x in range(w):
+                dst[x] = row[x0 + x, k]
+
+
+@njit(**{**_OPTS, "fastmath": False})
+def _scatter_windows(lo, hi, planes, corners, dst):
+    """Views [lo, hi) of dst [C, H, W, 3]: zero, with each view's window set from planes [3C, h, w] (the adjoint of
+    `_gather_windows`)."""
+    _, h, w = planes.shape
+    for c in range(lo, hi):
+        view = dst[c]
+        view[:] = 0.0
+        y0, x0 = corners[c, 0], corners[c, 1]
+        for k in range(3):
+            src = planes[3 * c + k]
+            for y in range(h):
+                row, line = view[y0 + y], src[y]
+                for x in range(w):
+                    row[x0 + x, k] = line[x]
+
+
 def _planes(t: torch.Tensor) -> torch.Tensor:
     """[C, H, W, 3] -> contiguous [3C, H, W] (one plane per view and channel)."""
     return t.detach().permute(0, 3, 1, 2).reshape(-1, *t.shape[1:3]).contiguous()
 
 
-def _forward_planes(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> tuple:
-    """(x, y planes [3C, H, W], the map [3C, H, W], moments [3C, 5, H, W], per-plane sums [3C, 2]) of [C, H, W, 3]."""
-    x, y = _planes(a), _planes(b)
+def _window_planes(t: torch.Tensor, corners: np.ndarray, height: int, width: int) -> torch.Tensor:
+    """[C, H, W, 3] -> contiguous [3C, height, width]: each view's window (corners [C, 2] (y0, x0)), one copy."""
+    t = t.detach().contiguous()
+    planes = torch.empty((3 * t.shape[0], height, width), dtype=t.dtype)
+    parallel_for(_gather_windows, len(planes), t.numpy(), corners, planes.numpy(), grain=3)
+    return planes
+
+
+def _forward_planes(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor, windows: tuple | None = None) -> tuple:
+    """(x, y planes [3C, H, W], the map [3C, H, W], moments [3C, 5, H, W], per-plane sums [3C, 2]) of [C, H, W, 3];
+    with windows (corners [C, 2], height, width), of each view's window only."""
+    x, y = (_planes(a), _planes(b)) if windows is None else (_window_planes(a, *windows), _window_planes(b, *windows))
     s = torch.empty_like(x)
     moments = torch.empty((len(x), 5, *x.shape[1:]), dtype=x.dtype)
     sums = np.empty((len(x), 2))
@@ -212,7 +253,13 @@ def _backward_planes(ctx, grad: torch.Tensor | None, map_weight: float, l1_weigh
     parallel_for(_ssim_backward, len(x), x.numpy(), y.numpy(), g.numpy(), moments.numpy(), grad.numpy(),
                  scalar(map_weight), scalar(l1_weight), want_x, want_y, gx.numpy(), gy.numpy())
     c, h, w, _ = ctx.layout
-    back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
+    if ctx.windows is None:
+        back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
+    else:
+        def back(t: torch.Tensor) -> torch.Tensor:
+            out = torch.empty(ctx.layout, dtype=t.dtype)
+            parallel_for(_scatter_windows, c, t.numpy(), ctx.windows[0], out.numpy())
+            return out
     return back(gx) if want_x else None, back(gy) if want_y else None, None
 
 
@@ -221,7 +268,7 @@ class _SSIMMap(torch.autograd.Function):
     def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         x, y, s, moments, _ = _forward_planes(a, b, g)
         ctx.save_for_backward(x, y, g, moments)
-        ctx.layout = a.shape
+        ctx.layout, ctx.windows = a.shape, None
         return s.reshape(a.shape[0], 3, *a.shape[1:3])
 
     @staticmethod
@@ -234,21 +281,26 @@ class _DSSIMAndL1Sums(torch.autograd.Function):
     """(sum of 1 - SSIM map, sum |a - b|) in the map's one pass, and their gradients in its backward's: the training
     loss needs only these sums, and as torch ops the L1 and the map's sum were ~8 more passes over the batch. The sums
     are taken in float64 (1 - SSIM is small where the fit is good: subtracting a float32 sum from the count would
-    cancel its digits)."""
+    cancel its digits).
+
+    With windows (corners [C, 2] (y0, x0), height, width), the sums run over each view's window of a and b, read
+    straight from the images, and the gradients are zero outside the windows: one pass each way where cropping
+    and then laying out planes copied every image twice (and their gradients twice back)."""
 
     @staticmethod
-    def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor):
-        x, y, s, moments, sums = _forward_planes(a, b, g)
+    def forward(ctx, a: torch.Tensor, b: torch.Tensor, g: torch.Tensor, windows: tuple | None):
+        x, y, s, moments, sums = _forward_planes(a, b, g, windows)
         ctx.save_for_backward(x, y, g, moments)
-        ctx.layout = a.shape
+        ctx.layout, ctx.windows = a.shape, windows
         map_sum, l1_sum = sums.sum(0)
         return a.new_tensor(s.numel() - map_sum), a.new_tensor(l1_sum)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_dssim: torch.Tensor | None, g_l1: torch.Tensor | None):
-        return _backward_planes(ctx, None, 0.0 if g_dssim is None else -float(g_dssim),
-                                0.0 if g_l1 is None else float(g_l1))
+        grads = _backward_planes(ctx, None, 0.0 if g_dssim is None else -float(g_dssim),
+                                 0.0 if g_l1 is None else float(g_l1))
+        return *grads, None
 
 
 def _ssim_map_torch(a: torch.Tensor, b: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -282,10 +334,24 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
     return _SSIMMap.apply(a, b, g) if fused else _ssim_map_torch(a, b, g)
 
 
-def dssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+def dssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
+                  windows: tuple[torch.Tensor, int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(sum of 1 - `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's
-    two terms in one pass each way on CPU."""
+    two terms in one pass each way on CPU.
+
+    windows, optional: (corners [C, 2] int (y0, x0), height, width), the sums of each view's window of the images
+    instead (the map zero-padded at the windows' edges), as if a and b were cropped to them first."""
     a, b, g, fused = _prepared(a, b, window, sigma)
+    if windows is not None:
+        corners, height, width = windows
+        if fused:
+            return _DSSIMAndL1Sums.apply(a, b, g, (np.ascontiguousarray(corners.numpy(), np.int64), int(height), int(width)))
+        a, b = _crop(a, corners, height, width), _crop(b, corners, height, width)
     if fused:
-        return _DSSIMAndL1Sums.apply(a, b, g)
+        return _DSSIMAndL1Sums.apply(a, b, g, None)
     return (1 - _ssim_map_torch(a, b, g)).sum(), (a - b).abs().sum()
+
+
+def _crop(t: torch.Tensor, corners: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """t [C, H, W, 3] cut to each view's window [C, height, width, 3] (differentiable; tensors on a GPU)."""
+    return torch.stack([t[c, y : y + height, x : x + width] for c, (y, x) in enumerate(corners.tolist())])
