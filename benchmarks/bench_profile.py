@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from benchmarks._common import REPO, RESULTS, SHARED, load_line
+from benchmarks.bench_rasterizer import machine_reference_ms
 
 ITERATION = "cs:iteration"
 WARMUP = 2
@@ -313,6 +314,7 @@ def main() -> None:
         build_library(meshes, library, progress=False, log=lambda _m: None)
 
     load = os.getloadavg()
+    machine = machine_reference_ms()
     rec, marks, _ = run(capture, library, args.preset, None, work, profiled=False)
     plain_ms = steady_wall_ms(marks)
     stage_wall = dict(rec.train.timings_s)
@@ -326,8 +328,9 @@ def main() -> None:
     section = "\n".join([
         f"## `{args.preset}` preset, {scene}", "",
         f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
-        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start (the run then keeps both cores busy: "
-        f"{load_line()} at its end); "
+        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; machine reference {machine:.0f} ms (one "
+        f"forward+backward of the tiled pure-PyTorch rasterizer, `bench_rasterizer.machine_reference_ms`); the run "
+        f"then keeps both cores busy ({load_line()} at its end); "
         f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
         f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "
         f"per stage (first {WARMUP} left out): "

@@ -139,6 +139,30 @@ def fit_focal(mesh, size: int) -> tuple[float, float]:
     return focal, float((alphas > 0.5).float().mean())
 
 
+def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> float:
+    """Median ms of one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²: a fixed workload
+    (torch is pinned, the code frozen) that says how fast this machine ran when a benchmark's timings were taken.
+
+    The same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1480-1812 ms (that night,
+    with no AMX passed through): a wall time is read against the reference taken beside it.
+    """
+    mesh, _ = load_mesh(mesh_path)
+    focal, _ = fit_focal(mesh, 256)
+    g = make_gaussians(mesh, 20_000)
+    viewmat, K = camera(mesh, 256, focal)
+    params = [g[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    target = torch.rand(256, 256, 3, generator=torch.Generator().manual_seed(0))
+
+    def step():
+        for p in params:
+            p.grad = None
+        rgb, _ = torch_tiled_rasterize(*params, viewmat[0], K[0], 256, 256)
+        ((rgb - target) ** 2).sum().backward()
+
+    step()
+    return time_iterations(step, min_seconds=0.0, min_iters=iters, max_iters=iters)[0]
+
+
 # --------------------------------------------------------------------------- tiled pure-PyTorch baseline
 
 

@@ -30,6 +30,7 @@ scene and view count, and each variant's quality against its training time).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import time
@@ -185,11 +186,20 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
                                  pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
            "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
-           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0],
+           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], "machine_ref_ms": machine_ref_ms(),
            **scores, **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args))}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
+
+
+@functools.cache
+def machine_ref_ms() -> float:
+    """This process's reading of the machine's speed (`bench_rasterizer.machine_reference_ms`), taken once, before
+    the first run it is recorded with."""
+    from benchmarks.bench_rasterizer import machine_reference_ms
+
+    return machine_reference_ms()
 
 
 def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
@@ -214,7 +224,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
         save_twin(vanilla_twin(result, cams, [str(train.frames[i].camera_id) for i in idx]), twin_dir, overwrite=True)
     twin, scores = score_heldout(scene, twin_dir, args)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "load": os.getloadavg()[0], **scores}
+           "load": os.getloadavg()[0], "machine_ref_ms": machine_ref_ms(), **scores}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -283,15 +293,20 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
              "Geometry: symmetric mean closest-point distance to the true surface (exact, from 20k samples of each surface), "
              "% of the diameter; geo change: the median over scenes of the twin's change against its CAD; crossing faces: "
              "faces that cross another (libigl), summed over scenes; watertight: scenes whose welded mesh is closed. Train time on 2 shared "
-             "CPU cores; `load` is the 1-min load average when the run finished.", "",
-             "| variant | scenes | train s | load | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
+             "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `machine ms`: "
+             "the machine's speed when the runs were taken, one forward+backward of the tiled pure-PyTorch rasterizer at "
+             "20k splats, 256² (`bench_rasterizer.machine_reference_ms`; 607-741 ms on the machine of the afternoon of "
+             "2026-11-26, 1480-1812 ms that night).", "",
+             "| variant | scenes | train s | median s | load | machine ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
              "ADD-S reg % | ADD-S twin % | improved | Sim(3) reg % | Sim(3) twin % | CAD geo % | twin geo % | geo change | "
-             "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |", "|---" * 23 + "|"]
+             "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |", "|---" * 25 + "|"]
     for variant, by in runs.items():
         ds = list(by.values())
         cad = [d for d in ds if "pose_trained" in d]
+        machine = [d["machine_ref_ms"] for d in ds if "machine_ref_ms" in d]
         row = [variant, str(len(ds)), f"{np.mean([d['train_wall_s'] for d in ds]):.0f}",
-               f"{np.mean([d['load'] for d in ds]):.1f}"]
+               f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.mean([d['load'] for d in ds]):.1f}",
+               f"{np.median(machine):.0f}" if machine else "-"]
         row += [f"{np.nanmean([_m(d, k) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "psnr", "ssim", "lpips")]
         row += [f"{np.nanmean([_m(d, k, True) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "lpips")]
         if cad:
