@@ -30,7 +30,6 @@ scene and view count, and each variant's quality against its training time).
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import time
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._common import RESULTS, SHARED, symmetric_surface_distance
+from benchmarks.bench_rasterizer import machine_reference_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
 SCENES = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane",
@@ -182,24 +182,16 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
     overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
+    machine_ms = machine_reference_ms()
     twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
                                  pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
            "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
-           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], "machine_ref_ms": machine_ref_ms(),
+           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], "machine_ref_ms": machine_ms,
            **scores, **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args))}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
-
-
-@functools.cache
-def machine_ref_ms() -> float:
-    """This process's reading of the machine's speed (`bench_rasterizer.machine_reference_ms`), taken once, before
-    the first run it is recorded with."""
-    from benchmarks.bench_rasterizer import machine_reference_ms
-
-    return machine_reference_ms()
 
 
 def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
@@ -217,6 +209,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
     train = read_capture(scene / "train")
     idx = views_for(gt, len(train), args.views)
     twin_dir = work / "twins" / key / scene.name
+    machine_ms = machine_reference_ms()
     if not (twin_dir / "twin.json").exists():
         images, masks, cams = load_views(train, idx)
         cfg = replace(VanillaConfig().scaled(iterations), eps2d=args.vanilla_eps2d)
@@ -224,7 +217,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
         save_twin(vanilla_twin(result, cams, [str(train.frames[i].camera_id) for i in idx]), twin_dir, overwrite=True)
     twin, scores = score_heldout(scene, twin_dir, args)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "load": os.getloadavg()[0], "machine_ref_ms": machine_ref_ms(), **scores}
+           "load": os.getloadavg()[0], "machine_ref_ms": machine_ms, **scores}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -294,7 +287,7 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
              "% of the diameter; geo change: the median over scenes of the twin's change against its CAD; crossing faces: "
              "faces that cross another (libigl), summed over scenes; watertight: scenes whose welded mesh is closed. Train time on 2 shared "
              "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `machine ms`: "
-             "the machine's speed when the runs were taken, one forward+backward of the tiled pure-PyTorch rasterizer at "
+             "the machine's speed just before each run (median over the scenes), one forward+backward of the tiled pure-PyTorch rasterizer at "
              "20k splats, 256² (`bench_rasterizer.machine_reference_ms`; 607-741 ms on the machine of the afternoon of "
              "2026-11-26, 1480-1812 ms that night).", "",
              "| variant | scenes | train s | median s | load | machine ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
