@@ -35,3 +35,27 @@ def test_exact_camera_capture_records_the_true_poses_in_the_rig_frame(tmp_path):
     # The recorded capture is left as it was, and the images are the same files.
     np.testing.assert_allclose(np.stack([f.camera.c2w for f in read_capture(scene / "train").frames]), noisy_rig, atol=1e-12)
     assert (out / "images").resolve() == (scene / "train" / "images").resolve()
+
+
+def test_the_report_reads_the_machine_beside_each_variant_and_older_runs_without_it(tmp_path, monkeypatch):
+    import benchmarks.bench_rig_scenes as bench
+
+    monkeypatch.setattr(bench, "RESULTS", tmp_path / "results")
+    mean = {"fgpsnr": 27.0, "iou": 0.97, "psnr": 28.0, "ssim": 0.9, "lpips": 0.1}
+    for variant, walls, machine in (("new-cpu-vall", (60.0, 64.0, 70.0), (1600.0, 1700.0, 2000.0)),
+                                    ("old-cpu-vall", (25.0, 27.0, 30.0), None)):
+        for i, wall in enumerate(walls):
+            doc = {"scene": bench.SCENES[i], "variant": variant, "train_wall_s": wall, "load": 1.0, "mean": mean,
+                   "mean_refined": mean}
+            if machine:
+                doc["machine_ref_ms"] = machine[i]
+            run = tmp_path / "runs" / variant / f"{bench.SCENES[i]}-r0.json"
+            run.parent.mkdir(parents=True, exist_ok=True)
+            run.write_text(json.dumps(doc))
+    text = bench.write_report(tmp_path, 0)
+    rows = {line.split(" | ")[0][2:]: line.split(" | ") for line in text.splitlines() if line.startswith("| new-") or line.startswith("| old-")}
+    header = next(line for line in text.splitlines() if line.startswith("| variant")).split(" | ")
+    median, machine = header.index("median s"), header.index("machine ms")
+    assert rows["new-cpu-vall"][median] == "64.0" and rows["new-cpu-vall"][machine] == "1700"
+    assert rows["old-cpu-vall"][median] == "27.0" and rows["old-cpu-vall"][machine] == "-"
+    assert (tmp_path / "results" / "rig_scenes.md").read_text() == text
