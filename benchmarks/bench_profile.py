@@ -314,7 +314,7 @@ def main() -> None:
         build_library(meshes, library, progress=False, log=lambda _m: None)
 
     load = os.getloadavg()
-    machine = machine_reference_ms()
+    machine, machine_mesh = machine_reference_ms()
     rec, marks, _ = run(capture, library, args.preset, None, work, profiled=False)
     plain_ms = steady_wall_ms(marks)
     stage_wall = dict(rec.train.timings_s)
@@ -329,7 +329,8 @@ def main() -> None:
         f"## `{args.preset}` preset, {scene}", "",
         f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
         f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; machine reference {machine:.0f} ms (one "
-        f"forward+backward of the tiled pure-PyTorch rasterizer, `bench_rasterizer.machine_reference_ms`); the run "
+        f"forward+backward of the tiled pure-PyTorch rasterizer, 20k splats on {machine_mesh} at 256², "
+        f"`bench_rasterizer.machine_reference_ms`); the run "
         f"then keeps both cores busy ({load_line()} at its end); "
         f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
         f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "

@@ -139,14 +139,15 @@ def fit_focal(mesh, size: int) -> tuple[float, float]:
     return focal, float((alphas > 0.5).float().mean())
 
 
-def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> float:
-    """Median ms of one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²: a fixed workload
-    (torch is pinned, the code frozen) that says how fast this machine ran when a benchmark's timings were taken.
+def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> tuple[float, str]:
+    """(median ms, mesh name) of one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²: a fixed
+    workload (torch is pinned, the code frozen) that says how fast this machine ran when a benchmark's timings were taken.
 
-    The same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1480-1812 ms (that night,
-    with no AMX passed through): a wall time is read against the reference taken beside it.
+    On the YCB banana the same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1480-1812 ms
+    (that night, with no AMX passed through): a wall time is read against the reference taken beside it. Without the
+    shared data the splats lie on an icosphere, a different workload whose figures compare only with each other.
     """
-    mesh, _ = load_mesh(mesh_path)
+    mesh, name = load_mesh(mesh_path)
     focal, _ = fit_focal(mesh, 256)
     g = make_gaussians(mesh, 20_000)
     viewmat, K = camera(mesh, 256, focal)
@@ -160,7 +161,7 @@ def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> floa
         ((rgb - target) ** 2).sum().backward()
 
     step()
-    return time_iterations(step, min_seconds=0.0, min_iters=iters, max_iters=iters)[0]
+    return time_iterations(step, min_seconds=0.0, min_iters=iters, max_iters=iters)[0], name
 
 
 # --------------------------------------------------------------------------- tiled pure-PyTorch baseline

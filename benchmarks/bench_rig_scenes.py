@@ -182,7 +182,7 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
     overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
-    machine_ms = machine_reference_ms()
+    machine_ms, _ = machine_reference_ms()
     twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
                                  pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
@@ -209,7 +209,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
     train = read_capture(scene / "train")
     idx = views_for(gt, len(train), args.views)
     twin_dir = work / "twins" / key / scene.name
-    machine_ms = machine_reference_ms()
+    machine_ms, _ = machine_reference_ms()
     if not (twin_dir / "twin.json").exists():
         images, masks, cams = load_views(train, idx)
         cfg = replace(VanillaConfig().scaled(iterations), eps2d=args.vanilla_eps2d)
