@@ -166,6 +166,12 @@ def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int], train_
     return doc
 
 
+def machine_reading(twin_dir: Path) -> float | None:
+    """The machine's speed now (`bench_rasterizer.machine_reference_ms`) when the twin in `twin_dir` is about to be
+    trained; None when one is there to reuse, since its time was taken on the machine of its own day."""
+    return None if (twin_dir / "twin.json").exists() else machine_reference_ms()[0]
+
+
 def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     key = f"{args.variant}-{args.preset}-v{args.views}"
     cache = work / "runs" / key / f"{scene.name}-r{args.refine_steps}.json"
@@ -182,7 +188,7 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
     overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
-    machine_ms, _ = machine_reference_ms()
+    machine_ms = machine_reading(work / "twins" / key / scene.name)
     twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
                                  pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
@@ -209,7 +215,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
     train = read_capture(scene / "train")
     idx = views_for(gt, len(train), args.views)
     twin_dir = work / "twins" / key / scene.name
-    machine_ms, _ = machine_reference_ms()
+    machine_ms = machine_reading(twin_dir)
     if not (twin_dir / "twin.json").exists():
         images, masks, cams = load_views(train, idx)
         cfg = replace(VanillaConfig().scaled(iterations), eps2d=args.vanilla_eps2d)
@@ -296,7 +302,7 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
     for variant, by in runs.items():
         ds = list(by.values())
         cad = [d for d in ds if "pose_trained" in d]
-        machine = [d["machine_ref_ms"] for d in ds if "machine_ref_ms" in d]
+        machine = [d["machine_ref_ms"] for d in ds if d.get("machine_ref_ms") is not None]
         row = [variant, str(len(ds)), f"{np.mean([d['train_wall_s'] for d in ds]):.0f}",
                f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.mean([d['load'] for d in ds]):.1f}",
                f"{np.median(machine):.0f}" if machine else "-"]
