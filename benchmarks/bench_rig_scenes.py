@@ -307,7 +307,9 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
                f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.mean([d['load'] for d in ds]):.1f}",
                f"{np.median(machine):.0f}" if machine else "-"]
         row += [f"{np.nanmean([_m(d, k) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "psnr", "ssim", "lpips")]
-        row += [f"{np.nanmean([_m(d, k, True) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "lpips")]
+        # Runs without test-time refinement (`--refine-steps 0`) have no refined metrics: '-', not nan.
+        refined = [d for d in ds if d.get("mean_refined")]
+        row += [f"{np.nanmean([_m(d, k, True) for d in refined]):.3f}" if refined else "-" for k in ("fgpsnr", "iou", "lpips")]
         if cad:
             reg = [d["pose_registration"]["adds_pct_median"] for d in cad]
             tr = [d["pose_trained"]["adds_pct_median"] for d in cad]
