@@ -148,6 +148,8 @@ def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> tupl
     shared data the splats lie on an icosphere, a different workload whose figures compare only with each other.
     """
     mesh, name = load_mesh(mesh_path)
+    if mesh_path.exists():
+        name = f"{mesh_path.parent.name}/{mesh_path.name}"  # 011_banana/textured.obj, not a bare file name
     focal, _ = fit_focal(mesh, 256)
     g = make_gaussians(mesh, 20_000)
     viewmat, K = camera(mesh, 256, focal)
