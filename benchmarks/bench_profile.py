@@ -60,7 +60,7 @@ BUCKETS = {
     "else": "everything else (mask losses, crops, activations, Python)",
 }
 RASTERIZER = ("raster_fwd_projection", "raster_fwd_binning", "raster_fwd_compositing", "raster_fwd_other", "raster_bwd")
-# Profiler event names (the benchmark's labels, autograd Functions, torch's optimizer events) -> bucket.
+# Profiler event names (the benchmark's labels, autograd Functions) -> bucket.
 LABELS = {
     "cs:rasterize": "raster_fwd_other",
     "cs:projection": "raster_fwd_projection",
@@ -73,8 +73,6 @@ LABELS = {
     "cs:field": "field",
     "cs:pose": "pose",
     "cs:optimizer": "optimizer",
-    "Optimizer.step#Adam.step": "optimizer",
-    "Optimizer.zero_grad#Adam.zero_grad": "optimizer",
     "cs:backward": "glue",
     "cs:checkpoint": "checkpoint",
 }
@@ -169,6 +167,7 @@ def _labelled(fn, label: str):
 def labels() -> Iterator[None]:
     """The engine functions wrapped in their `record_function` labels for the duration (module
     attributes patched and restored; the code is unchanged)."""
+    import reconstruction.adam as adam
     import reconstruction.deformation as deformation
     import reconstruction.losses as losses
     import reconstruction.render.rasterization as rasterization
@@ -181,6 +180,7 @@ def labels() -> Iterator[None]:
         (train, "sample_colors", "cs:consistency"), (train, "consistency_loss", "cs:consistency"),
         (deformation.DeformationField, "forward", "cs:field"), (train.SplatModel, "viewmats", "cs:pose"),
         (train.SplatModel, "clamp_", "cs:optimizer"), (train, "_grads_finite", "cs:optimizer"),
+        (adam.Adam, "step", "cs:optimizer"), (adam.Adam, "zero_grad", "cs:optimizer"),
         (train, "_save_checkpoint", "cs:checkpoint"), (torch.autograd, "backward", "cs:backward"),
     ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in targets]

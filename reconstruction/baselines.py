@@ -29,6 +29,7 @@ from torch import nn
 from calibration.camera import Camera
 from calibration.sim3 import Sim3
 from calibration.so3 import quat_to_matrix
+from reconstruction.adam import Adam
 from reconstruction.losses import composite, photometric_loss
 from reconstruction.gaussians import EPS2D_3DGS, Gaussians
 from reconstruction.render import num_sh_bases, rasterize
@@ -196,14 +197,14 @@ class GaussianParams(nn.Module):
         return self.means.shape[0]
 
 
-def _adam(params: GaussianParams, cfg: VanillaConfig, scene_scale: float) -> torch.optim.Adam:
+def _adam(params: GaussianParams, cfg: VanillaConfig, scene_scale: float) -> Adam:
     lrs = {"means": cfg.lr_means * scene_scale, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
            "opacity_logits": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
-    return torch.optim.Adam([{"name": k, "params": [getattr(params, k)], "lr": lrs[k]} for k in GaussianParams.NAMES], eps=1e-15)
+    return Adam([{"name": k, "params": [getattr(params, k)], "lr": lrs[k]} for k in GaussianParams.NAMES], eps=1e-15)
 
 
 @torch.no_grad()
-def _update_params(params: GaussianParams, opt: torch.optim.Adam, keep: torch.Tensor, new: dict[str, torch.Tensor]) -> None:
+def _update_params(params: GaussianParams, opt: Adam, keep: torch.Tensor, new: dict[str, torch.Tensor]) -> None:
     """Keeps rows `keep` [N] bool of every parameter and appends `new` rows; Adam moments follow the
     kept rows and start at zero for the new ones (as Inria's densification does)."""
     for group in opt.param_groups:
@@ -222,7 +223,7 @@ def _update_params(params: GaussianParams, opt: torch.optim.Adam, keep: torch.Te
 
 @torch.no_grad()
 def densify_and_prune(
-    params: GaussianParams, opt: torch.optim.Adam, grad2d_mean: torch.Tensor, cfg: VanillaConfig, scene_scale: float,
+    params: GaussianParams, opt: Adam, grad2d_mean: torch.Tensor, cfg: VanillaConfig, scene_scale: float,
     *, prune_large: bool, gen: torch.Generator,
 ) -> dict[str, int]:
     """One refinement step: clone, split, prune. grad2d_mean: [N] mean view-space positional gradient
@@ -265,7 +266,7 @@ def densify_and_prune(
 
 
 @torch.no_grad()
-def reset_opacity(params: GaussianParams, opt: torch.optim.Adam, value: float = 0.01) -> None:
+def reset_opacity(params: GaussianParams, opt: Adam, value: float = 0.01) -> None:
     """Clamp every opacity to at most `value` and forget its Adam moments (Inria's reset)."""
     params.opacity_logits.clamp_(max=math.log(value / (1 - value)))
     for group in opt.param_groups:

@@ -28,6 +28,7 @@ from calibration.camera import Camera
 from calibration.capture import load_views, read_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import geodesic_angle_deg
+from reconstruction.adam import Adam
 from reconstruction.gaussians import WHITE, Gaussians, camera_batch, render
 from reconstruction.losses import composite, mask_l1, photometric_loss
 from reconstruction.metrics import image_metrics
@@ -97,7 +98,7 @@ def refine_camera_pose(
     seen (the last step's pose may sit on an Adam oscillation).
     """
     correction = PoseCorrection(1, mode="per_camera")
-    opt = torch.optim.Adam(correction.camera_parameters(), lr=lr)
+    opt = Adam(correction.camera_parameters(), lr=lr)
     c2w0 = torch.as_tensor(camera.c2w, dtype=torch.float64)[None]
     target = torch.as_tensor(np.asarray(gt_rgb, np.float32))
     mask = torch.as_tensor(np.asarray(gt_mask, bool))

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from calibration.fileio import atomic_write_bytes
+from reconstruction.adam import Adam
 from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
 from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, mask_l1, neighbour_graph, photometric_loss,
                                    neighbour_smoothness, sh_neighbour_loss, silhouette_losses)
@@ -344,7 +345,8 @@ def train(
     # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups
     # that are frozen in a stage have no gradient and are skipped by Adam. The fused step (one kernel over
     # every parameter, the same update to rounding) takes 1.0 instead of 2.6 ms on the `cpu` preset's model.
-    opt = torch.optim.Adam(model.param_groups(preset.lr), eps=1e-15, fused=True)
+    # torch's update without torch.optim's class, whose first call imports torch._dynamo (1.6 s, see `adam`).
+    opt = Adam(model.param_groups(preset.lr), eps=1e-15, fused=True)
     sh_graph = neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours))
     c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
     mask_data = views.resized(preset.mask_scale)

@@ -24,7 +24,7 @@ def _iteration(t0: float) -> list[Span]:
         Span(BACKWARD_NODE + "_RasterizeToPixelsBackward", t0 + 52, t0 + 70, 7, seq=8),  # 10: 1 glue
         Span("_RasterizeToPixelsBackward", t0 + 53, t0 + 70, 10, seq=8),          # 11: 17 raster bwd
         Span(BACKWARD_NODE + "torch::autograd::AccumulateGrad", t0 + 70, t0 + 76, 7),  # 12: 6 glue
-        Span("Optimizer.step#Adam.step", t0 + 80, t0 + 90, 0),                   # 13: 10 optimizer
+        Span("cs:optimizer", t0 + 80, t0 + 90, 0),                               # 13: 10 optimizer
     ]
 
 
