@@ -324,3 +324,21 @@ def test_view_dependent_colour_decays_towards_none_only_when_the_preset_says_so(
     stats = SceneStats(10, 320, 240, (5000,) * 10, 120.0)
     assert resolve_preset("cpu", stats)[0].shn_decay == 1.0 and resolve_preset("preview", stats)[0].shn_decay == 0.0
     assert PAPER.shn_decay == 0.0
+
+
+def test_training_leaves_torch_dynamo_unimported():
+    # torch.optim's classes import torch._dynamo at their first call (1.6 s a process on a slow machine); the
+    # training's Adam must not (see reconstruction.adam).
+    import subprocess
+    import sys
+
+    if not (SAMPLE / "train").exists():
+        pytest.skip("the bundled sample is absent")
+    code = ("import sys\n"
+            "from tests.reconstruction.test_train import init_splats, sample_scene, tiny_preset, train\n"
+            "views, parts, _ = sample_scene(n_views=3)\n"
+            "train(views, init_splats(parts.vertices, parts.faces, 500, sh_degree=0, seed=0), tiny_preset(pose=2, deform=2, photo=2))\n"
+            "print('torch._dynamo' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2]).stdout.split()
+    assert out[-1] == "False"
