@@ -3,8 +3,8 @@
 torch's optimizer classes wrap their methods in `torch._disable_dynamo`, whose first call imports torch._dynamo:
 1.6 s once per process on this 2-core machine in its slow state, paid by every one-shot `cadsplat reconstruct`
 before its first step. The update here is torch's own functional `torch.optim.adam.adam` (the same kernels, on
-the same per-parameter state), which imports nothing more outside `torch.compile`, so parameters move bit for bit
-as under `torch.optim.Adam` with the same arguments. `state_dict` has torch's layout, so checkpoints written by
+the same per-parameter state), which imports nothing outside `torch.compile`; parameters move bit for bit as
+under `torch.optim.Adam` with the same arguments. `state_dict` has torch's layout, so checkpoints written by
 either load into the other.
 """
 
