@@ -7,7 +7,7 @@ profiled per stage and per bucket.
 built from `sample/library_meshes`), or on `--capture` (a capture, or a rig scene holding `train/`;
 its library from `--library`, else built from `shared/data/rig_scenes/library`). It runs twice: once
 as production runs it (the preset unchanged: wall time per stage, iterations, median wall per
-iteration; numba's kernels loaded), then under `torch.profiler` (CPU activity, no shapes) with each
+iteration, cores busy per stage from the process's CPU time; numba's kernels loaded), then under `torch.profiler` (CPU activity, no shapes) with each
 stage capped at `--iters` iterations and the plateau stop off so every stage runs them all. The engine is not changed: the benchmark wraps a few
 engine functions in `record_function` labels for the run (projection, binning, the losses, the
 deformation field, the pose correction, the backward call) and a label per iteration opened and
@@ -202,6 +202,7 @@ class IterationMarks:
         self.profiled = profiled
         self.calls: list[tuple[str, int]] = []
         self.times: list[float] = []
+        self.cpu_times: list[float] = []  # the process's CPU seconds (all threads) at each call
         self._open = None
 
     @property
@@ -210,6 +211,7 @@ class IterationMarks:
 
     def __call__(self, stage: str, it: int, _cap: int, _loss: float) -> None:
         self.times.append(time.perf_counter())
+        self.cpu_times.append(time.process_time())
         self.calls.append((stage, it))
         if self._open is not None:
             self._open.__exit__(None, None, None)
@@ -230,6 +232,19 @@ def steady_wall_ms(marks: IterationMarks) -> dict[str, float]:
         if it > WARMUP:
             per[stage].append(1000 * (t1 - t0))
     return {s: float(np.median(v)) for s, v in per.items()}
+
+
+def steady_cores(marks: IterationMarks) -> dict[str, float]:
+    """Cores busy in each stage's steady iterations (warm-up left out): the process's CPU seconds over wall
+    seconds, 2.0 when both of two cores worked throughout."""
+    cpu: dict[str, float] = defaultdict(float)
+    wall: dict[str, float] = defaultdict(float)
+    steps = zip(marks.stages, zip(marks.times, marks.times[1:]), zip(marks.cpu_times, marks.cpu_times[1:]))
+    for (stage, it), (t0, t1), (c0, c1) in steps:
+        if it > WARMUP:
+            cpu[stage] += c1 - c0
+            wall[stage] += t1 - t0
+    return {s: cpu[s] / wall[s] for s in wall if wall[s] > 0}
 
 
 def run(capture: Path, library: Path, preset: str, iters: int | None, work: Path, profiled: bool):
@@ -253,9 +268,11 @@ def run(capture: Path, library: Path, preset: str, iters: int | None, work: Path
 
 
 def table(per_iter: list[dict[str, float]], stages: list[tuple[str, int]], plain_ms: dict[str, float],
-          stage_wall_s: dict[str, float], iterations: dict[str, int]) -> tuple[str, dict[str, int]]:
+          stage_wall_s: dict[str, float], iterations: dict[str, int],
+          cores: dict[str, float] | None = None) -> tuple[str, dict[str, int]]:
     """Markdown table: ms per iteration and % of the profiled iteration per bucket and stage (median
-    over the stage's steady iterations), plus the rasterizer's share and the stage walls."""
+    over the stage's steady iterations), plus the rasterizer's share, the stage walls and, with `cores`
+    (`steady_cores` of the production run), how many cores each stage kept busy."""
     by_stage: dict[str, list[dict[str, float]]] = defaultdict(list)
     for rec, (stage, it) in zip(per_iter, stages):
         if it > WARMUP:
@@ -274,6 +291,9 @@ def table(per_iter: list[dict[str, float]], stages: list[tuple[str, int]], plain
     lines.append("| iteration, production run (median) | " + " | ".join(f"{plain_ms.get(s, float('nan')):.1f}" for s in order) + " |")
     outside = [100 * (1 - sum(mean[s][k] for k in RASTERIZER) / mean[s]["wall"]) for s in order]
     lines.append("| **outside the rasterizer** | " + " | ".join(f"**{o:.0f} %**" for o in outside) + " |")
+    if cores is not None:
+        lines.append(f"| cores busy, production run (CPU s per wall s, of {os.cpu_count()}) | "
+                     + " | ".join(f"{cores[s]:.2f}" if s in cores else "-" for s in order) + " |")
     lines.append("| stage wall, production run (s; iterations) | "
                  + " | ".join(f"{stage_wall_s.get(s, 0):.1f} ({iterations.get(s, 0)})" for s in order) + " |")
     # The whole training: each stage's profiled iteration weighted by the production run's iteration count.
@@ -317,12 +337,13 @@ def main() -> None:
     machine, machine_mesh = machine_reference_ms()
     rec, marks, _ = run(capture, library, args.preset, None, work, profiled=False)
     plain_ms = steady_wall_ms(marks)
+    cores = steady_cores(marks)
     stage_wall = dict(rec.train.timings_s)
-    print(f"production run: {stage_wall} s, {rec.train.iterations} iterations, median ms/iter {plain_ms}", flush=True)
+    print(f"production run: {stage_wall} s, {rec.train.iterations} iterations, median ms/iter {plain_ms}, cores busy {cores}", flush=True)
     _, marks, prof = run(capture, library, args.preset, args.iters, work, profiled=True)
     events = prof.events()
     spans = spans_of(events, thread=next(e.thread for e in events if e.name == ITERATION))
-    text, counts = table(attribute(spans), marks.stages, plain_ms, stage_wall, rec.train.iterations)
+    text, counts = table(attribute(spans), marks.stages, plain_ms, stage_wall, rec.train.iterations, cores)
     cmd = "python -m benchmarks.bench_profile " + " ".join(
         f"--{k} {v}" for k, v in (("preset", args.preset), ("capture", args.capture), ("iters", args.iters)) if v is not None)
     section = "\n".join([

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.bench_profile import BACKWARD_NODE, ITERATION, Span, attribute
+from benchmarks.bench_profile import BACKWARD_NODE, ITERATION, IterationMarks, Span, attribute, steady_cores
 
 
 def _iteration(t0: float) -> list[Span]:
@@ -53,3 +53,17 @@ def test_backward_node_without_a_labelled_forward_is_everything_else():
         Span("MulBackward0", 10, 30, 2, seq=4),
     ]
     assert attribute(spans)[0] == pytest.approx({"wall": 50, "else": 20 + 10 + 20, "glue": 0})
+
+
+def test_cores_busy_is_cpu_over_wall_per_stage_without_its_warm_up():
+    marks = IterationMarks(profiled=False)
+    # (stage, iteration, wall s, CPU s) at each progress call, made as each iteration ends: the interval up to a
+    # call is that call's iteration.
+    calls = [("pose", 1, 0.0, 0.0), ("pose", 2, 1.0, 1.0), ("pose", 3, 2.0, 2.0), ("pose", 4, 3.0, 4.0),
+             ("photo", 1, 4.0, 5.5), ("photo", 2, 5.0, 7.5), ("photo", 3, 6.0, 9.5), ("photo", 4, 8.0, 12.5)]
+    marks.calls = [(s, i) for s, i, _, _ in calls]
+    marks.times = [t for *_, t, _ in calls]
+    marks.cpu_times = [c for *_, c in calls]
+    # Iterations 1-2 of each stage are warm-up. Pose keeps 3 (1 CPU s in 1 s) and 4 (2 in 1); photo keeps 3 (2 in 1)
+    # and 4 (3 in 2).
+    assert steady_cores(marks) == pytest.approx({"pose": 3 / 2, "photo": 5 / 3})
