@@ -7,8 +7,8 @@ profiled per stage and per bucket.
 built from `sample/library_meshes`), or on `--capture` (a capture, or a rig scene holding `train/`;
 its library from `--library`, else built from `shared/data/rig_scenes/library`). It runs twice: once
 as production runs it (the preset unchanged: wall time per stage, iterations, median wall per
-iteration, cores busy per stage from the process's CPU time; numba's kernels loaded), then under `torch.profiler` (CPU activity, no shapes) with each
-stage capped at `--iters` iterations and the plateau stop off so every stage runs them all. The engine is not changed: the benchmark wraps a few
+iteration, cores busy per stage from the process's CPU time; numba's kernels loaded), then under
+`torch.profiler` (CPU activity, no shapes) with each stage capped at `--iters` iterations and the plateau stop off so every stage runs them all. The engine is not changed: the benchmark wraps a few
 engine functions in `record_function` labels for the run (projection, binning, the losses, the
 deformation field, the pose correction, the backward call) and a label per iteration opened and
 closed by the progress callback. The numba kernels run on the rasterizer's worker threads while the
