@@ -1,9 +1,10 @@
 """Benchmarks: one script per capability, each run from the repository root as
 `python -m benchmarks.bench_<thing>`; each prints a markdown table and writes it to benchmarks/results/."""
 
-import os
+from reconstruction.parallel import configure_openmp
 
-# As the `cadsplat` command does before torch loads (deploy/cli.py): idle OpenMP workers sleep instead of spinning
-# on the cores the rasterizer's threads need. Timed without it, the engine is not the one users run (rig scenes,
-# `preview`, clamp and banana: 12.7 and 11.4 s per capture under libgomp's default policy, 10.5-10.8 and 9.0 s here).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# As the `cadsplat` command does before torch loads (deploy/cli.py): idle OpenMP workers spin only briefly, not on
+# the cores the rasterizer's threads need. Timed without it, the engine is not the one users run (rig scenes,
+# `preview`, clamp and banana: 12.7 and 11.4 s per capture under libgomp's default ~3 ms spin, 10.5-10.8 and 9.0 s
+# with none).
+configure_openmp()

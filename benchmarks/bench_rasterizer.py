@@ -11,9 +11,9 @@ timed in float32 and compared in float64). A second table times the `cpu` preset
 (`run_production`), forward and backward apart. Prints the markdown tables and writes them to
 benchmarks/results/rasterizer.md.
 
-Subprocesses run with OMP_WAIT_POLICY=PASSIVE unless the caller set it: torch's OpenMP workers
-otherwise spin for milliseconds after every op, and on a busy 2-core machine that spinning, not the
-code under test, decides the timings (see reconstruction/parallel.py).
+Subprocesses inherit the short OpenMP spin `benchmarks` sets: under libgomp's default torch's workers
+spin for milliseconds after every op, and on a busy 2-core machine that spinning, not the code under
+test, decides the timings (see reconstruction/parallel.py).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from benchmarks._common import REPO, RESULTS, SHARED
+from reconstruction.parallel import openmp_wait
 from reconstruction.render import rasterize
 
 DEFAULT_MESH = SHARED / "objects" / "ycb" / "011_banana" / "textured.obj"
@@ -431,7 +432,6 @@ def main() -> int:
 
     mesh, mesh_name = load_mesh(args.mesh)
     env = dict(os.environ)
-    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
     def subprocess_row(*extra: str) -> dict:
         cmd = [sys.executable, "-m", "benchmarks.bench_rasterizer", "--mesh", str(args.mesh), *extra]
@@ -454,7 +454,7 @@ def main() -> int:
     lines = [
         f"Rasterizer forward+backward (loss = squared error to a random image), one camera, Gaussians sampled "
         f"on {mesh_name} covering ~{100 * TARGET_COVERAGE:.0f}% of the image; {rows[0]['threads']} threads, "
-        f"OMP_WAIT_POLICY={env['OMP_WAIT_POLICY']}; load average {os.getloadavg()[0]:.1f} at the end. Times are "
+        f"{openmp_wait(env)}; load average {os.getloadavg()[0]:.1f} at the end. Times are "
         f"medians; CPU time sums all threads. Peak RSS is the whole process (Python, torch, the scene); in "
         f"brackets what the rasterizer's iterations added on top.",
         "",

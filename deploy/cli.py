@@ -10,9 +10,11 @@ from importlib.metadata import PackageNotFoundError, version
 
 import click
 
-# Before torch loads (sub-commands import it lazily): idle OpenMP threads must sleep, not spin,
-# or on a small machine they steal the cores the rasterizer's threads need (3-10x slower under load).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from reconstruction.parallel import configure_openmp
+
+# Before torch loads (sub-commands import it lazily): idle OpenMP threads spin only briefly, or on a small
+# machine they steal the cores the rasterizer's threads need (3-10x slower under load).
+configure_openmp()
 
 # name -> (module:attribute, one-line help). The order is the order `--help` lists them in.
 COMMANDS: dict[str, tuple[str, str]] = {

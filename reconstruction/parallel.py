@@ -6,10 +6,9 @@ other; parfor lowering also tripled the kernels' cold compile time. Plain thread
 kernels sleep when idle. Work is cut into a few parts per thread, taken in order by whichever thread
 is free, so a thread that loses its core for a while only delays its current part.
 
-torch's own OpenMP workers still spin after each op unless OMP_WAIT_POLICY=PASSIVE is set before torch
-is imported (the `cadsplat` command and the benchmarks set it): even on a quiet 2-core machine their
-spinning took the cores these threads need (rig scene clamp, `preview`: 12.7 s under libgomp's
-default, 10.5-10.8 s with PASSIVE; on a busy machine 3-10x).
+torch's own OpenMP workers spin after each op before they sleep, for libgomp's default ~3 ms: on a 2-core
+machine that spinning took the cores these threads need (rig scene clamp, `preview`: 12.7 s, against 10.5-10.8 s
+with no spinning at all; on a busy machine 3-10x). `configure_openmp` shortens it before torch is imported.
 """
 
 from __future__ import annotations
@@ -21,6 +20,29 @@ import threading
 from collections.abc import Callable
 
 PARTS_PER_THREAD = 4
+
+# Spins (libgomp reckons ~100 per microsecond) an idle OpenMP worker makes before it sleeps. ~0.1 ms bridges the gap
+# between a training step's back-to-back torch ops, which otherwise pay a futex wake-up each. Rig scene clamp, `cpu`,
+# interleaved against no spinning (OMP_WAIT_POLICY=PASSIVE, 56.3-68.4 s): 10k spins -4.4..-14.3 s in 3 of 3 pairs,
+# 20k -0.9..-10.5 s in 10 of 10, 5k -1.1..-6.2 s. Beside a busy-looping neighbour on one of the 2 cores the spin
+# costs instead (91.8-95.1 s with none): 5k +4..+5 s, 10k +10..+20 s, 20k +14..+16 s, 50k +41..+42 s. An appliance
+# reconstructs alone; a machine shared with other work sets OMP_WAIT_POLICY=PASSIVE.
+OPENMP_SPIN_COUNT = 10_000
+
+
+def configure_openmp(environ: dict | None = None) -> None:
+    """Before torch loads: idle OpenMP workers spin `OPENMP_SPIN_COUNT` times, then sleep, unless the user chose a
+    wait policy or a spin count. libgomp reads these once, when torch's library loads, so later calls do nothing."""
+    environ = os.environ if environ is None else environ
+    if "OMP_WAIT_POLICY" not in environ and "GOMP_SPINCOUNT" not in environ:
+        environ["GOMP_SPINCOUNT"] = str(OPENMP_SPIN_COUNT)
+
+
+def openmp_wait(environ: dict | None = None) -> str:
+    """How idle OpenMP workers wait in `environ`, as a benchmark reports it: "GOMP_SPINCOUNT=20000"."""
+    environ = os.environ if environ is None else environ
+    chosen = [f"{k}={environ[k]}" for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in environ]
+    return ", ".join(chosen) or "libgomp's default wait"
 
 
 class _Team:

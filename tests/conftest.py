@@ -5,8 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# As the CLI does (deploy/cli.py): sleeping, not spinning, OpenMP threads before torch is imported.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from reconstruction.parallel import configure_openmp
+
+# As the CLI does (deploy/cli.py): OpenMP threads that spin only briefly, set before torch is imported.
+configure_openmp()
 # MuJoCo picks its GL backend when first imported, and collection may import it through any module:
 # headless EGL, as rig/render_mujoco.py asks for, on machines with no display.
 os.environ.setdefault("MUJOCO_GL", "egl")

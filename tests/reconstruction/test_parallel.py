@@ -1,5 +1,9 @@
-"""The parallel-for's helper team: every index once, errors reach the caller, concurrent and nested callers."""
+"""The parallel-for's helper team: every index once, errors reach the caller, concurrent and nested callers; how
+torch's idle OpenMP workers wait."""
 
+import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -8,6 +12,7 @@ import torch
 
 from reconstruction import parallel
 from reconstruction.parallel import parallel_for
+from tests.conftest import REPO
 
 
 @pytest.fixture
@@ -72,3 +77,22 @@ def test_a_helper_that_fails_to_start_is_not_waited_for(two_threads, monkeypatch
     caller.start()
     caller.join(timeout=30)
     assert not caller.is_alive() and (out == 1).all()
+
+
+def test_openmp_spins_briefly_unless_the_user_chose_how_it_waits():
+    environ = {}
+    parallel.configure_openmp(environ)
+    assert environ == {"GOMP_SPINCOUNT": str(parallel.OPENMP_SPIN_COUNT)}
+    assert parallel.openmp_wait(environ) == f"GOMP_SPINCOUNT={parallel.OPENMP_SPIN_COUNT}"
+    for chosen in ({"OMP_WAIT_POLICY": "PASSIVE"}, {"GOMP_SPINCOUNT": "0"}):
+        environ = dict(chosen)
+        parallel.configure_openmp(environ)
+        assert environ == chosen
+
+
+def test_the_command_sets_the_spin_before_torch_loads(tmp_path):
+    code = "import os, sys; import deploy.cli; assert 'torch' not in sys.modules; print(os.environ['GOMP_SPINCOUNT'])"
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "PYTHONPATH": str(REPO)}, cwd=tmp_path,
+                         capture_output=True, text=True, check=True).stdout
+    assert out.strip() == str(parallel.OPENMP_SPIN_COUNT)
