@@ -4,7 +4,6 @@ so `cadsplat --help` stays fast (torch and friends load only for the command tha
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 from importlib.metadata import PackageNotFoundError, version
 
