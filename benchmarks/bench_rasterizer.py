@@ -144,10 +144,25 @@ def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> tupl
     """(median ms, mesh name) of one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²: a fixed
     workload (torch is pinned, the code frozen) that says how fast this machine ran when a benchmark's timings were taken.
 
-    On the YCB banana the same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1480-1812 ms
-    (that night, with no AMX passed through): a wall time is read against the reference taken beside it. Without the
-    shared data the splats lie on an icosphere, a different workload whose figures compare only with each other.
+    On the YCB banana the same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1135-2715 ms
+    (the nights after, with no AMX passed through): a wall time is read against the reference taken beside it. Without
+    the shared data the splats lie on an icosphere, a different workload whose figures compare only with each other.
+
+    It runs in its own process with OpenMP workers that sleep at once (OMP_WAIT_POLICY=PASSIVE), as every reading
+    before 2026-11-27 did: made of thousands of small torch ops, it reads mostly how fast a sleeping core wakes. With
+    the engine's short spin (`reconstruction.parallel.configure_openmp`) it read 633-654 ms (once 3188) on a machine
+    where it read 1123-1576 ms without, the same quarter hour.
     """
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    env["OMP_WAIT_POLICY"] = "PASSIVE"
+    cmd = [sys.executable, "-m", "benchmarks.bench_rasterizer", "--mesh", str(mesh_path), "--reference", str(iters)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env, cwd=REPO).stdout
+    ms, name = json.loads(out.strip().splitlines()[-1])
+    return ms, name
+
+
+def _reference_in_process(mesh_path: Path, iters: int) -> tuple[float, str]:
+    """`machine_reference_ms` in this process, under whatever OpenMP wait policy torch loaded with."""
     mesh, name = load_mesh(mesh_path)
     if mesh_path.exists():
         name = f"{mesh_path.parent.name}/{mesh_path.name}"  # 011_banana/textured.obj, not a bare file name
@@ -421,7 +436,11 @@ def main() -> int:
     ap.add_argument("--no-production", action="store_true", help="skip the batched production-shaped rows")
     ap.add_argument("--one", nargs=4, metavar=("SIZE", "N", "FOCAL", "TORCH_ITERS"), help=argparse.SUPPRESS)
     ap.add_argument("--production-one", choices=["alpha", "sh2"], help=argparse.SUPPRESS)
+    ap.add_argument("--reference", type=int, metavar="ITERS", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.reference:
+        print(json.dumps(_reference_in_process(args.mesh, args.reference)))
+        return 0
     if args.one:
         size, n, focal, torch_iters = int(args.one[0]), int(args.one[1]), float(args.one[2]), int(args.one[3])
         print(json.dumps(run_one(args.mesh, size, n, focal, torch_iters)))
