@@ -11,9 +11,11 @@ timed in float32 and compared in float64). A second table times the `cpu` preset
 (`run_production`), forward and backward apart. Prints the markdown tables and writes them to
 benchmarks/results/rasterizer.md.
 
-Subprocesses inherit the short OpenMP spin `benchmarks` sets: under libgomp's default torch's workers
-spin for milliseconds after every op, and on a busy 2-core machine that spinning, not the code under
-test, decides the timings (see reconstruction/parallel.py).
+Subprocesses inherit the short OpenMP spin `benchmarks` sets, as the engine runs: under libgomp's
+default torch's workers spin for milliseconds after every op, and on a busy 2-core machine that
+spinning, not the code under test, decides the timings (see reconstruction/parallel.py). The
+pure-torch baseline, thousands of small ops, runs 2-3x faster with the short spin than with workers
+that sleep at once (rig_scenes.md, 2026-11-27), and the speed-up column reads lower for it.
 """
 
 from __future__ import annotations

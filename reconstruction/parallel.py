@@ -32,14 +32,15 @@ OPENMP_SPIN_COUNT = 10_000
 
 def configure_openmp(environ: dict | None = None) -> None:
     """Before torch loads: idle OpenMP workers spin `OPENMP_SPIN_COUNT` times, then sleep, unless the user chose a
-    wait policy or a spin count. libgomp reads these once, when torch's library loads, so later calls do nothing."""
+    wait policy or a spin count. libgomp reads them once, when torch's library loads: called after that, only the
+    processes this one starts see the change."""
     environ = os.environ if environ is None else environ
     if "OMP_WAIT_POLICY" not in environ and "GOMP_SPINCOUNT" not in environ:
         environ["GOMP_SPINCOUNT"] = str(OPENMP_SPIN_COUNT)
 
 
 def openmp_wait(environ: dict | None = None) -> str:
-    """How idle OpenMP workers wait in `environ`, as a benchmark reports it: "GOMP_SPINCOUNT=20000"."""
+    """How idle OpenMP workers wait in `environ`, as a benchmark reports it: "GOMP_SPINCOUNT=10000"."""
     environ = os.environ if environ is None else environ
     chosen = [f"{k}={environ[k]}" for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in environ]
     return ", ".join(chosen) or "libgomp's default wait"

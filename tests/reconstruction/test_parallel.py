@@ -1,9 +1,6 @@
 """The parallel-for's helper team: every index once, errors reach the caller, concurrent and nested callers; how
 torch's idle OpenMP workers wait."""
 
-import os
-import subprocess
-import sys
 import threading
 
 import numpy as np
@@ -12,7 +9,6 @@ import torch
 
 from reconstruction import parallel
 from reconstruction.parallel import parallel_for
-from tests.conftest import REPO
 
 
 @pytest.fixture
@@ -89,10 +85,3 @@ def test_openmp_spins_briefly_unless_the_user_chose_how_it_waits():
         parallel.configure_openmp(environ)
         assert environ == chosen
 
-
-def test_the_command_sets_the_spin_before_torch_loads(tmp_path):
-    code = "import os, sys; import deploy.cli; assert 'torch' not in sys.modules; print(os.environ['GOMP_SPINCOUNT'])"
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    out = subprocess.run([sys.executable, "-c", code], env={**env, "PYTHONPATH": str(REPO)}, cwd=tmp_path,
-                         capture_output=True, text=True, check=True).stdout
-    assert out.strip() == str(parallel.OPENMP_SPIN_COUNT)
