@@ -357,7 +357,7 @@ def run_one(mesh_path: Path, size: int, n: int, focal: float, torch_iters: int) 
 def run_production(mesh_path: Path, sh_degree: int | None, n_cams: int, width: int, height: int, n: int, focal: float) -> dict:
     """The `cpu` preset's per-iteration render: all training views in one batched call, forward and backward.
 
-    sh_degree None is Stage I (alpha only: a zero [N, 1] colour, loss on alpha); 2 is Stage II (SH
+    sh_degree None is Stage I (alpha only: no colour channel, [N, 0], loss on alpha); 2 is Stage II (SH
     colours [N, 9, 3], a random background per view, loss on colour and alpha).
     """
     mesh, _ = load_mesh(mesh_path)
@@ -366,7 +366,7 @@ def run_production(mesh_path: Path, sh_degree: int | None, n_cams: int, width: i
     gen = torch.Generator().manual_seed(0)
     params = {k: g[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities")}
     if sh_degree is None:
-        colors = torch.zeros(n, 1)
+        colors = torch.zeros(n, 0)
     else:
         sh = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=gen)
         sh[:, 0] = (g["colors"] - 0.5) / 0.28209479177387814
@@ -509,7 +509,7 @@ def main() -> int:
             "",
             f"Production-shaped batch (the `cpu` preset's training render): {p['n_cams']} views at {p['width']}x"
             f"{p['height']} on a ring 35° above {mesh_name}, {p['n'] // 1000}k splats, every view in one call, "
-            f"loss = L1 to random targets. Stage I renders alpha only (a zero [N, 1] colour, no background); "
+            f"loss = L1 to random targets. Stage I renders alpha only (no colour channel, as training renders it; a zero [N, 1] colour before 2026-11-27 11:00 UTC); "
             f"Stage II SH degree 2 with a random background per view. Forward and backward timed apart "
             f"(medians); CPU time sums all threads.",
             "",

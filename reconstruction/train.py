@@ -375,7 +375,9 @@ def train(
                                     "rng": rng.bit_generator.state, "torch_rng": gen.get_state(), "state": state})
 
     n = len(splats)
-    zeros = torch.zeros(n, 1)
+    # The silhouette renders carry no colour channel: the rasterizer composites the transmittance alone, with the same
+    # alphas and gradients as a zero colour (Stage I's 10-view batch on the clamp: 91 against 109 ms a step).
+    no_colour = torch.zeros(n, 0)
     batch = v if preset.views_per_iter <= 0 else min(v, preset.views_per_iter)
     trainable = [p for g in opt.param_groups for p in g["params"]]
     for si in range(state["stage"], len(STAGES)):
@@ -414,7 +416,7 @@ def train(
             viewmats = model.viewmats(c2w_init, idx)
             on_photo = None if valid is None else valid[sel]
             if stage != "photo":
-                _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
+                _, alpha, _ = rasterize(means, quats, scales, opac, no_colour, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
                 l_mask = mask_l1(alpha, cov[sel], on_photo)
                 loss = l_mask
                 last = {"mask": l_mask}
@@ -430,7 +432,7 @@ def train(
                                           sh_degree=model.sh_degree, backgrounds=bg, active=active, eps2d=preset.eps2d)
                 if active is not None:
                     # The silhouette is supervised on every splat: dropout regularises appearance only.
-                    _, alpha, _ = rasterize(means, quats, scales, opac, zeros, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
+                    _, alpha, _ = rasterize(means, quats, scales, opac, no_colour, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
                 # Render and target are both the background wherever no splat reaches and the mask is 0.
                 support = (alpha.detach()[..., 0] > 0) | in_mask[sel]
                 target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])

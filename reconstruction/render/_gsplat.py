@@ -50,11 +50,18 @@ def rasterize_gsplat(
         opacities = opacities * active.to(opacities.dtype)
     if backgrounds is not None and backgrounds.dim() == 1:
         backgrounds = backgrounds.expand(viewmats.shape[0], -1)
+    # gsplat has no kernel for zero channels: an alphas-only render draws one zero channel and drops it.
+    alphas_only = sh_degree is None and colors.shape[-1] == 0
+    if alphas_only:
+        colors = colors.new_zeros(*colors.shape[:-1], 1)
+        backgrounds = None
     render_colors, render_alphas, meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
         tile_size=tile_size, backgrounds=backgrounds, rasterize_mode="classic", camera_model="pinhole",
     )
+    if alphas_only:
+        render_colors = render_colors[..., :0]
     if visibility_counts:
         meta["visibility_counts"] = _visibility_counts(gsplat, meta, render_alphas)
     meta["n_isects"] = int(meta["flatten_ids"].shape[0])

@@ -305,6 +305,8 @@ def rasterize(
             [0, 1] (post-sigmoid, as gsplat expects).
         colors: [N, D] or [C, N, D] values, or with `sh_degree` SH coefficients [N, K, 3] or
             [C, N, K, 3]; the colour is then max(SH(dir) + 0.5, 0) with dir from camera centre to mean.
+            D = 0 renders the alphas alone (render_colors [C, H, W, 0]): the compositing then carries no colour
+            and its per-pixel state and per-slot gradients shrink to the transmittance's.
         viewmats: [C, 4, 4] world-to-camera (OpenCV axes); Ks: [C, 3, 3] intrinsics.
         width, height: image size in pixels (any, including 1x1).
         near_plane, far_plane, eps2d: as gsplat.

@@ -35,7 +35,7 @@ def compile_kernels() -> float:
     ks = torch.tensor([[30.0, 0, w / 2], [0, 30.0, h / 2], [0, 0, 1]]).repeat(2, 1, 1)
     backgrounds = torch.rand(2, 3, generator=gen)
     active = torch.arange(n) % 2 == 0  # splat dropout (the paper preset)
-    modes = [(torch.zeros(n, 1), None, None, None)]
+    modes = [(torch.zeros(n, 0), None, None, None)]
     modes += [(torch.rand(n, (d + 1) ** 2, 3, generator=gen), d, bg, None) for d in range(4) for bg in (None, backgrounds)]
     modes += [(torch.rand(n, 16, 3, generator=gen), 3, backgrounds, active)]
     for colors, degree, bg, keep in modes:

@@ -517,6 +517,15 @@ def test_cuda_backend_agrees_with_cpu():
     assert (cpu[2] - gpu[2].cpu()).abs().sum() <= 0.01 * cpu[2].sum()
     for k in PARAMS:
         assert torch.allclose(cpu[3][k], gpu[3][k].cpu(), rtol=1e-2, atol=1e-4), k
+    # Alphas alone: gsplat has no zero-channel kernel, so the backend draws one zero channel and drops it.
+    alphas_only = {}
+    for device in ("cpu", "cuda"):
+        args = [scene[k].to(device) for k in PARAMS[:4]]
+        colors, alphas, _ = rasterize(*args, torch.zeros(300, 0, device=device), scene["viewmats"].to(device),
+                                      scene["Ks"].to(device), 64, 48)
+        assert colors.shape == (2, 48, 64, 0)
+        alphas_only[device] = alphas.cpu()
+    assert (alphas_only["cpu"] - alphas_only["cuda"]).abs().max() < 1e-4
 
 
 def test_interleaved_renders_keep_their_own_scratch_buffers():
@@ -571,3 +580,25 @@ def test_a_loss_on_one_image_differentiates_like_zero_weight_on_the_other():
                 assert name == "backgrounds" and not want[name].any()
             else:
                 assert torch.equal(got[name], want[name]), name
+
+
+def test_alphas_alone_render_and_differentiate_like_a_zero_colour():
+    # Training's silhouette renders carry no colour channel ([N, 0]): the compositing then tracks the transmittance
+    # alone, and the alphas and every gradient must be those of a zero colour, to the bit.
+    scene = random_scene(250, seed=31, n_cams=2, width=48, height=40)
+    weights = torch.randn(2, 40, 48, 1, generator=torch.Generator().manual_seed(5))
+
+    def render(depth: int):
+        inputs = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "viewmats")}
+        colors, alphas, _ = rasterize(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
+                                      torch.zeros(250, depth), inputs["viewmats"], scene["Ks"], scene["width"],
+                                      scene["height"])
+        (alphas * weights).sum().backward()
+        return colors, alphas, {k: v.grad for k, v in inputs.items()}
+
+    colors, alphas, grads = render(0)
+    _, zero_colour_alphas, zero_colour_grads = render(1)
+    assert colors.shape == (2, 40, 48, 0)
+    assert alphas.max() > 0.9 and torch.equal(alphas, zero_colour_alphas)
+    for name, grad in grads.items():
+        assert grad.abs().max() > 0 and torch.equal(grad, zero_colour_grads[name]), name
