@@ -394,12 +394,12 @@ def project_forward(
 @njit(fastmath=_FUSED, **_OPTS)
 def project_backward(
     chunk_lo, chunk_hi, means, quats, scales, viewmats, Ks, width, height, radii, conics, v_means2d, v_conics,
-    want_viewmats, v_means, v_quats, v_scales, v_viewmats_chunks,
+    want_cov, want_viewmats, v_means, v_quats, v_scales, v_viewmats_chunks,
 ) -> None:
     """VJP of `project_forward` for the visible entries.
 
-    v_means2d [C, N, 2] and v_conics [C, N, 3] (gradients w.r.t. (a, b, c)) come in; v_means [N, 3],
-    v_quats [N, 4], v_scales [N, 3] are written (zero-initialised by the caller) and, if want_viewmats,
+    v_means2d [C, N, 2] and v_conics [C, N, 3] (gradients w.r.t. (a, b, c)) come in; v_means [N, 3] is written and,
+    if want_cov, v_quats [N, 4] and v_scales [N, 3] (all zero-initialised by the caller); if want_viewmats,
     per-chunk viewmat gradients are accumulated into v_viewmats_chunks [n_chunks, C, 3, 4] (the caller
     sums the chunks). Symmetric matrices (cov, W, their gradients) are carried as upper-triangle scalars.
     """
@@ -488,22 +488,23 @@ def project_backward(
                     vmz += 2.0 * fy * my * rz3 * vj12
                 else:
                     vmz += fy * (mz * min(y_hi, max(y_lo, my * rz))) * rz3 * vj12
-                # W = V cov V^T (V = vm[:3, :3]): dL/dcov += V^T A V, with B = V^T A first.
-                b00 = vm[0, 0] * a00 + vm[1, 0] * a01 + vm[2, 0] * a02
-                b01 = vm[0, 0] * a01 + vm[1, 0] * a11 + vm[2, 0] * a12
-                b02 = vm[0, 0] * a02 + vm[1, 0] * a12 + vm[2, 0] * a22
-                b10 = vm[0, 1] * a00 + vm[1, 1] * a01 + vm[2, 1] * a02
-                b11 = vm[0, 1] * a01 + vm[1, 1] * a11 + vm[2, 1] * a12
-                b12 = vm[0, 1] * a02 + vm[1, 1] * a12 + vm[2, 1] * a22
-                b20 = vm[0, 2] * a00 + vm[1, 2] * a01 + vm[2, 2] * a02
-                b21 = vm[0, 2] * a01 + vm[1, 2] * a11 + vm[2, 2] * a12
-                b22 = vm[0, 2] * a02 + vm[1, 2] * a12 + vm[2, 2] * a22
-                vc00 += b00 * vm[0, 0] + b01 * vm[1, 0] + b02 * vm[2, 0]
-                vc01 += b00 * vm[0, 1] + b01 * vm[1, 1] + b02 * vm[2, 1]
-                vc02 += b00 * vm[0, 2] + b01 * vm[1, 2] + b02 * vm[2, 2]
-                vc11 += b10 * vm[0, 1] + b11 * vm[1, 1] + b12 * vm[2, 1]
-                vc12 += b10 * vm[0, 2] + b11 * vm[1, 2] + b12 * vm[2, 2]
-                vc22 += b20 * vm[0, 2] + b21 * vm[1, 2] + b22 * vm[2, 2]
+                if want_cov:
+                    # W = V cov V^T (V = vm[:3, :3]): dL/dcov += V^T A V, with B = V^T A first.
+                    b00 = vm[0, 0] * a00 + vm[1, 0] * a01 + vm[2, 0] * a02
+                    b01 = vm[0, 0] * a01 + vm[1, 0] * a11 + vm[2, 0] * a12
+                    b02 = vm[0, 0] * a02 + vm[1, 0] * a12 + vm[2, 0] * a22
+                    b10 = vm[0, 1] * a00 + vm[1, 1] * a01 + vm[2, 1] * a02
+                    b11 = vm[0, 1] * a01 + vm[1, 1] * a11 + vm[2, 1] * a12
+                    b12 = vm[0, 1] * a02 + vm[1, 1] * a12 + vm[2, 1] * a22
+                    b20 = vm[0, 2] * a00 + vm[1, 2] * a01 + vm[2, 2] * a02
+                    b21 = vm[0, 2] * a01 + vm[1, 2] * a11 + vm[2, 2] * a12
+                    b22 = vm[0, 2] * a02 + vm[1, 2] * a12 + vm[2, 2] * a22
+                    vc00 += b00 * vm[0, 0] + b01 * vm[1, 0] + b02 * vm[2, 0]
+                    vc01 += b00 * vm[0, 1] + b01 * vm[1, 1] + b02 * vm[2, 1]
+                    vc02 += b00 * vm[0, 2] + b01 * vm[1, 2] + b02 * vm[2, 2]
+                    vc11 += b10 * vm[0, 1] + b11 * vm[1, 1] + b12 * vm[2, 1]
+                    vc12 += b10 * vm[0, 2] + b11 * vm[1, 2] + b12 * vm[2, 2]
+                    vc22 += b20 * vm[0, 2] + b21 * vm[1, 2] + b22 * vm[2, 2]
                 if want_viewmats:
                     # dL/dV = 2 A V cov + (dL/dm_cam) m^T, and dL/dt = dL/dm_cam.
                     v_view = v_viewmats_chunks[chunk, c]
@@ -526,6 +527,8 @@ def project_backward(
             v_means[g, 0] = vmx_w
             v_means[g, 1] = vmy_w
             v_means[g, 2] = vmz_w
+            if not want_cov:
+                continue
             # cov = M M^T with M = R diag(s): dL/dM = 2 dL/dcov M.
             f00 = 2.0 * (vc00 * m00 + vc01 * m10 + vc02 * m20)
             f01 = 2.0 * (vc00 * m01 + vc01 * m11 + vc02 * m21)

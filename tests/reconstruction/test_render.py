@@ -602,3 +602,22 @@ def test_alphas_alone_render_and_differentiate_like_a_zero_colour():
     assert alphas.max() > 0.9 and torch.equal(alphas, zero_colour_alphas)
     for name, grad in grads.items():
         assert grad.abs().max() > 0 and torch.equal(grad, zero_colour_grads[name]), name
+
+
+def test_gradients_without_quats_or_scales_equal_those_of_the_full_graph():
+    # Stage I trains the pose and the deformed means only: the projection then skips the covariance's gradient, and
+    # what it does return must not move by a bit.
+    scene = random_scene(250, seed=37, n_cams=2, width=48, height=40, sh_degree=1)
+    weights = torch.randn(2, 40, 48, 3, generator=torch.Generator().manual_seed(9))
+
+    def grads(learn: tuple[str, ...]):
+        inputs = {k: scene[k].clone().requires_grad_(k in learn) for k in PARAMS[:-1]}
+        colors, alphas, _ = rasterize(*inputs.values(), scene["Ks"], scene["width"], scene["height"], sh_degree=1)
+        ((colors * weights).sum() + alphas.sum()).backward()
+        return {k: v.grad for k, v in inputs.items()}
+
+    full = grads(PARAMS[:-1])
+    partial = grads(("means", "viewmats", "opacities", "colors"))
+    assert partial["quats"] is None and partial["scales"] is None
+    for name in ("means", "viewmats", "opacities", "colors"):
+        assert partial[name].abs().max() > 0 and torch.equal(partial[name], full[name]), name
