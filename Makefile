@@ -3,10 +3,13 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The kernels' cache is keyed on the reconstruction sources (reconstruction/kernel_cache.py): compile again when they change.
+WARM := $(VENV)/.kernels
+KERNEL_SOURCES := $(shell find reconstruction -name '*.py')
 
 .PHONY: env demo test bench clean
 
-env: $(STAMP)
+env: $(WARM)
 
 # Reinstall only when the dependency list (or this recipe) changes, so a second call is fast.
 $(STAMP): pyproject.toml Makefile
@@ -15,12 +18,15 @@ $(STAMP): pyproject.toml Makefile
 	# torch first, pinned, so nothing later can pull a CUDA build.
 	$(PY) -m pip install --quiet "torch==2.13.0"
 	$(PY) -m pip install --quiet -e ".[test,cluster]"
-	# Compile the rasterizer's numba kernels into their on-disk cache now, not in the first reconstruction.
-	$(PY) -m reconstruction.render.warmup
 	# The Khronos glTF validator checks the GLB export in the tests (npm registry); without it they skip and say so.
 	@command -v npm >/dev/null && npm install --silent --no-audit --no-fund --prefix $(VENV)/node gltf-validator@2.0.0-dev.3.10 \
 		|| echo "gltf-validator not installed (npm or its registry unavailable): the GLB validation test will skip"
 	touch $(STAMP)
+
+# Compile the training loop's numba kernels into their on-disk cache now, not in the first reconstruction.
+$(WARM): $(STAMP) $(KERNEL_SOURCES)
+	$(PY) -m reconstruction.render.warmup
+	touch $(WARM)
 
 demo: env
 	$(VENV)/bin/cadsplat demo
