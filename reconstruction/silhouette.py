@@ -49,15 +49,13 @@ def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.nd
         for v in range(vmin, vmax + 1):
             py = v + 0.5
             for u in range(umin, umax + 1):
-                if out[v, u]:
-                    continue
                 px = u + 0.5
-                # Edge functions, inclusive: pixels on a shared edge are covered by both triangles.
+                # Edge functions, inclusive: pixels on a shared edge are covered by both triangles. Or-ed in without
+                # a branch: a registration's triangles span a few pixels each, whose outcomes no predictor guesses.
                 e0 = sgn * ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0))
                 e1 = sgn * ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1))
                 e2 = sgn * ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2))
-                if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
-                    out[v, u] = True
+                out[v, u] |= (e0 >= 0.0) & (e1 >= 0.0) & (e2 >= 0.0)
 
 
 def render_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, viewmat: np.ndarray, width: int, height: int) -> np.ndarray:
