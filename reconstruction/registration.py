@@ -390,30 +390,31 @@ def _boundary_dt(sil: np.ndarray, dt: np.ndarray) -> int:
             else:
                 dt[r, c] = big
     d1, d2 = np.float32(1.0), np.float32(1.4142135)
+    # Each pass takes a row's three neighbours in the row before it first (independent along the row), then its
+    # neighbour in the same row: that chain, one add and one min a pixel, is the pass's latency. min is exact in
+    # any order, so the distances are those of the one-loop form.
     for r in range(h):
-        for c in range(w):
-            v = dt[r, c]
-            if c > 0:
-                v = min(v, dt[r, c - 1] + d1)
-            if r > 0:
-                v = min(v, dt[r - 1, c] + d1)
+        if r > 0:
+            for c in range(w):
+                v = min(dt[r, c], dt[r - 1, c] + d1)
                 if c > 0:
                     v = min(v, dt[r - 1, c - 1] + d2)
                 if c < w - 1:
                     v = min(v, dt[r - 1, c + 1] + d2)
-            dt[r, c] = v
+                dt[r, c] = v
+        for c in range(1, w):
+            dt[r, c] = min(dt[r, c], dt[r, c - 1] + d1)
     for r in range(h - 1, -1, -1):
-        for c in range(w - 1, -1, -1):
-            v = dt[r, c]
-            if c < w - 1:
-                v = min(v, dt[r, c + 1] + d1)
-            if r < h - 1:
-                v = min(v, dt[r + 1, c] + d1)
+        if r < h - 1:
+            for c in range(w):
+                v = min(dt[r, c], dt[r + 1, c] + d1)
                 if c < w - 1:
                     v = min(v, dt[r + 1, c + 1] + d2)
                 if c > 0:
                     v = min(v, dt[r + 1, c - 1] + d2)
-            dt[r, c] = v
+                dt[r, c] = v
+        for c in range(w - 2, -1, -1):
+            dt[r, c] = min(dt[r, c], dt[r, c + 1] + d1)
     return n
 
 
