@@ -53,7 +53,7 @@ from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, rotation_between
 from reconstruction.library import Library
 from reconstruction.parallel import num_threads, parallel_for
-from reconstruction.silhouette import fill_triangles, normalize_silhouette, pack
+from reconstruction.silhouette import closed_winding, fill_triangles, normalize_silhouette, pack
 from reconstruction.silhouette_index import ANGLE, BX, BY, EXTENT, SilhouetteIndex
 
 # Below this anisotropy the principal axis of a mask is unreliable; such masks are tried at many rolls.
@@ -419,7 +419,7 @@ def _boundary_dt(sil: np.ndarray, dt: np.ndarray) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, ks: np.ndarray, viewmats: np.ndarray, masks: np.ndarray,
+def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, winding: int, ks: np.ndarray, viewmats: np.ndarray, masks: np.ndarray,
                  obs_dt: np.ndarray, obs_edges: np.ndarray, n_edges: np.ndarray, obs_boxes: np.ndarray, sizes: np.ndarray, counts: np.ndarray,
                  taus: np.ndarray, edge_weight: float, stop_below: float, iou: np.ndarray, obj: np.ndarray) -> None:
     """Views lo..hi-1: writes IoU iou [V] and the objective obj [V] = (1 - edge_weight) IoU + edge_weight exp(-chamfer / tau).
@@ -459,7 +459,7 @@ def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, ks: np.
         c0 = max(0, min(obs_boxes[v, 2], int(max(umin, -1.0)) - 1))
         c1 = min(w, max(obs_boxes[v, 3], int(min(umax, w + 1.0)) + 2))
         view = buf[:h, :w]
-        fill_triangles(uv, faces, ok, view)
+        fill_triangles(uv, faces, ok, view, winding)
         inter = 0
         rendered = 0
         for r in range(r0, r1):
@@ -555,17 +555,18 @@ class Scorer:
         self.counts = self.masks.reshape(n, -1).sum(1).astype(np.int64)
 
     def scores(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0,
-               parallel: bool = True) -> tuple[np.ndarray, np.ndarray]:
+               parallel: bool = True, winding: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """IoU [V] and objective [V] of the mesh (object frame) seen by the rig cameras under the Sim(3).
 
         With `stop_below`, scoring stops once the objective sum cannot reach it (the rest stay 0).
         `parallel=False` keeps the work on the calling thread (for callers that score several poses at once).
+        `winding`: the mesh's `closed_winding`, when known: a closed mesh's silhouettes are drawn from half its faces.
         """
         s, r, t = sim3_rig_to_object.scale, sim3_rig_to_object.rotation, sim3_rig_to_object.translation
         verts_rig = ((vertices_obj - t) @ r) / s
         n = len(self.ks)
         iou, obj = np.zeros(n), np.zeros(n)
-        args = (verts_rig, faces, self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
+        args = (verts_rig, faces, int(winding), self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
                 self.sizes, self.counts, self.taus, self.edge_weight)
         if stop_below > -1.0 or not parallel:
             # Cutting short depends on the running sum over the views in order: one thread.
@@ -575,9 +576,10 @@ class Scorer:
             parallel_for(_view_scores, n, *args, -1.0, iou, obj)
         return iou, obj
 
-    def __call__(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0) -> np.ndarray:
+    def __call__(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0,
+                 winding: int = 0) -> np.ndarray:
         """IoU per view [V] of the mesh (object frame) seen by the rig cameras under the Sim(3)."""
-        return self.scores(vertices_obj, faces, sim3_rig_to_object, stop_below=stop_below)[0]
+        return self.scores(vertices_obj, faces, sim3_rig_to_object, stop_below=stop_below, winding=winding)[0]
 
 
 def cut_short(obj: np.ndarray, stop_below: float) -> np.ndarray:
@@ -591,6 +593,12 @@ def cut_short(obj: np.ndarray, stop_below: float) -> np.ndarray:
         if total + (len(obj) - 1 - v) < stop_below:
             break
     return out
+
+
+def scoring_shape(library: Library, model_id: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """The model's scoring mesh (vertices [N, 3], faces [F, 3]) and its `closed_winding`, for `Scorer.scores`."""
+    verts, faces = library.scoring_mesh(model_id)
+    return verts, faces, closed_winding(verts, faces)
 
 
 def _score_candidates(scorer: Scorer, candidates: list[tuple[int, Sim3]], mesh) -> list[tuple[float, int, Sim3]]:
@@ -617,7 +625,8 @@ def _score_candidates(scorer: Scorer, candidates: list[tuple[int, Sim3]], mesh) 
         def score(lo: int, hi: int) -> None:
             for i in range(lo, hi):
                 model, sim = chunk[i]
-                objs[i] = scorer.scores(*shapes[model], sim, stop_below=stale, parallel=False)[1]
+                verts, faces, winding = shapes[model]
+                objs[i] = scorer.scores(verts, faces, sim, stop_below=stale, parallel=False, winding=winding)[1]
 
         parallel_for(score, len(chunk))
         for (model, sim), obj in zip(chunk, objs):
@@ -653,11 +662,12 @@ def _in_band(sim3: Sim3, band: tuple[float, float]) -> bool:
 
 
 def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float, *, max_evals: int = 200,
-           fix_scale: bool = False, band: tuple[float, float] = SCALE_SEARCH, basis: np.ndarray | None = None, steps: np.ndarray | None = None) -> tuple[Sim3, float]:
+           fix_scale: bool = False, band: tuple[float, float] = SCALE_SEARCH, basis: np.ndarray | None = None, steps: np.ndarray | None = None,
+           winding: int = 0) -> tuple[Sim3, float]:
     """Local Nelder-Mead on the mean silhouette objective; returns the refined Sim(3) and its objective.
 
     The search runs over x with the 7 perturbation params = basis [7, n] @ x (default: all 7, or the
-    first 6 with `fix_scale`); poses whose scale leaves `band` are refused.
+    first 6 with `fix_scale`); poses whose scale leaves `band` are refused. `winding`: see `Scorer.scores`.
     """
     if basis is None:
         basis = np.eye(7)[:, :6] if fix_scale else np.eye(7)
@@ -668,7 +678,7 @@ def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, cen
         cand = perturb(sim3, basis @ x, center, radius)
         if not _in_band(cand, band):
             return 1.0
-        return -float(scorer.scores(verts, faces, cand)[1].mean())
+        return -float(scorer.scores(verts, faces, cand, winding=winding)[1].mean())
 
     simplex = np.vstack([np.zeros(n), np.diag(steps)])
     res = minimize(cost, np.zeros(n), method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-4, "fatol": 1e-5})
@@ -681,20 +691,21 @@ def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, cen
 # --- pose per camera, and its uncertainty -----------------------------------------------------
 
 
-def pose_sigmas(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float) -> np.ndarray:
+def pose_sigmas(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float, *,
+                winding: int = 0) -> np.ndarray:
     """Standard deviations [6] of the rotation vector (rad) and translation (model radii) perturbations.
 
     Each is the offset at which the mean objective drops by UNCERTAINTY_DROP, from a quadratic
     through the optimum and probes at ±UNCERTAINTY_PROBE (a flat direction is capped at
     UNCERTAINTY_MAX): the pose changes the silhouettes cannot tell apart from the registered one.
     """
-    f0 = float(scorer.scores(verts, faces, sim3)[1].mean())
+    f0 = float(scorer.scores(verts, faces, sim3, winding=winding)[1].mean())
     out = np.zeros(6)
     for i in range(6):
         d = np.zeros(7)
         d[i] = UNCERTAINTY_PROBE
-        fp = float(scorer.scores(verts, faces, perturb(sim3, d, center, radius))[1].mean())
-        fm = float(scorer.scores(verts, faces, perturb(sim3, -d, center, radius))[1].mean())
+        fp = float(scorer.scores(verts, faces, perturb(sim3, d, center, radius), winding=winding)[1].mean())
+        fm = float(scorer.scores(verts, faces, perturb(sim3, -d, center, radius), winding=winding)[1].mean())
         curv = (2.0 * f0 - fp - fm) / UNCERTAINTY_PROBE**2
         out[i] = min(np.sqrt(2.0 * UNCERTAINTY_DROP / curv), UNCERTAINTY_MAX) if curv > 0 else UNCERTAINTY_MAX
     return out
@@ -866,12 +877,12 @@ def _finish(masks, cameras_rig, library, model: int, refined: Sim3, objective: f
     """The result of a registration: per-view IoU at full resolution, the pose per camera with its
     uncertainty (from the objective of `fine`, the scorer the pose was refined on)."""
     index = library.index
-    verts, faces = library.scoring_mesh(index.model_ids[model])
+    verts, faces, winding = scoring_shape(library, index.model_ids[model])
     center, radius = index.centers[model], float(index.radii[model])
     t = time.perf_counter()
     full = Scorer(masks, cameras_rig, max(max(c.width, c.height) for c in cameras_rig), edge_weight=0.0)
-    per_view = full(verts, faces, refined)
-    sigmas = pose_sigmas(fine, verts, faces, refined, center, radius)
+    per_view = full(verts, faces, refined, winding=winding)
+    sigmas = pose_sigmas(fine, verts, faces, refined, center, radius, winding=winding)
     timings["poses"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     return RegistrationResult(
@@ -946,11 +957,11 @@ def register(
 
     t = time.perf_counter()
     scorer = Scorer(masks, cameras_rig, SCORE_PX)
-    meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    meshes: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
 
     def mesh(model: int):
         if model not in meshes:
-            meshes[model] = library.scoring_mesh(index.model_ids[model])
+            meshes[model] = scoring_shape(library, index.model_ids[model])
         return meshes[model]
 
     scored: list[tuple[float, int, Sim3]] = []
@@ -984,8 +995,8 @@ def register(
         for vi in seeds:
             for h in hyps[vi][:top_k]:
                 sim = sim3_from_pair(h, None, cameras_rig, index.centers[h.model], band=band, expected_scale=expected)[0]
-                v_, f_ = mesh(h.model)
-                scored.append((float(scorer.scores(v_, f_, sim)[1].mean()), h.model, sim))
+                v_, f_, w_ = mesh(h.model)
+                scored.append((float(scorer.scores(v_, f_, sim, winding=w_)[1].mean()), h.model, sim))
     timings["ransac"] = time.perf_counter() - t
     scored.sort(key=lambda s: -s[0])
 
@@ -998,8 +1009,9 @@ def register(
         if len(shortlist) == CANDIDATES:
             break
         if all(m != o[1] or geodesic_angle_deg(sim.rotation, o[2].rotation) > DISTINCT_DEG for o in shortlist):
-            v_, f_ = mesh(m)
-            sim_r, sc_r = refine(scorer, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals // 4, fix_scale=fix_scale, band=band)
+            v_, f_, w_ = mesh(m)
+            sim_r, sc_r = refine(scorer, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals // 4, fix_scale=fix_scale, band=band,
+                                 winding=w_)
             shortlist.append((sc_r, m, sim_r))
     shortlist.sort(key=lambda s: -s[0])
     # The best pose of each model close to the top gets the full refinement: a look-alike (another
@@ -1008,8 +1020,9 @@ def register(
     contenders: list[tuple[float, int, Sim3]] = []
     for sc, m, sim in shortlist:
         if sc >= shortlist[0][0] - TIE_SCREEN and all(m != c[1] for c in contenders) and len(contenders) < CONTENDERS:
-            v_, f_ = mesh(m)
-            sim_r, sc_r = refine(fine, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals, fix_scale=fix_scale, band=band)
+            v_, f_, w_ = mesh(m)
+            sim_r, sc_r = refine(fine, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals, fix_scale=fix_scale, band=band,
+                                 winding=w_)
             contenders.append((sc_r, m, sim_r))
     contenders.sort(key=lambda c: -c[0])
     (score, best_model, refined) = contenders[0]
@@ -1020,14 +1033,15 @@ def register(
          "scale_ratio": float(sim.scale / refined.scale)}
         for sc, m, sim in contenders[1:] if score - sc < AMBIGUOUS_GAP
     ]
-    verts, faces = mesh(best_model)
+    verts, faces, winding = mesh(best_model)
     center, radius = index.centers[best_model], float(index.radii[best_model])
 
     # The best pose of the same model that is not the same pose: the symmetry report.
     ambiguity = None
     alt = next((s for s in shortlist + scored if s[1] == best_model and geodesic_angle_deg(s[2].rotation, refined.rotation) > DISTINCT_DEG), None)
     if alt is not None:
-        alt_sim, alt_score = refine(fine, verts, faces, alt[2], center, radius, max_evals=refine_evals // 2, fix_scale=fix_scale, band=band)
+        alt_sim, alt_score = refine(fine, verts, faces, alt[2], center, radius, max_evals=refine_evals // 2, fix_scale=fix_scale, band=band,
+                                    winding=winding)
         if alt_score > score:
             refined, score, alt_sim, alt_score = alt_sim, alt_score, refined, score
         gap = score - alt_score
@@ -1087,7 +1101,7 @@ def known_part_register(
         return register(masks, cameras_rig, library, model_ids=[model_id], rig_metres_per_unit=rig_metres_per_unit, scale_tolerance=scale_tolerance, seed=seed)
     band = scale_band(rig_metres_per_unit, scale_tolerance)
     model = index.model_ids.index(model_id)
-    verts, faces = library.scoring_mesh(model_id)
+    verts, faces, winding = scoring_shape(library, model_id)
     center, radius = index.centers[model], float(index.radii[model])
     up = rig_up(cameras_rig) if up_rig is None else np.asarray(up_rig, np.float64) / np.linalg.norm(up_rig)
     s = float(np.clip(prior.scale, *band))
@@ -1107,7 +1121,7 @@ def known_part_register(
         turn = axis_angle_to_matrix(yaw * up)
         # x_rig -> turned back about the triangulated centre onto the previous placement -> object.
         sim = base @ Sim3(1.0, turn.T, p_prev - turn.T @ p_now)
-        cands.append((float(scorer.scores(verts, faces, sim)[1].mean()), sim))
+        cands.append((float(scorer.scores(verts, faces, sim, winding=winding)[1].mean()), sim))
     cands.sort(key=lambda c: -c[0])
     timings["yaw_search"] = time.perf_counter() - t
 
@@ -1119,12 +1133,13 @@ def known_part_register(
         basis[:3, 0] = sim.rotation @ up
         basis[3:6, 1:] = np.eye(3)
         sim_r, sc_r = refine(scorer, verts, faces, sim, center, radius, max_evals=KNOWN_STAGE_EVALS, band=band, basis=basis,
-                             steps=np.array([0.1, 0.05, 0.05, 0.05]))
+                             steps=np.array([0.1, 0.05, 0.05, 0.05]), winding=winding)
         if best is None or sc_r > best[0]:
             best = (sc_r, sim_r)
     fine = Scorer(masks, cameras_rig, KNOWN_FINAL_PX)
     fix_scale = rig_metres_per_unit is None
-    refined, score = refine(fine, verts, faces, best[1], center, radius, max_evals=KNOWN_FINAL_EVALS, fix_scale=fix_scale, band=band)
+    refined, score = refine(fine, verts, faces, best[1], center, radius, max_evals=KNOWN_FINAL_EVALS, fix_scale=fix_scale, band=band,
+                            winding=winding)
     timings["refine"] = time.perf_counter() - t
     return _finish(masks, cameras_rig, library, model, refined, score, fine, alternatives=[], ambiguity=None, model_ties=[], timings=timings, t0=t0,
                    truncated=[i for i, m in enumerate(masks) if m.any() and touches_border(m)], scale_observable=True,

@@ -26,9 +26,32 @@ from calibration.camera import project_points
 _NEAR = 1e-6
 
 
+def closed_winding(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """+1 or -1 when the faces [F, 3] close a surface wound outwards or inwards (of vertices [N, 3]), else 0.
+
+    Closed: every directed edge has its reverse as often, so the surface has no boundary. A ray from a
+    camera, outside it or inside, that meets it leaves it through a face turned away from the camera, so
+    those faces alone fill its silhouette (`fill_triangles`' `winding`).
+    """
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return 0
+    n = int(f.max()) + 1
+    tail, head = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
+    if not np.array_equal(np.sort(tail * n + head), np.sort(head * n + tail)):
+        return 0
+    v = np.asarray(vertices, np.float64)
+    volume = float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum())
+    return int(np.sign(volume))
+
+
 @numba.njit(cache=True, nogil=True)
-def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.ndarray) -> None:
-    """Set `out` [H, W] where a pixel centre lies inside a projected triangle: `uv` [N, 2], `faces` [F, 3], `ok` [N] (vertex in front)."""
+def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.ndarray, winding: int = 0) -> None:
+    """Set `out` [H, W] where a pixel centre lies inside a projected triangle: `uv` [N, 2], `faces` [F, 3], `ok` [N] (vertex in front).
+
+    `winding` ±1 (`closed_winding` of a closed surface) fills only the faces turned away from the camera, half the
+    work for the same silhouette wherever the surface lies wholly in front of the camera; 0 fills every face.
+    """
     h, w = out.shape
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -38,7 +61,8 @@ def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.nd
         x1, y1 = uv[b, 0], uv[b, 1]
         x2, y2 = uv[c, 0], uv[c, 1]
         area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        if area == 0.0:
+        # With the image's y down, a face of an outward-wound surface turned away from the camera has area > 0.
+        if area == 0.0 or area * winding < 0.0:
             continue
         sgn = 1.0 if area > 0 else -1.0
         # Pixel index range whose centres (i + 0.5) can fall inside the triangle's bbox.

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from calibration.camera import Camera, look_at_c2w
-from reconstruction.silhouette import fit_canvas, iou, normalize_silhouette, pack, render_silhouette, unpack
+from calibration.camera import project_points
+from reconstruction.silhouette import closed_winding, fill_triangles, fit_canvas, iou, normalize_silhouette, pack, render_silhouette, unpack
 from reconstruction.silhouette_index import best_iou, count_window, fibonacci_directions, popcount_rows
 from tests.conftest import require_shared
 
@@ -23,6 +24,39 @@ def test_square_covers_exactly_the_pixels_whose_centres_are_inside():
     expect = np.zeros((40, 40), bool)
     expect[10:30, 10:30] = True
     assert np.array_equal(sil, expect)
+
+
+def _fill(vertices, faces, cam, winding):
+    uv, z = project_points(vertices, cam.K, cam.viewmat, near=1e-6)
+    out = np.zeros((cam.height, cam.width), bool)
+    fill_triangles(uv, np.ascontiguousarray(faces, np.int64), z > 1e-6, out, winding)
+    return out
+
+
+def test_a_closed_surface_is_filled_by_the_faces_turned_away_from_any_camera_outside_or_in():
+    rng = np.random.default_rng(0)
+    # A rough closed surface (a noisy icosphere, folds and all) and a closed surface that is not convex (a torus).
+    blob = trimesh.creation.icosphere(3)
+    blob.vertices *= 1.0 + 0.15 * rng.standard_normal((len(blob.vertices), 1))
+    for mesh in (blob, trimesh.creation.torus(1.0, 0.35)):
+        winding = closed_winding(mesh.vertices, mesh.faces)
+        assert winding == 1 and closed_winding(mesh.vertices, mesh.faces[:, ::-1]) == -1
+        # Around it, and at its centre: inside the blob, in the torus' hole.
+        views = [(3.5 * d, np.zeros(3)) for d in fibonacci_directions(6)] + [(np.full(3, 0.01), rng.standard_normal(3))]
+        for eye, target in views:
+            cam = Camera.from_fov(np.radians(70), 96, 72, look_at_c2w(eye, target))
+            every = _fill(mesh.vertices, mesh.faces, cam, 0)
+            assert every.any()
+            assert np.array_equal(_fill(mesh.vertices, mesh.faces, cam, winding), every)
+            assert np.array_equal(_fill(mesh.vertices, mesh.faces[:, ::-1], cam, -winding), every)
+
+
+def test_an_open_surface_has_no_winding_to_fill_from():
+    box = trimesh.creation.box()
+    assert closed_winding(box.vertices, box.faces) == 1
+    assert closed_winding(box.vertices, box.faces[1:]) == 0  # one face gone: a hole
+    assert closed_winding(box.vertices, np.vstack([box.faces[:6], box.faces[6:, ::-1]])) == 0  # wound both ways
+    assert closed_winding(np.zeros((0, 3)), np.zeros((0, 3), np.int64)) == 0
 
 
 def test_matches_mujoco_segmentation():
