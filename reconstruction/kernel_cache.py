@@ -14,6 +14,7 @@ import hashlib
 import os
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -38,7 +39,7 @@ def source_hash(package: Path = PACKAGE) -> str:
 def cache_root(environ: dict, package: Path = PACKAGE) -> Path:
     """The directory that holds one kernel cache per source version: the parent process's choice, else inside the
     user's NUMBA_CACHE_DIR when set, else the package's __pycache__ when writable (an editable install), else
-    $XDG_CACHE_HOME (~/.cache)/cadsplat."""
+    $XDG_CACHE_HOME (~/.cache, or the temporary directory for a user without a home)/cadsplat."""
     chosen = environ.get(ENV)
     if chosen and environ.get("NUMBA_CACHE_DIR") == chosen:
         return Path(chosen).parent
@@ -46,7 +47,9 @@ def cache_root(environ: dict, package: Path = PACKAGE) -> Path:
         return Path(environ["NUMBA_CACHE_DIR"]) / "cadsplat"
     if os.access(package, os.W_OK):
         return package / "__pycache__" / "numba"
-    return Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cadsplat" / "numba"
+    home = os.path.expanduser("~")  # left as "~" when there is none (a service user); Path.home() would raise
+    base = environ.get("XDG_CACHE_HOME") or (os.path.join(home, ".cache") if home != "~" else tempfile.gettempdir())
+    return Path(base) / "cadsplat" / "numba"
 
 
 def prune(root: Path, keep: Path, now: float, stale_after_s: float = STALE_AFTER_S) -> list[Path]:

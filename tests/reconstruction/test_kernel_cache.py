@@ -99,3 +99,11 @@ def test_an_unwritable_root_leaves_numba_compiling_in_memory(tmp_path):
     environ = {"NUMBA_CACHE_DIR": str(blocker)}  # a file where a directory should go
     path = configure(environ, package=pkg)
     assert not path.exists() and environ["NUMBA_CACHE_DIR"] == str(path)
+
+
+def test_an_installed_package_caches_in_the_users_cache_or_the_temporary_directory(tmp_path, monkeypatch):
+    pkg = _package(tmp_path, 1)
+    monkeypatch.setattr(kernel_cache.os, "access", lambda path, mode: False)  # site-packages, read-only
+    assert cache_root({"XDG_CACHE_HOME": str(tmp_path / "xdg")}, pkg) == tmp_path / "xdg" / "cadsplat" / "numba"
+    monkeypatch.setattr(kernel_cache.os.path, "expanduser", lambda path: path)  # a service user without a home
+    assert cache_root({}, pkg) == Path(kernel_cache.tempfile.gettempdir()) / "cadsplat" / "numba"
