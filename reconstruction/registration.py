@@ -429,6 +429,7 @@ def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, winding
     pixels, `n_edges` [V] of them valid). Work is confined to the union of the projected mesh's
     bbox and the observed mask's bbox `obs_boxes` [V, 4] (r0, r1, c0, c1, exclusive ends). Stops
     early (remaining views left as they were) once the objective sum over lo..hi-1 cannot reach `stop_below`.
+    The mesh `verts` [N, 3] (rig frame), `faces` [F, 3] is drawn from the faces `winding` selects (`fill_triangles`).
     """
     n_views = hi - lo
     total = 0.0
