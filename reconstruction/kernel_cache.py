@@ -73,7 +73,7 @@ def configure(environ: dict | None = None, package: Path = PACKAGE) -> Path:
             path.mkdir(parents=True, exist_ok=True)
             prune(root, path, time.time())
         except OSError:
-            pass  # numba then warns that it cannot cache, and compiles in memory
+            pass  # numba cannot use it and falls back on its own cache locations, or compiles in memory
     environ["NUMBA_CACHE_DIR"] = environ[ENV] = str(path)
     numba = sys.modules.get("numba")
     if environ is os.environ and numba is not None:

@@ -92,13 +92,13 @@ def test_prune_removes_other_versions_left_unused_for_a_day(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep", "recent"]
 
 
-def test_an_unwritable_root_leaves_numba_compiling_in_memory(tmp_path):
-    pkg = _package(tmp_path, 1)
-    blocker = tmp_path / "file"
-    blocker.write_text("")
-    environ = {"NUMBA_CACHE_DIR": str(blocker)}  # a file where a directory should go
-    path = configure(environ, package=pkg)
-    assert not path.exists() and environ["NUMBA_CACHE_DIR"] == str(path)
+def test_an_unwritable_cache_root_still_runs_the_kernels(tmp_path):
+    root = tmp_path / "blocked"
+    _package(root, 1)
+    (root / "cache").write_text("")  # a file where the cache directory should go
+    path = configure({"NUMBA_CACHE_DIR": str(root / "cache")}, package=root / "pkg")
+    assert not path.exists()
+    assert _run(root, keyed=True) == 1
 
 
 def test_an_installed_package_caches_in_the_users_cache_or_the_temporary_directory(tmp_path, monkeypatch):
