@@ -104,11 +104,12 @@ LIST_LANES = 8
 
 
 @intrinsic
-def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, lane_bits, mx, dy, a, b, half_c_dy2, limit):
+def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx, dy, a, b, half_c_dy2, limit):
     """Lists pixels px0 + l of one row, l < LIST_LANES: sigma = 0.5 a dx^2 + half_c_dy2 + b dx dy with dx = px0 + l + 0.5
-    - mx, kept where bit l of lane_bits is set and sigma <= limit. The kept sigmas and tile-local indices p0 + l are packed
-    to the front of one register each and stored whole at buf_sigma[m:] and buf_p[m:] (both need LIST_LANES - 1 items of
-    room past the last kept one); returns m plus the number kept.
+    - mx, kept where bit first_bit + l of row_bits is set and sigma <= limit. The shift is logical, so lanes past bit 63
+    (past a 64-px tile's last column) are never kept. The kept sigmas and tile-local indices p0 + l are packed to the
+    front of one register each and stored whole at buf_sigma[m:] and buf_p[m:] (both need LIST_LANES - 1 items of room
+    past the last kept one); returns m plus the number kept.
 
     A scalar listing advances its cursor pixel by pixel, a chain the compiler cannot vectorise. LLVM's vector compress
     is one instruction with AVX-512 (vcompresspd) and a sequence of scalar moves elsewhere, so the lists are the same on
@@ -119,7 +120,7 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, lane_bits, mx, dy, a, b
         return None
 
     def codegen(context, builder, signature, args):
-        (p_array, sigma_array, m_, px0_, p0_, bits_, mx_, dy_, a_, b_, half_c_dy2_, limit_) = args
+        (p_array, sigma_array, m_, px0_, p0_, bits_, first_bit_, mx_, dy_, a_, b_, half_c_dy2_, limit_) = args
         f64, i64 = ir.DoubleType(), ir.IntType(64)
         vf, vi, vb = ir.VectorType(f64, LIST_LANES), ir.VectorType(i64, LIST_LANES), ir.VectorType(ir.IntType(1), LIST_LANES)
         zeros = ir.Constant(ir.VectorType(ir.IntType(32), LIST_LANES), [0] * LIST_LANES)
@@ -135,7 +136,7 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, lane_bits, mx, dy, a, b
         sigma = builder.fadd(sigma, splat(half_c_dy2_, vf))
         sigma = builder.fadd(sigma, builder.fmul(builder.fmul(splat(b_, vf), dx), splat(dy_, vf)))
         keep = builder.and_(builder.fcmp_ordered("<=", sigma, splat(limit_, vf)),
-                            builder.bitcast(builder.trunc(bits_, ir.IntType(LIST_LANES)), vb))
+                            builder.bitcast(builder.trunc(builder.lshr(bits_, first_bit_), ir.IntType(LIST_LANES)), vb))
         for value, array, array_type in ((sigma, sigma_array, signature.args[1]), (builder.add(splat(p0_, vi), lanes), p_array,
                                                                                     signature.args[0])):
             vt = value.type
@@ -149,7 +150,7 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, lane_bits, mx, dy, a, b
         kept = builder.call(ctpop, [builder.bitcast(keep, ir.IntType(LIST_LANES))])
         return builder.add(m_, builder.zext(kept, i64))
 
-    return types.int64(buf_p, buf_sigma, types.int64, types.int64, types.int64, types.int64, *([types.float64] * 6)), codegen
+    return types.int64(buf_p, buf_sigma, *([types.int64] * 5), *([types.float64] * 6)), codegen
 
 
 @njit(inline="always", **_OPTS)
@@ -858,7 +859,7 @@ def _ellipse_pixels(slot_f, slot_i, k, x0, y0, live, buf_p, buf_sigma) -> int:
         row = ((py - y0) << _ROW_SHIFT) - x0
         half_c_dy2 = 0.5 * cc * dy * dy
         for px0 in range(col_lo, col_hi + 1, LIST_LANES):
-            m = _list_lanes(buf_p, buf_sigma, m, px0, row + px0, bits >> (px0 - x0), mx, dy, a, b, half_c_dy2, limit)
+            m = _list_lanes(buf_p, buf_sigma, m, px0, row + px0, bits, px0 - x0, mx, dy, a, b, half_c_dy2, limit)
     return m
 
 

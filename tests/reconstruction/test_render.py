@@ -16,7 +16,9 @@ import signal
 import numpy as np
 import pytest
 import torch
+from numba import njit
 
+from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.render import eval_sh, num_sh_bases, project_gaussians, rasterize
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds")
@@ -350,6 +352,56 @@ def test_odd_image_sizes(width, height):
     scene = random_scene(40, seed=10 + width, n_cams=2, width=width, height=height)
     scene["scales"] = scene["scales"] * (4.0 if width == 1 else 1.0)
     assert_matches(scene)
+
+
+@njit(fastmath={"contract"}, error_model="numpy")
+def _listing(slot_f, slot_i, x0, y0, live, buf_p, buf_sigma):
+    return kernels._ellipse_pixels(slot_f, slot_i, 0, x0, y0, live, buf_p, buf_sigma)
+
+
+@njit(fastmath={"contract"}, error_model="numpy")
+def _scan(slot_f, slot_i, x0, y0, live, buf_p, buf_sigma):
+    """Pixel by pixel: every rect pixel whose column bit is live and whose sigma is within the slot's limit."""
+    mx, my, a, b, cc, limit = slot_f[0, 0], slot_f[0, 1], slot_f[0, 2], slot_f[0, 3], slot_f[0, 4], slot_f[0, 6]
+    m = 0
+    for py in range(slot_i[0, 2], slot_i[0, 3] + 1):
+        dy = py + 0.5 - my
+        half_c_dy2 = 0.5 * cc * dy * dy
+        for px in range(slot_i[0, 0], slot_i[0, 1] + 1):
+            dx = px + 0.5 - mx
+            sigma = 0.5 * a * dx * dx + half_c_dy2 + b * dx * dy
+            if (live[py - y0] >> (px - x0)) & 1 and sigma <= limit:
+                buf_p[m] = ((py - y0) << 6) + px - x0
+                buf_sigma[m] = sigma
+                m += 1
+    return m
+
+
+@pytest.mark.parametrize("tile_size", [12, 32, 64])
+def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
+    # The listing packs eight pixels at a time: rects narrower and wider than eight, ending on the tile's last
+    # column (bit 63 of a 64-px tile), and live masks with holes must list the same pixels, in the same order.
+    rng = np.random.default_rng(tile_size)
+    x0, y0 = 2 * tile_size, tile_size
+    room = tile_size * tile_size + kernels.LIST_LANES
+    for trial in range(300):
+        u_lo, u_hi = np.sort(rng.integers(x0, x0 + tile_size, 2))
+        if trial % 3 == 0:
+            u_hi = x0 + tile_size - 1
+        v_lo, v_hi = np.sort(rng.integers(y0, y0 + tile_size, 2))
+        l = rng.normal(size=(2, 2)) * rng.uniform(0.05, 0.6)
+        conic = np.linalg.inv(l @ l.T + 0.1 * np.eye(2))
+        centre = rng.uniform([u_lo, v_lo], [u_hi + 1, v_hi + 1])
+        slot_f = np.array([[*centre, conic[0, 0], conic[0, 1], conic[1, 1], 0.9, rng.uniform(0.5, 5.0)]])
+        slot_i = np.array([[u_lo, u_hi, v_lo, v_hi]], np.int32)
+        full = -1 if tile_size == 64 else (1 << tile_size) - 1
+        live = (rng.integers(-2**63, 2**63 - 1, tile_size, dtype=np.int64) | (0 if trial % 2 else -1)) & full
+        got_p, got_sigma = np.zeros(room, np.int64), np.zeros(room)
+        want_p, want_sigma = np.zeros(room, np.int64), np.zeros(room)
+        m = _listing(slot_f, slot_i, x0, y0, live, got_p, got_sigma)
+        assert m == _scan(slot_f, slot_i, x0, y0, live, want_p, want_sigma)
+        np.testing.assert_array_equal(got_p[:m], want_p[:m])
+        np.testing.assert_array_equal(got_sigma[:m], want_sigma[:m])
 
 
 @pytest.mark.parametrize("tile_size", [8, 12, 16, 64])
