@@ -12,6 +12,9 @@ import math
 import os
 import select
 import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -377,10 +380,8 @@ def _scan(slot_f, slot_i, x0, y0, live, buf_p, buf_sigma):
     return m
 
 
-@pytest.mark.parametrize("tile_size", [12, 32, 64])
-def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
-    # The listing packs eight pixels at a time: rects narrower and wider than eight, ending on the tile's last
-    # column (bit 63 of a 64-px tile), and live masks with holes must list the same pixels, in the same order.
+def assert_listing_matches_scan(tile_size: int) -> None:
+    """300 random slots of one tile: the listing's pixels and sigmas equal the scan's, in the same order."""
     rng = np.random.default_rng(tile_size)
     x0, y0 = 2 * tile_size, tile_size
     room = tile_size * tile_size + kernels.LIST_LANES
@@ -402,6 +403,30 @@ def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
         assert m == _scan(slot_f, slot_i, x0, y0, live, want_p, want_sigma)
         np.testing.assert_array_equal(got_p[:m], want_p[:m])
         np.testing.assert_array_equal(got_sigma[:m], want_sigma[:m])
+
+
+@pytest.mark.parametrize("tile_size", [12, 32, 64])
+def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
+    # The listing packs eight pixels at a time: rects narrower and wider than eight, ending on the tile's last
+    # column (bit 63 of a 64-px tile), and live masks with holes must list the same pixels, in the same order.
+    assert_listing_matches_scan(tile_size)
+
+
+def test_the_listing_lists_the_same_on_a_cpu_without_avx512(tmp_path):
+    # Without AVX-512 LLVM expands the vector compress into scalar moves: compiled for baseline x86-64 (SSE2), in a
+    # fresh process and cache, the listing must keep the same pixels, and its code must hold no 512-bit register.
+    script = (
+        "from tests.reconstruction.test_render import _listing, assert_listing_matches_scan\n"
+        "for tile_size in (12, 32, 64):\n"
+        "    assert_listing_matches_scan(tile_size)\n"
+        "code = '\\n'.join(_listing.inspect_asm().values())\n"
+        "assert 'zmm' not in code and 'ymm' not in code, 'compiled with wide vectors'\n"
+    )
+    env = {**os.environ, "NUMBA_CPU_NAME": "x86-64", "NUMBA_CPU_FEATURES": "", "NUMBA_CACHE_DIR": str(tmp_path),
+           "CADSPLAT_KERNEL_CACHE": str(tmp_path)}
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
 
 
 @pytest.mark.parametrize("tile_size", [8, 12, 16, 64])
