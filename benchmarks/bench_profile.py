@@ -175,7 +175,7 @@ def labels() -> Iterator[None]:
 
     targets = [
         (train, "rasterize", "cs:rasterize"), (rasterization, "project_gaussians", "cs:projection"),
-        (rasterization, "eval_sh", "cs:sh_colours"), (rasterization, "bin_gaussians", "cs:binning"),
+        (rasterization, "sh_colors", "cs:sh_colours"), (rasterization, "bin_gaussians", "cs:binning"),
         (losses, "ssim_map", "cs:ssim"), (losses, "dssim_l1_sums", "cs:ssim"), (train, "sh_neighbour_loss", "cs:sh_loss"),
         (train, "sample_colors", "cs:consistency"), (train, "consistency_loss", "cs:consistency"),
         (deformation.DeformationField, "forward", "cs:field"), (train.SplatModel, "viewmats", "cs:pose"),

@@ -18,7 +18,7 @@ from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
 from reconstruction.render.projection import Projection, project_gaussians, to_float64, to_numpy
 from reconstruction.render.scratch import ScratchPool
-from reconstruction.render.sh import eval_sh, num_sh_bases
+from reconstruction.render.sh import num_sh_bases, sh_colors
 
 # Below this many items per thread, per-splat passes run on the calling thread alone.
 _GRAIN = 4096
@@ -367,8 +367,7 @@ def rasterize(
     if sh_degree is not None:
         # gsplat's convention: direction from the camera centre to the mean, DC offset 0.5, clamped at 0.
         campos = torch.linalg.inv(viewmats)[:, :3, 3]
-        dirs = means[None, :, :] - campos[:, None, :]
-        colors = torch.clamp_min(eval_sh(sh_degree, colors, dirs) + 0.5, 0.0)
+        colors = sh_colors(sh_degree, colors, means, campos)
     if colors.dim() == 2:
         colors = colors[None]
     if backgrounds is None:

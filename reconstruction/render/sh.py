@@ -2,13 +2,14 @@
 
 `eval_sh` is differentiable w.r.t. both the coefficients and the view directions (and, through
 them, Gaussian means and camera poses). On CPU, coefficients [N, K, 3] with directions [..., N, 3]
-(the rasterizer's case) go through fused numba kernels; anything else (CUDA tensors, per-camera
-coefficients) through the same formulas in plain torch. The rasterizer turns the result into a
-colour as clamp(eval_sh(...) + 0.5, min=0), which is 3DGS's convention.
+go through fused numba kernels; anything else (CUDA tensors, per-camera coefficients) through the
+same formulas in plain torch. `sh_colors` is the rasterizer's colour, max(SH + 0.5, 0) (3DGS's
+convention) along mean - camera centre, in one pass each way that forms no array of directions.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -18,7 +19,7 @@ from reconstruction.render import _sh_kernels as kernels
 from reconstruction.parallel import parallel_for
 
 MAX_SH_DEGREE = 3
-_GRAIN = 2048
+_GRAIN = 2048 // kernels.BLOCK  # blocks of Gaussians
 
 
 def _check_degree(degree: int) -> None:
@@ -68,30 +69,59 @@ def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
-class _EvalSH(torch.autograd.Function):
-    """sh [N, K, 3] float64 along dirs [R, N, 3] float64 -> [R, N, 3], with the numba kernels."""
+class _SHValues(torch.autograd.Function):
+    """sh [N, K, 3] along points [P, N, 3] less origins [R, 3] (P = R, or 1 for all rows) -> [R, N, 3], all float64,
+    with the numba kernels; with `colour`, max(value + 0.5, 0)."""
 
     @staticmethod
-    def forward(ctx, n_bases, sh, dirs):
-        sh_np, dirs_np = sh.detach().contiguous().numpy(), dirs.detach().contiguous().numpy()
-        out = torch.empty(dirs.shape, dtype=torch.float64)
-        parallel_for(kernels.sh_forward, sh.shape[0], n_bases, sh_np, dirs_np, out.numpy(), grain=_GRAIN)
-        ctx.save_for_backward(sh, dirs)
-        ctx.n_bases = n_bases
+    def forward(ctx, n_bases, colour, sh, points, origins):
+        sh_np, points_np, origins_np = (t.detach().contiguous().numpy() for t in (sh, points, origins))
+        out = torch.empty((origins.shape[0], sh.shape[0], 3), dtype=torch.float64)
+        parallel_for(kernels.sh_forward, _blocks(sh), n_bases, sh_np, points_np, origins_np, colour, out.numpy(),
+                     grain=_GRAIN)
+        ctx.save_for_backward(sh, points, origins)
+        ctx.n_bases, ctx.colour = n_bases, colour
         return out
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_out):
-        sh, dirs = ctx.saved_tensors
+        sh, points, origins = ctx.saved_tensors
         v_sh = torch.zeros(sh.shape, dtype=torch.float64)
-        v_dirs = torch.empty(dirs.shape, dtype=torch.float64)
+        v_points = torch.empty(points.shape, dtype=torch.float64)
+        v_origins = np.empty((_blocks(sh), origins.shape[0], 3))
         parallel_for(
-            kernels.sh_backward, sh.shape[0], ctx.n_bases, sh.detach().contiguous().numpy(),
-            dirs.detach().contiguous().numpy(), v_out.contiguous().numpy(), v_sh.numpy(), v_dirs.numpy(),
-            grain=_GRAIN,
+            kernels.sh_backward, _blocks(sh), ctx.n_bases, *(t.detach().contiguous().numpy() for t in (sh, points, origins)),
+            ctx.colour, v_out.contiguous().numpy(), v_sh.numpy(), v_points.numpy(), v_origins, grain=_GRAIN,
         )
-        return None, v_sh, v_dirs
+        return None, None, v_sh, v_points, torch.from_numpy(v_origins.sum(axis=0))
+
+
+def _blocks(sh: Tensor) -> int:
+    return -(-sh.shape[0] // kernels.BLOCK)
+
+
+def sh_colors(degree: int, sh: Tensor, means: Tensor, campos: Tensor) -> Tensor:
+    """3DGS's colours of Gaussians seen from camera centres: max(SH(means - campos) + 0.5, 0), as gsplat.
+
+    Args:
+        degree: 0..3 (the first (degree + 1) ** 2 coefficients are read).
+        sh: [N, K, 3] coefficients, or [C, N, K, 3] per camera; means: [N, 3]; campos: [C, 3] camera centres.
+
+    Returns:
+        [C, N, 3] in the promoted dtype of the inputs. On CPU with [N, K, 3] coefficients one numba pass each way,
+        with no [C, N, 3] array of directions (gradients reach sh, means and campos).
+    """
+    n_bases = num_sh_bases(degree)
+    if sh.shape[-2] < n_bases:
+        raise ValueError(f"degree {degree} needs {n_bases} SH coefficients per channel, got {sh.shape[-2]}")
+    if sh.shape[-3] != means.shape[0]:
+        raise ValueError(f"sh holds {sh.shape[-3]} Gaussians' coefficients and means {means.shape[0]} positions")
+    if sh.is_cuda or means.is_cuda or sh.dim() != 3:
+        return torch.clamp_min(eval_sh(degree, sh, means[None, :, :] - campos[:, None, :]) + 0.5, 0.0)
+    dtype = torch.promote_types(torch.promote_types(sh.dtype, means.dtype), campos.dtype)
+    sh, means, campos = (t.to(torch.float64) for t in (sh, means, campos))
+    return _SHValues.apply(n_bases, True, sh, means[None], campos).to(dtype)
 
 
 def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
@@ -115,6 +145,7 @@ def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
     if not (sh.is_cuda or dirs.is_cuda) and sh.dim() == 3 and dirs.dim() >= 2 and dirs.shape[-2] == n:
         dtype = torch.promote_types(sh.dtype, dirs.dtype)
         rows = dirs.to(torch.float64).reshape(-1, n, 3)
-        return _EvalSH.apply(n_bases, sh.to(torch.float64), rows).view(dirs.shape).to(dtype)
+        origins = torch.zeros(rows.shape[0], 3, dtype=torch.float64)
+        return _SHValues.apply(n_bases, False, sh.to(torch.float64), rows, origins).view(dirs.shape).to(dtype)
     bases = sh_bases(degree, F.normalize(dirs, dim=-1, eps=kernels.NORMALIZE_EPS))
     return torch.einsum("...k,...kc->...c", bases, sh[..., :n_bases, :])
