@@ -131,7 +131,7 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
 
 def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int, dtype: torch.dtype) -> tuple:
     """Runs the compositing kernel: (render_colors [C, H, W, D] and render_alphas [C, H, W, 1] in `dtype`,
-    out_colors [C, H, W, D] and transmittance [C, H, W] float64 (set only in covered tiles: `covered_pixels`), and the
+    out_colors [C, H, W, D] and transmittance [C, H, W] float64 (set only in covered tiles: `_covered_pixels`), and the
     pairs the backward reads: slot_starts, slot_counts [n_isect], pair_px, pair_vis (lent by `_SCRATCH`))."""
     n_cams, depth = backgrounds.shape
     out_colors = np.empty((n_cams, height, width, depth))
@@ -151,7 +151,7 @@ def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int,
     return render_colors, render_alphas, out_colors, transmittance, (slot_starts, slot_counts, pair_px, pair_vis)
 
 
-def covered_pixels(bins: TileBins, n_cams: int, width: int, height: int) -> np.ndarray:
+def _covered_pixels(bins: TileBins, n_cams: int, width: int, height: int) -> np.ndarray:
     """[C, H, W] bool: the pixels of tiles that some slot covers."""
     covered = (bins.tile_offsets[1:] != bins.tile_offsets[:-1]).reshape(n_cams, bins.tiles_y, bins.tiles_x)
     pixels = np.repeat(np.repeat(covered, bins.tile_size, axis=1), bins.tile_size, axis=2)
@@ -240,7 +240,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_backgrounds = None
         if ctx.needs_input_grad[4]:
             transmittance = ctx.transmittance
-            transmittance[~covered_pixels(bins, n_cams, width, height)] = 1.0
+            transmittance[~_covered_pixels(bins, n_cams, width, height)] = 1.0
             v_backgrounds = torch.einsum(
                 "chw,chwd->cd", torch.from_numpy(transmittance), torch.from_numpy(v_image).to(torch.float64)
             )
