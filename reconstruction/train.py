@@ -17,6 +17,7 @@ stage end lets an interrupted run resume where it stopped.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
 import os
@@ -264,7 +265,10 @@ def _save_checkpoint(path: Path, payload: dict) -> None:
 
 
 def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views, pose_mode: str) -> dict:
-    return {"preset": preset.to_dict(), "num_splats": len(splats), "views": int(len(views.images)),
+    # The splats' digest, not only their count: a checkpoint's per-splat rows fit only the splats they were trained
+    # on, in their order (an engine that lays them out otherwise, or another draw, must start over).
+    layout = hashlib.sha256(np.ascontiguousarray(splats.means, np.float32).tobytes()).hexdigest()
+    return {"preset": preset.to_dict(), "num_splats": len(splats), "splats": layout, "views": int(len(views.images)),
             "pose_mode": pose_mode, "c2w": np.round(views.c2w, 9).tolist()}
 
 

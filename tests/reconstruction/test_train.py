@@ -118,6 +118,32 @@ def test_checkpoint_resumes_where_it_stopped(tmp_path):
     assert res.iterations["pose"] == 10
 
 
+def test_checkpoint_of_other_splats_is_not_resumed(tmp_path):
+    # The same count in another order (an engine that lays splats out otherwise): every per-splat row of the
+    # checkpoint would land on the wrong splat, so training starts over.
+    views, parts, _ = sample_scene(n_views=3)
+    splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
+    preset = tiny_preset(pose=10, deform=10, photo=10)
+    ck = tmp_path / "ck.pt"
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(stage, it, cap, loss):
+        if stage == "deform" and it == 10:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(views, splats, preset, checkpoint=ck, progress=interrupt)
+    order = np.random.default_rng(0).permutation(len(splats))
+    shuffled = replace(splats, gaussians=splats.gaussians.subset(order), normals=splats.normals[order],
+                       face_index=splats.face_index[order], barycentrics=splats.barycentrics[order],
+                       part_label=splats.part_label[order])
+    seen = []
+    train(views, shuffled, preset, checkpoint=ck, progress=lambda s, i, c, l: seen.append((s, i)))
+    assert seen[0] == ("pose", 1)
+
+
 def test_nonfinite_steps_are_skipped_not_applied():
     views, parts, _ = sample_scene(n_views=2)
     splats = init_splats(parts.vertices, parts.faces, 1000, sh_degree=0, seed=0)
