@@ -80,28 +80,6 @@ def sample_surface(
     return points, face_index, bary
 
 
-def _spread_bits(q: np.ndarray) -> np.ndarray:
-    """Each of the low 21 bits of q [N] uint64 moved to every third position (bit i to bit 3i)."""
-    q = q & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
-        q = (q | (q << np.uint64(shift))) & np.uint64(mask)
-    return q
-
-
-def z_order(points: np.ndarray) -> np.ndarray:
-    """The permutation [N] that lists points [N, 3] along a Z-order (Morton) curve through their bounding box,
-    ties by index: points near in space come out near in the list."""
-    p = np.asarray(points, np.float64)
-    if len(p) == 0:
-        return np.zeros(0, np.int64)
-    lo, extent = p.min(0), np.ptp(p, axis=0).max()
-    cells = (p - lo) / (extent if extent > 0 else 1.0) * (2**21 - 1)
-    q = np.clip(np.nan_to_num(cells), 0, 2**21 - 1).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | (_spread_bits(q[:, 2]) << np.uint64(2))
-    return np.argsort(code, kind="stable")
-
-
 def normals_to_quats(normals: np.ndarray) -> np.ndarray:
     """Shortest-arc rotations wxyz [N, 4] taking local +z to each unit normal [N, 3].
 
@@ -248,7 +226,7 @@ def init_splats(
     opacity: float = 0.5,
     seed: int = 0,
 ) -> CanonicalSplats:
-    """Splats on the mesh surface, in Z-order (`z_order`): area-uniform means, face normals, shortest-arc quats, disk scales,
+    """Splats on the mesh surface: area-uniform means, face normals, shortest-arc quats, disk scales,
     `opacity` (the paper's 0.5 by default), SH DC from `rgb` [N, 3] when given (see `project_colors`) else neutral grey
     0.5 (DC 0), higher SH bands 0. `face_part` [F] labels each face with its CAD part (default all 0).
     """
@@ -256,10 +234,6 @@ def init_splats(
         raise ValueError(f"initial opacity must lie strictly between 0 and 1, got {opacity}")
     rng = np.random.default_rng(seed)
     means, face_index, bary = sample_surface(vertices, faces, n, rng)
-    # Stored in Z-order: neighbours in space are neighbours in memory for every per-splat gather (the rasterizer's
-    # tiles, the SH-neighbour graph, the field's anchor blend), instead of the sampler's random order.
-    order = z_order(means)
-    means, face_index, bary = means[order], face_index[order], bary[order]
     _, face_normals = face_areas_normals(vertices, faces)
     normals = face_normals[face_index]
     k = (sh_degree + 1) ** 2

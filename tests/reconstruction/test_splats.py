@@ -19,7 +19,6 @@ from reconstruction.splats import (
     rgb_to_sh_dc,
     sample_surface,
     surface_neighbours,
-    z_order,
 )
 from tests.conftest import require_shared
 
@@ -95,34 +94,6 @@ def test_init_box_with_12_faces_and_parts():
     assert np.all(np.einsum("nd,nd->n", s.normals, s.means - centre) > 0)
     for arr in (s.means, s.gaussians.quats, s.gaussians.log_scales, s.gaussians.sh):
         assert np.all(np.isfinite(arr))
-
-
-def test_z_order_walks_octants_and_keeps_neighbours_close():
-    # The eight corners of a cube come out x fastest, then y, then z, whatever order they came in.
-    corners = np.array([[x, y, z] for z in (0.0, 1.0) for y in (0.0, 1.0) for x in (0.0, 1.0)])
-    shuffled = corners[np.random.default_rng(1).permutation(8)]
-    np.testing.assert_array_equal(shuffled[z_order(shuffled)], corners)
-    # Random points: consecutive ones in Z-order are far closer than in the given order.
-    p = np.random.default_rng(0).random((5000, 3))
-    order = z_order(p)
-    np.testing.assert_array_equal(np.sort(order), np.arange(len(p)))
-    step = lambda q: np.median(np.linalg.norm(np.diff(q, axis=0), axis=1))
-    assert step(p[order]) < 0.2 * step(p)
-    # Degenerate inputs: coincident points keep their order; no points, no order.
-    np.testing.assert_array_equal(z_order(np.zeros((4, 3))), np.arange(4))
-    assert z_order(np.zeros((0, 3))).shape == (0,)
-
-
-def test_init_splats_are_the_samples_in_z_order():
-    v, f = box()
-    s = init_splats(v, f, 3000, sh_degree=1, seed=3)
-    pts, fi, bary = sample_surface(v, f, 3000, np.random.default_rng(3))
-    order = z_order(pts)
-    # Every per-splat array moved together: each mean is still its face's barycentric point.
-    np.testing.assert_allclose(s.means, pts[order], atol=1e-6)
-    np.testing.assert_array_equal(s.face_index, fi[order])
-    np.testing.assert_allclose(s.barycentrics, bary[order], atol=1e-6)
-    np.testing.assert_allclose(s.normals, face_areas_normals(v, f)[1][s.face_index], atol=1e-6)
 
 
 def test_degenerate_and_zero_area_faces_are_never_sampled():
