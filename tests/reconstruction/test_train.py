@@ -95,22 +95,29 @@ def test_the_pose_stage_evaluates_the_frozen_splats_once(monkeypatch):
     assert float(res.model.pose.rig_t.detach().abs().sum()) > 0
 
 
-def test_checkpoint_resumes_where_it_stopped(tmp_path):
+class _Stop(Exception):
+    pass
+
+
+def _interrupted_run(ck: Path):
+    """A 3-view run stopped after Stage I's deformation iteration 10, which wrote `ck`: (views, splats, preset)."""
     views, parts, _ = sample_scene(n_views=3)
     splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
     preset = tiny_preset(pose=10, deform=10, photo=10)
-    ck = tmp_path / "ck.pt"
-
-    class Stop(Exception):
-        pass
 
     def interrupt(stage, it, cap, loss):
         if stage == "deform" and it == 10:
-            raise Stop
+            raise _Stop
 
-    with pytest.raises(Stop):
+    with pytest.raises(_Stop):
         train(views, splats, preset, checkpoint=ck, progress=interrupt)
     assert ck.exists()
+    return views, splats, preset
+
+
+def test_checkpoint_resumes_where_it_stopped(tmp_path):
+    ck = tmp_path / "ck.pt"
+    views, splats, preset = _interrupted_run(ck)
     seen = []
     res = train(views, splats, preset, checkpoint=ck, progress=lambda s, i, c, l: seen.append((s, i)))
     # Resumed from the checkpoint written at deform iteration 10: only Stage II is left.
@@ -121,20 +128,8 @@ def test_checkpoint_resumes_where_it_stopped(tmp_path):
 def test_checkpoint_of_other_splats_is_not_resumed(tmp_path):
     # The same count in another order (an engine that lays splats out otherwise): every per-splat row of the
     # checkpoint would land on the wrong splat, so training starts over.
-    views, parts, _ = sample_scene(n_views=3)
-    splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
-    preset = tiny_preset(pose=10, deform=10, photo=10)
     ck = tmp_path / "ck.pt"
-
-    class Stop(Exception):
-        pass
-
-    def interrupt(stage, it, cap, loss):
-        if stage == "deform" and it == 10:
-            raise Stop
-
-    with pytest.raises(Stop):
-        train(views, splats, preset, checkpoint=ck, progress=interrupt)
+    views, splats, preset = _interrupted_run(ck)
     order = np.random.default_rng(0).permutation(len(splats))
     shuffled = replace(splats, gaussians=splats.gaussians.subset(order), normals=splats.normals[order],
                        face_index=splats.face_index[order], barycentrics=splats.barycentrics[order],
