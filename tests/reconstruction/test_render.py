@@ -414,21 +414,40 @@ def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
     assert_listing_matches_scan(tile_size)
 
 
-def test_the_listing_lists_the_same_on_a_cpu_without_avx512(tmp_path):
-    # Without AVX-512 LLVM expands the vector compress into scalar moves: compiled for baseline x86-64 (SSE2), in a
-    # fresh process and cache, the listing must keep the same pixels, and its code must hold no 512-bit register.
+_HASWELL = "+64bit,+avx,+avx2,+bmi,+bmi2,+cmov,+cx16,+f16c,+fma,+fxsr,+lzcnt,+movbe,+popcnt,+sse,+sse2,+sse3,+sse4.1,+sse4.2,+ssse3"
+
+
+@pytest.mark.parametrize(("cpu", "features", "packing"), [
+    # Without AVX2 LLVM expands the vector compress into scalar moves: no wide register at all.
+    ("x86-64", "", None),
+    # With AVX2 and no AVX-512 each half of four lanes is packed by a table-driven permute (vpermd or vpermps).
+    ("haswell", _HASWELL, "vperm"),
+], ids=["sse2", "avx2"])
+def test_the_listing_lists_the_same_on_a_cpu_without_avx512(tmp_path, cpu, features, packing):
+    # Compiled for that CPU in a fresh process and cache, the listing must keep the same pixels, in the same order,
+    # with no 512-bit register in its code.
+    if packing and not numba_host_has("avx2"):
+        pytest.skip("this CPU cannot run AVX2 code")
     script = (
         "from tests.reconstruction.test_render import _listing, assert_listing_matches_scan\n"
         "for tile_size in (12, 32, 64):\n"
         "    assert_listing_matches_scan(tile_size)\n"
         "code = '\\n'.join(_listing.inspect_asm().values())\n"
-        "assert 'zmm' not in code and 'ymm' not in code, 'compiled with wide vectors'\n"
+        "assert 'zmm' not in code, 'compiled with 512-bit registers'\n"
+        + (f"assert {packing!r} in code, 'not packed by {packing}'\n" if packing else
+           "assert 'ymm' not in code, 'compiled with wide vectors'\n")
     )
-    env = {**os.environ, "NUMBA_CPU_NAME": "x86-64", "NUMBA_CPU_FEATURES": "", "NUMBA_CACHE_DIR": str(tmp_path),
+    env = {**os.environ, "NUMBA_CPU_NAME": cpu, "NUMBA_CPU_FEATURES": features, "NUMBA_CACHE_DIR": str(tmp_path),
            "CADSPLAT_KERNEL_CACHE": str(tmp_path)}
     root = Path(__file__).resolve().parents[2]
     run = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
+
+
+def numba_host_has(feature: str) -> bool:
+    from llvmlite import binding
+
+    return bool(binding.get_host_cpu_features().get(feature))
 
 
 @pytest.mark.parametrize("tile_size", [8, 12, 16, 64])
