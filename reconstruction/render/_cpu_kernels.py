@@ -181,12 +181,19 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
         sigma = builder.fmul(builder.fmul(splat(builder.fmul(ir.Constant(f64, 0.5), a_), vf), dx), dx)
         sigma = builder.fadd(sigma, splat(half_c_dy2_, vf))
         sigma = builder.fadd(sigma, builder.fmul(builder.fmul(splat(b_, vf), dx), splat(dy_, vf)))
-        keep = builder.and_(builder.fcmp_ordered("<=", sigma, splat(limit_, vf)),
-                            builder.bitcast(builder.trunc(builder.lshr(bits_, first_bit_), ir.IntType(LIST_LANES)), vb))
-        keep_bits = builder.bitcast(keep, ir.IntType(LIST_LANES))
+        within = builder.fcmp_ordered("<=", sigma, splat(limit_, vf))
+        row_bits = builder.trunc(builder.lshr(bits_, first_bit_), ir.IntType(LIST_LANES))
+        by_table = _packs_by_table(context.codegen().magic_tuple()[2])
+        if by_table:
+            # The comparison's lanes become an integer mask and meet the row's bits there, instead of the bits being
+            # spread into a vector mask and gathered back (one thread, Zen 3: Stage I's forward 35.0 -> 31.6 ms).
+            keep = None
+            keep_bits = builder.and_(builder.bitcast(within, ir.IntType(LIST_LANES)), row_bits)
+        else:
+            keep = builder.and_(within, builder.bitcast(row_bits, vb))
+            keep_bits = builder.bitcast(keep, ir.IntType(LIST_LANES))
         values = ((sigma, sigma_array, signature.args[1]),
                   (builder.add(splat(p0_, vi), lanes), p_array, signature.args[0]))
-        by_table = _packs_by_table(context.codegen().magic_tuple()[2])
         for value, array, array_type in values:
             data = context.make_array(array_type)(context, builder, array)
             if by_table:
