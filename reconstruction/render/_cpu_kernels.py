@@ -976,7 +976,7 @@ def rasterize_forward(
     over saturated pixels cost a few mask tests. Writes out_colors [C, H, W, D] and out_transmittance
     [C, H, W] (final T) in the tiles some slot covers, the same colours and alpha = 1 - T in the caller's dtype (render_colors
     [C, H, W, D], render_alphas [C, H, W], so that no cast follows), slot_counts [n_isect] (pixels each slot shaded) and, for the backward, each
-    shaded pixel of slot k at slot_starts[k] + i (i < slot_counts[k]): pair_px int16 (tile-local p) and
+    shaded pixel of slot k at slot_starts[k] + i (i < slot_counts[k]): pair_px uint16 (tile-local p) and
     pair_vis (exp(-sigma)). A tile's pairs are packed from the room pair_offsets [n_isect + 1] gives its
     first slot (room for every slot's whole pixel rect), so the backward reads them densely.
     """
@@ -1072,9 +1072,9 @@ def rasterize_backward(
     products as in the forward (no division by 1 - alpha); the colour behind a splat is the pixel's
     accumulated colour minus what the splats up to it added. slot_grads [n_isect, 6 + D] receives
     per-slot d/d(mean2d x, y, conic a, b, c, opacity, colour...).
+    Any colour depth (Stage I's silhouettes have none); `rasterize_backward_rgb` computes the same for D = 3.
     """
     depth = slot_c.shape[1]
-    rgb = depth == 3
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size << _ROW_SHIFT
     for bin_ in range(bin_lo, bin_hi):
@@ -1088,95 +1088,209 @@ def rasterize_backward(
             if tile_offsets[tile] == tile_offsets[tile + 1]:
                 continue
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
-            for py in range(y0, y1 + 1):
-                for px in range(x0, x1 + 1):
-                    p = ((py - y0) << _ROW_SHIFT) + (px - x0)
-                    t_final = transmittance[c, py, px]
-                    trans[p] = 1.0
-                    # alpha = 1 - T and colour += T * background both depend on every splat through
-                    # T_final; d T_final / d alpha_i = -T_final / (1 - alpha_i).
-                    v_t = -v_out_alphas[c, py, px]
-                    for d in range(depth):
-                        behind[p, d] = out_colors[c, py, px, d] - t_final * backgrounds[c, d]
-                        v_px[p, d] = v_out_colors[c, py, px, d]
-                        v_t += backgrounds[c, d] * v_px[p, d]
-                    v_t_term[p] = t_final * v_t
+            _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans,
+                         behind, v_px, v_t_term)
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
-                count = slot_counts[k]
-                if count == 0:
+                if slot_counts[k] == 0:
                     slot_grads[k, :] = 0.0
                     continue
-                opacity = slot_f[k, SF_OPACITY]
-                mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
-                a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
-                v_mx = 0.0
-                v_my = 0.0
-                v_a = 0.0
-                v_b = 0.0
-                v_c = 0.0
-                v_opacity = 0.0
-                v_color[:] = 0.0
-                c0, c1, c2 = (slot_c[k, 0], slot_c[k, 1], slot_c[k, 2]) if rgb else (0.0, 0.0, 0.0)
-                v_c0 = 0.0
-                v_c1 = 0.0
-                v_c2 = 0.0
-                for i in range(slot_starts[k], slot_starts[k] + count):
-                    p = pair_px[i]
-                    row = p >> _ROW_SHIFT
-                    col = p & (MAX_TILE_SIZE - 1)
-                    vis = pair_vis[i]
-                    raw_alpha = opacity * vis
-                    alpha = min(ALPHA_MAX, raw_alpha)
-                    one_minus = 1.0 - alpha
-                    inv_one_minus = 1.0 / one_minus
-                    t_here = trans[p]
-                    weight = alpha * t_here
-                    v_alpha = -inv_one_minus * v_t_term[p]
-                    if rgb:
-                        b0 = behind[p, 0] - c0 * weight
-                        b1 = behind[p, 1] - c1 * weight
-                        b2 = behind[p, 2] - c2 * weight
-                        behind[p, 0] = b0
-                        behind[p, 1] = b1
-                        behind[p, 2] = b2
-                        g0, g1, g2 = v_px[p, 0], v_px[p, 1], v_px[p, 2]
-                        v_c0 += weight * g0
-                        v_c1 += weight * g1
-                        v_c2 += weight * g2
-                        v_alpha += (c0 * t_here - b0 * inv_one_minus) * g0
-                        v_alpha += (c1 * t_here - b1 * inv_one_minus) * g1
-                        v_alpha += (c2 * t_here - b2 * inv_one_minus) * g2
-                    else:
-                        for d in range(depth):
-                            col_d = slot_c[k, d]
-                            behind[p, d] -= col_d * weight
-                            v_color[d] += weight * v_px[p, d]
-                            v_alpha += (col_d * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
-                    trans[p] = t_here * one_minus
-                    # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
-                    if raw_alpha <= ALPHA_MAX:
-                        # The forward's offsets, by the same operations.
-                        dx = (x0 + col) + 0.5 - mx
-                        dy = (y0 + row) + 0.5 - my
-                        v_sigma = -raw_alpha * v_alpha
-                        v_a += 0.5 * v_sigma * dx * dx
-                        v_b += v_sigma * dx * dy
-                        v_c += 0.5 * v_sigma * dy * dy
-                        v_mx -= v_sigma * (a * dx + b * dy)
-                        v_my -= v_sigma * (b * dx + cc * dy)
-                        v_opacity += vis * v_alpha
-                slot_grads[k, 0] = v_mx
-                slot_grads[k, 1] = v_my
-                slot_grads[k, 2] = v_a
-                slot_grads[k, 3] = v_b
-                slot_grads[k, 4] = v_c
-                slot_grads[k, 5] = v_opacity
-                if rgb:
-                    v_color[0] = v_c0
-                    v_color[1] = v_c1
-                    v_color[2] = v_c2
-                for d in range(depth):
-                    slot_grads[k, 6 + d] = v_color[d]
+                _slot_backward(k, slot_f, slot_c, x0, y0, np.uint64(slot_starts[k]), np.uint64(slot_counts[k]),
+                               pair_px, pair_vis, trans, behind, v_px, v_t_term, v_color, slot_grads)
+
+
+@njit(fastmath=_FUSED, **_OPTS)
+def rasterize_backward_rgb(
+    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
+    height, out_colors, transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
+    slot_grads,
+) -> None:
+    """`rasterize_backward` for three colour channels (Stage II's renders), to the bit.
+
+    A kernel of its own: with both loops in one, LLVM laid out the registers of the colourless loop worse (Stage I's
+    silhouette backward 50-70 % longer).
+    """
+    tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
+    n_px = tile_size << _ROW_SHIFT
+    for bin_ in range(bin_lo, bin_hi):
+        trans = np.empty(n_px)
+        behind = np.empty((n_px, 3))
+        v_px = np.empty((n_px, 3))
+        v_t_term = np.empty(n_px)
+        v_alphas = np.empty(tile_size * tile_size)
+        for w in range(work_offsets[bin_], work_offsets[bin_ + 1]):
+            tile = work[w]
+            if tile_offsets[tile] == tile_offsets[tile + 1]:
+                continue
+            c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
+            _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans,
+                         behind, v_px, v_t_term)
+            for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
+                if slot_counts[k] == 0:
+                    slot_grads[k, :] = 0.0
+                    continue
+                start = np.uint64(slot_starts[k])
+                count = np.uint64(slot_counts[k])
+                _composite_backward_rgb(k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px,
+                                        v_t_term, v_alphas, slot_grads)
+                _geometry_backward(k, slot_f, x0, y0, start, count, pair_px, pair_vis, v_alphas, slot_grads)
+
+
+@njit(inline="always", **_OPTS)
+def _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans, behind,
+                 v_px, v_t_term) -> None:
+    """A tile's per-pixel state before its first splat (tile-local p): trans = 1, behind [tile px, D] = the colour all
+    splats added, v_px [tile px, D] = the colour gradient and v_t_term = T_final * d loss / d T_final."""
+    depth = behind.shape[1]
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            p = ((py - y0) << _ROW_SHIFT) + (px - x0)
+            t_final = transmittance[c, py, px]
+            trans[p] = 1.0
+            # alpha = 1 - T and colour += T * background both depend on every splat through
+            # T_final; d T_final / d alpha_i = -T_final / (1 - alpha_i).
+            v_t = -v_out_alphas[c, py, px]
+            for d in range(depth):
+                behind[p, d] = out_colors[c, py, px, d] - t_final * backgrounds[c, d]
+                v_px[p, d] = v_out_colors[c, py, px, d]
+                v_t += backgrounds[c, d] * v_px[p, d]
+            v_t_term[p] = t_final * v_t
+
+
+@njit(inline="always", fastmath=_FUSED, **_OPTS)
+def _composite_backward_rgb(k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_alphas,
+                            slot_grads) -> None:
+    """Slot k's colour gradient (slot_grads[k, 6:9]) and, as it walks the slot's pairs, the pixels' state behind it
+    (trans [tile px], behind [tile px, 3]) and d loss / d alpha of each pair whose alpha is not clamped (v_alphas[j] for
+    the slot's j-th pair), which `_geometry_backward` reads.
+
+    Two passes over a slot's pairs, this and `_geometry_backward`: in one, its 9 running sums and 12 constants did not fit
+    the 16 vector registers of x86-64 without AVX-512 and spilled on every pair (one pass: 24 % longer).
+    Indices are unsigned so that numba does not wrap negative ones."""
+    opacity = slot_f[k, SF_OPACITY]
+    c0, c1, c2 = slot_c[k, 0], slot_c[k, 1], slot_c[k, 2]
+    v_c0 = 0.0
+    v_c1 = 0.0
+    v_c2 = 0.0
+    for j in range(count):
+        i = start + j
+        p = pair_px[i]
+        raw_alpha = opacity * pair_vis[i]
+        alpha = min(ALPHA_MAX, raw_alpha)
+        one_minus = 1.0 - alpha
+        t_here = trans[p]
+        weight = alpha * t_here
+        b0 = behind[p, 0] - c0 * weight
+        b1 = behind[p, 1] - c1 * weight
+        b2 = behind[p, 2] - c2 * weight
+        behind[p, 0] = b0
+        behind[p, 1] = b1
+        behind[p, 2] = b2
+        g0, g1, g2 = v_px[p, 0], v_px[p, 1], v_px[p, 2]
+        v_c0 += weight * g0
+        v_c1 += weight * g1
+        v_c2 += weight * g2
+        trans[p] = t_here * one_minus
+        # Where min() clamps alpha to 0.999 it no longer depends on opacity or sigma.
+        if raw_alpha <= ALPHA_MAX:
+            inv_one_minus = 1.0 / one_minus
+            v_alpha = -inv_one_minus * v_t_term[p]
+            v_alpha += (c0 * t_here - b0 * inv_one_minus) * g0
+            v_alpha += (c1 * t_here - b1 * inv_one_minus) * g1
+            v_alpha += (c2 * t_here - b2 * inv_one_minus) * g2
+            v_alphas[j] = v_alpha
+    slot_grads[k, 6] = v_c0
+    slot_grads[k, 7] = v_c1
+    slot_grads[k, 8] = v_c2
+
+
+@njit(inline="always", fastmath=_FUSED, **_OPTS)
+def _geometry_backward(k, slot_f, x0, y0, start, count, pair_px, pair_vis, v_alphas, slot_grads) -> None:
+    """Slot k's mean2d, conic and opacity gradients (slot_grads[k, :6]) from `_composite_backward_rgb`'s v_alphas, summed
+    in pair order as the one-pass loop summed them."""
+    opacity = slot_f[k, SF_OPACITY]
+    mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
+    a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
+    v_mx = 0.0
+    v_my = 0.0
+    v_a = 0.0
+    v_b = 0.0
+    v_c = 0.0
+    v_opacity = 0.0
+    for j in range(count):
+        i = start + j
+        vis = pair_vis[i]
+        raw_alpha = opacity * vis
+        if raw_alpha <= ALPHA_MAX:
+            p = pair_px[i]
+            v_alpha = v_alphas[j]
+            # The forward's offsets, by the same operations.
+            dx = (x0 + (p & (MAX_TILE_SIZE - 1))) + 0.5 - mx
+            dy = (y0 + (p >> _ROW_SHIFT)) + 0.5 - my
+            v_sigma = -raw_alpha * v_alpha
+            v_a += 0.5 * v_sigma * dx * dx
+            v_b += v_sigma * dx * dy
+            v_c += 0.5 * v_sigma * dy * dy
+            v_mx -= v_sigma * (a * dx + b * dy)
+            v_my -= v_sigma * (b * dx + cc * dy)
+            v_opacity += vis * v_alpha
+    slot_grads[k, 0] = v_mx
+    slot_grads[k, 1] = v_my
+    slot_grads[k, 2] = v_a
+    slot_grads[k, 3] = v_b
+    slot_grads[k, 4] = v_c
+    slot_grads[k, 5] = v_opacity
+
+
+@njit(inline="always", fastmath=_FUSED, **_OPTS)
+def _slot_backward(k, slot_f, slot_c, x0, y0, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_color,
+                   slot_grads) -> None:
+    """Slot k's whole gradient row for any colour depth (Stage I's silhouettes have none) in one pass over its pairs."""
+    depth = slot_c.shape[1]
+    opacity = slot_f[k, SF_OPACITY]
+    mx, my = slot_f[k, SF_MX], slot_f[k, SF_MY]
+    a, b, cc = slot_f[k, SF_A], slot_f[k, SF_B], slot_f[k, SF_C]
+    v_mx = 0.0
+    v_my = 0.0
+    v_a = 0.0
+    v_b = 0.0
+    v_c = 0.0
+    v_opacity = 0.0
+    v_color[:] = 0.0
+    for j in range(count):
+        i = start + j
+        p = pair_px[i]
+        vis = pair_vis[i]
+        raw_alpha = opacity * vis
+        alpha = min(ALPHA_MAX, raw_alpha)
+        one_minus = 1.0 - alpha
+        inv_one_minus = 1.0 / one_minus
+        t_here = trans[p]
+        weight = alpha * t_here
+        v_alpha = -inv_one_minus * v_t_term[p]
+        for d in range(depth):
+            col_d = slot_c[k, d]
+            behind[p, d] -= col_d * weight
+            v_color[d] += weight * v_px[p, d]
+            v_alpha += (col_d * t_here - behind[p, d] * inv_one_minus) * v_px[p, d]
+        trans[p] = t_here * one_minus
+        if raw_alpha <= ALPHA_MAX:
+            dx = (x0 + (p & (MAX_TILE_SIZE - 1))) + 0.5 - mx
+            dy = (y0 + (p >> _ROW_SHIFT)) + 0.5 - my
+            v_sigma = -raw_alpha * v_alpha
+            v_a += 0.5 * v_sigma * dx * dx
+            v_b += v_sigma * dx * dy
+            v_c += 0.5 * v_sigma * dy * dy
+            v_mx -= v_sigma * (a * dx + b * dy)
+            v_my -= v_sigma * (b * dx + cc * dy)
+            v_opacity += vis * v_alpha
+    slot_grads[k, 0] = v_mx
+    slot_grads[k, 1] = v_my
+    slot_grads[k, 2] = v_a
+    slot_grads[k, 3] = v_b
+    slot_grads[k, 4] = v_c
+    slot_grads[k, 5] = v_opacity
+    for d in range(depth):
+        slot_grads[k, 6 + d] = v_color[d]
 
 
 @njit(**_OPTS)

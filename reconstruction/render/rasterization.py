@@ -141,7 +141,7 @@ def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int,
     slot_starts = np.empty(bins.n_isects, np.int64)
     slot_counts = np.empty(bins.n_isects, np.int64)
     # The shaded (slot, pixel) pairs, kept for the backward: tile-local pixel and exp(-sigma).
-    pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.int16)
+    pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.uint16)
     pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
     parallel_for(
         kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(), backgrounds, width, height,
@@ -217,8 +217,9 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_alphas = (np.zeros((n_cams, height, width), ctx.out_dtype) if v_render_alphas is None
                     else to_numpy(v_render_alphas[..., 0]))
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
+        kernel = kernels.rasterize_backward_rgb if depth == 3 else kernels.rasterize_backward
         parallel_for(
-            kernels.rasterize_backward, bins.n_bins, *bins.compositing_args(), to_numpy(backgrounds),
+            kernel, bins.n_bins, *bins.compositing_args(), to_numpy(backgrounds),
             width, height, ctx.out_colors, ctx.transmittance, *pairs, v_image, v_alphas, slot_grads,
         )
         _give_back(pairs)
