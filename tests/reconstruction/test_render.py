@@ -744,3 +744,23 @@ def test_gradients_without_quats_or_scales_equal_those_of_the_full_graph():
     assert partial["quats"] is None and partial["scales"] is None
     for name in ("means", "viewmats", "opacities", "colors"):
         assert partial[name].abs().max() > 0 and torch.equal(partial[name], full[name]), name
+
+
+def test_the_three_channel_backward_equals_the_backward_for_any_depth(monkeypatch):
+    # Stage II's RGB renders differentiate in a kernel of their own (two passes over each slot's pixels, so that its
+    # sums fit the registers): every gradient must be the general kernel's, to the bit.
+    scene = random_scene(250, seed=43, n_cams=2, width=48, height=40, sh_degree=2, spread=0.6)
+    weights = torch.randn(2, 40, 48, 3, generator=torch.Generator().manual_seed(11))
+
+    def grads():
+        inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
+        colors, alphas, _ = rasterize(*[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"],
+                                      sh_degree=2, backgrounds=inputs["backgrounds"])
+        ((colors * weights).sum() + alphas.sum()).backward()
+        return {k: v.grad for k, v in inputs.items()}
+
+    rgb = grads()
+    monkeypatch.setattr(kernels, "rasterize_backward_rgb", kernels.rasterize_backward)
+    general = grads()
+    for name in PARAMS:
+        assert rgb[name].abs().max() > 0 and torch.equal(rgb[name], general[name]), name
