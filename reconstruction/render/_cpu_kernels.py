@@ -176,8 +176,10 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
             return builder.shuffle_vector(builder.insert_element(undef, value, ir.Constant(ir.IntType(32), 0)), undef, zeros)
 
         lanes = ir.Constant(vi, list(range(LIST_LANES)))
-        dx = builder.fsub(builder.fadd(builder.sitofp(builder.add(splat(px0_, vi), lanes), vf), splat(ir.Constant(f64, 0.5), vf)),
-                          splat(mx_, vf))
+        # px0 + l + 0.5 as float(px0) + (l + 0.5): exact either way (small integers and halves), but without AVX-512 an
+        # int64 vector converts lane by lane (8 scalar conversions and as many moves a call).
+        centres = builder.fadd(splat(builder.sitofp(px0_, f64), vf), ir.Constant(vf, [l + 0.5 for l in range(LIST_LANES)]))
+        dx = builder.fsub(centres, splat(mx_, vf))
         sigma = builder.fmul(builder.fmul(splat(builder.fmul(ir.Constant(f64, 0.5), a_), vf), dx), dx)
         sigma = builder.fadd(sigma, splat(half_c_dy2_, vf))
         sigma = builder.fadd(sigma, builder.fmul(builder.fmul(splat(b_, vf), dx), splat(dy_, vf)))
