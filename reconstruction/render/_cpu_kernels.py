@@ -189,7 +189,6 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
         if by_table:
             # The comparison's lanes become an integer mask and meet the row's bits there, instead of the bits being
             # spread into a vector mask and gathered back (one thread, Zen 3: Stage I's forward 35.0 -> 31.6 ms).
-            keep = None
             keep_bits = builder.and_(builder.bitcast(within, ir.IntType(LIST_LANES)), row_bits)
         else:
             keep = builder.and_(within, builder.bitcast(row_bits, vb))
