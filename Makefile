@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml Makefile
 
 # Compile the training loop's numba kernels into their on-disk cache now, not in the first reconstruction.
 $(WARM): $(STAMP) $(KERNEL_SOURCES)
-	$(PY) -m reconstruction.render.warmup
+	$(PY) -m reconstruction.warmup
 	touch $(WARM)
 
 demo: env
