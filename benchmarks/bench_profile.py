@@ -332,7 +332,9 @@ def main() -> None:
         if not meshes.is_dir():
             raise SystemExit(f"{meshes} is not here (shared data absent): give --library for this capture")
         build_library(meshes, library, progress=False, log=lambda _m: None)
+    from reconstruction.warmup import compile_kernels
 
+    compile_kernels()  # as `make env` does: no compile in the production run's registration or first iterations
     load = os.getloadavg()
     machine, machine_mesh = machine_reference_ms()
     rec, marks, _ = run(capture, library, args.preset, None, work, profiled=False)

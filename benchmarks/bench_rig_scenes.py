@@ -378,6 +378,11 @@ def main() -> None:
             from reconstruction.library import build_library
 
             build_library(RIG_SCENES / "library", lib, progress=False)
+        if not args.no_engine:
+            from reconstruction.warmup import compile_kernels
+
+            # As `make env` does at install: a source edit since would charge its compile to the first scene's wall.
+            compile_kernels()
         for name in args.scenes.split(","):
             scene = RIG_SCENES / "scenes" / name
             t0 = time.perf_counter()
