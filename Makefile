@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml Makefile
 		|| echo "gltf-validator not installed (npm or its registry unavailable): the GLB validation test will skip"
 	touch $(STAMP)
 
-# Compile the training loop's numba kernels into their on-disk cache now, not in the first reconstruction.
+# Compile every numba kernel (training, registration, inspection) into its on-disk cache now, not in the first twin.
 $(WARM): $(STAMP) $(KERNEL_SOURCES)
 	$(PY) -m reconstruction.warmup
 	touch $(WARM)

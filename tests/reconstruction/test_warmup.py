@@ -24,7 +24,7 @@ RUN = textwrap.dedent("""
     from reconstruction.pipeline import reconstruct
     sample, work = Path(sys.argv[1]), Path(tempfile.mkdtemp())
     build_library(sample / "library_meshes", work / "library", progress=False, log=lambda _m: None)
-    reconstruct(sample / "train", work / "library", work / "twin", preset=sys.argv[2],
+    reconstruct(sample / "train", work / "library", work / "twin", preset="cpu",
                 overrides={"iters_pose": 2, "iters_deform": 2, "iters_photo": 2})
     inspect_twin_dir(work / "twin", work / "inspection", tolerance_mm=1.5, max_unseen_pct=50.0, turntable=2)
     ours = ("reconstruction", "calibration", "simulation", "deploy", "rig")
@@ -42,6 +42,6 @@ def test_a_first_reconstruction_after_the_warmup_compiles_nothing(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != ENV}
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "cache")  # as a fresh install: nothing compiled yet
     subprocess.run([sys.executable, "-m", "reconstruction.warmup"], env=env, cwd=REPO, check=True, capture_output=True)
-    out = subprocess.run([sys.executable, "-c", RUN, str(sample), "cpu"], env=env, cwd=REPO, check=True, capture_output=True,
+    out = subprocess.run([sys.executable, "-c", RUN, str(sample)], env=env, cwd=REPO, check=True, capture_output=True,
                          text=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
