@@ -34,6 +34,21 @@ def gltf_validator() -> tuple[str, Path] | None:
     return None
 
 
+def cpu_line(cpuinfo: str | None = None) -> str:
+    """'AMD EPYC, 2 cores, AVX2 (no AVX-512), no native bfloat16': what the speed tables were measured on. The
+    rasterizer's fp64 lanes (AVX2 or AVX-512) and the deformation field's bfloat16 path (AVX512-BF16, AMX) move
+    its timings by 2x between CPUs that read alike on the machine reference."""
+    text = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
+    fields: dict[str, str] = {}
+    for key, _, value in (line.partition(":") for line in text.splitlines() if ":" in line):
+        fields.setdefault(key.strip(), value.strip())  # the first processor's
+    flags = set(fields.get("flags", "").split())
+    model = fields.get("model name", "unknown CPU")
+    vector = "AVX-512" if "avx512f" in flags else "AVX2 (no AVX-512)" if "avx2" in flags else "no AVX2"
+    bf16 = "native bfloat16" if flags & {"avx512_bf16", "amx_bf16"} else "no native bfloat16"
+    return f"{model}, {os.cpu_count()} cores, {vector}, {bf16}"
+
+
 def load_line() -> str:
     """'load average 3.2 on 2 cores': the 1-minute load, to read timings taken on a shared machine."""
     return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._common import REPO, RESULTS, SHARED, load_line
+from benchmarks._common import REPO, RESULTS, SHARED, cpu_line, load_line
 from benchmarks.bench_rasterizer import machine_reference_ms
 
 ITERATION = "cs:iteration"
@@ -351,7 +351,7 @@ def main() -> None:
     section = "\n".join([
         f"## `{args.preset}` preset, {scene}", "",
         f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
-        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; machine reference {machine:.0f} ms (one "
+        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; CPU {cpu_line()}; machine reference {machine:.0f} ms (one "
         f"forward+backward of the tiled pure-PyTorch rasterizer, 20k splats on {machine_mesh} at 256², "
         f"`bench_rasterizer.machine_reference_ms`); the run "
         f"then keeps both cores busy ({load_line()} at its end); "

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._common import REPO, RESULTS, SHARED
+from benchmarks._common import REPO, RESULTS, SHARED, cpu_line
 from reconstruction.parallel import openmp_wait
 from reconstruction.render import rasterize
 
@@ -475,7 +475,7 @@ def main() -> int:
     lines = [
         f"Rasterizer forward+backward (loss = squared error to a random image), one camera, Gaussians sampled "
         f"on {mesh_name} covering ~{100 * TARGET_COVERAGE:.0f}% of the image; {rows[0]['threads']} threads, "
-        f"{openmp_wait(env)}; load average {os.getloadavg()[0]:.1f} at the end. Times are "
+        f"{openmp_wait(env)}; {cpu_line()}; load average {os.getloadavg()[0]:.1f} at the end. Times are "
         f"medians; CPU time sums all threads. Peak RSS is the whole process (Python, torch, the scene); in "
         f"brackets what the rasterizer's iterations added on top.",
         "",

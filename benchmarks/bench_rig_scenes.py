@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, symmetric_surface_distance
+from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance
 from benchmarks.bench_rasterizer import machine_reference_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
@@ -166,10 +166,13 @@ def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int], train_
     return doc
 
 
-def machine_reading(twin_dir: Path) -> float | None:
-    """The machine's speed now (`bench_rasterizer.machine_reference_ms`) when the twin in `twin_dir` is about to be
-    trained; None when one is there to reuse, since its time was taken on the machine of its own day."""
-    return None if (twin_dir / "twin.json").exists() else machine_reference_ms()[0]
+def machine_reading(twin_dir: Path) -> dict:
+    """The machine's speed now (`bench_rasterizer.machine_reference_ms`) and its CPU (`cpu_line`) when the twin in
+    `twin_dir` is about to be trained; None for both when one is there to reuse, since its time was taken on the
+    machine of its own day."""
+    if (twin_dir / "twin.json").exists():
+        return {"machine_ref_ms": None, "cpu": None}
+    return {"machine_ref_ms": machine_reference_ms()[0], "cpu": cpu_line()}
 
 
 def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
@@ -188,12 +191,12 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
     overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
-    machine_ms = machine_reading(work / "twins" / key / scene.name)
+    machine = machine_reading(work / "twins" / key / scene.name)
     twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
                                  pose_mode=args.pose_mode, overrides=overrides or None)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
            "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
-           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], "machine_ref_ms": machine_ms,
+           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], **machine,
            **scores, **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args))}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
@@ -215,7 +218,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
     train = read_capture(scene / "train")
     idx = views_for(gt, len(train), args.views)
     twin_dir = work / "twins" / key / scene.name
-    machine_ms = machine_reading(twin_dir)
+    machine = machine_reading(twin_dir)
     if not (twin_dir / "twin.json").exists():
         images, masks, cams = load_views(train, idx)
         cfg = replace(VanillaConfig().scaled(iterations), eps2d=args.vanilla_eps2d)
@@ -223,7 +226,7 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
         save_twin(vanilla_twin(result, cams, [str(train.frames[i].camera_id) for i in idx]), twin_dir, overwrite=True)
     twin, scores = score_heldout(scene, twin_dir, args)
     doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "load": os.getloadavg()[0], "machine_ref_ms": machine_ms, **scores}
+           "load": os.getloadavg()[0], **machine, **scores}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -327,6 +330,10 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
         else:
             row += ["-"] * 11
         lines.append("| " + " | ".join(row) + " |")
+    cpus = {v: sorted({d["cpu"] for d in by.values() if d.get("cpu")}) for v, by in runs.items()}
+    if any(cpus.values()):
+        lines += ["", "CPUs the timed runs trained on (runs before 2026-11-28 did not record theirs): "
+                  + "; ".join(f"`{v}` {' / '.join(c)}" for v, c in cpus.items() if c) + "."]
     lines += ["", "Per scene: fgPSNR / IoU at nominal poses; ADD-S % registration -> twin; geometry % CAD -> twin.", "",
               "| scene | " + " | ".join(runs) + " |", "|---" * (len(runs) + 1) + "|"]
     for scene in SCENES:

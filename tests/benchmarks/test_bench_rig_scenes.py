@@ -50,6 +50,7 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
                    "mean_refined": mean if machine else None}
             if machine:
                 doc["machine_ref_ms"] = machine[i]
+                doc["cpu"] = None if machine[i] is None else "AMD EPYC, 2 cores, AVX2 (no AVX-512), no native bfloat16"
             run = tmp_path / "runs" / variant / f"{bench.SCENES[i]}-r0.json"
             run.parent.mkdir(parents=True, exist_ok=True)
             run.write_text(json.dumps(doc))
@@ -62,4 +63,7 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
     # Runs without test-time refinement leave its columns empty rather than nan.
     refined = header.index("fgPSNR ref.")
     assert rows["new-cpu-vall"][refined] == "27.000" and rows["old-cpu-vall"][refined] == "-"
+    # The CPU a variant trained on is named once; a variant with no record of it is left out.
+    cpus = next(line for line in text.splitlines() if line.startswith("CPUs the timed runs trained on"))
+    assert "`new-cpu-vall` AMD EPYC, 2 cores, AVX2 (no AVX-512), no native bfloat16" in cpus and "old-cpu-vall" not in cpus
     assert (tmp_path / "results" / "rig_scenes.md").read_text() == text
