@@ -764,3 +764,35 @@ def test_the_three_channel_backward_equals_the_backward_for_any_depth(monkeypatc
     general = grads()
     for name in PARAMS:
         assert rgb[name].abs().max() > 0 and torch.equal(rgb[name], general[name]), name
+
+
+def test_a_pair_on_the_alpha_cut_off_is_decided_as_in_float64():
+    # Why the rasterizer stays in float64 (issue 20): the 1/255 cut-off puts a pixel's alpha on or off in one step of
+    # ~4e-3. Here an opacity is found, one float32 ulp at a time, at which the float64 reference and the same formula in
+    # float32 decide a pair differently; the rasterizer must decide it as the reference does.
+    fx, z, s = 100.0, 1.0, np.float32(0.02)
+    px, py = 4.5, 0.5  # the pixel (12, 8) from the splat's centre, which projects to the corner (8, 8)
+    var64 = (fx * float(s) / z) ** 2 + 0.3
+    sigma64 = 0.5 * (px * px + py * py) / var64
+    var32 = np.float32(fx) * s / np.float32(z)
+    var32 = var32 * var32 + np.float32(0.3)
+    sigma32 = np.float32(0.5) * (np.float32(px) * np.float32(px) + np.float32(py) * np.float32(py)) / var32
+    threshold32 = np.float32(1.0 / 255.0)
+    opacity = np.float32(1.0 / 255.0 / math.exp(-sigma64) * (1 - 1e-6))
+    for _ in range(200):
+        on64 = float(opacity) * math.exp(-sigma64) >= 1.0 / 255.0
+        on32 = opacity * np.exp(-sigma32) >= threshold32
+        if on64 != on32:
+            break
+        opacity = np.nextafter(opacity, np.float32(1.0))
+    assert on64 != on32, "float32 decided every opacity like float64"
+    scene = random_scene(1, seed=3, n_cams=1, width=16, height=16)
+    scene["viewmats"] = torch.eye(4)[None]
+    scene["Ks"] = torch.tensor([[[fx, 0.0, 8.0], [0.0, fx, 8.0], [0.0, 0.0, 1.0]]])
+    scene["means"] = torch.tensor([[0.0, 0.0, z]])
+    scene["scales"] = torch.full((1, 3), float(s))
+    scene["opacities"] = torch.tensor([float(opacity)])
+    scene["colors"] = torch.ones(1, 3)
+    _, alphas, _, _ = assert_matches(scene)
+    expected = float(opacity) * math.exp(-sigma64) if on64 else 0.0
+    assert abs(float(alphas.detach()[0, 8, 12, 0]) - expected) <= 1e-6  # a float32 decision would be ~4e-3 off here
