@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from benchmarks._common import REPO, RESULTS, SHARED, cpu_line, load_line
-from benchmarks.bench_rasterizer import machine_reference_ms
+from reconstruction.render.anchor import anchor_ms
 
 ITERATION = "cs:iteration"
 WARMUP = 2
@@ -336,7 +336,7 @@ def main() -> None:
 
     compile_kernels()  # as `make env` does: no compile in the production run's registration or first iterations
     load = os.getloadavg()
-    machine, machine_mesh = machine_reference_ms()
+    machine = anchor_ms()
     rec, marks, _ = run(capture, library, args.preset, None, work, profiled=False)
     plain_ms = steady_wall_ms(marks)
     cores = steady_cores(marks)
@@ -351,9 +351,8 @@ def main() -> None:
     section = "\n".join([
         f"## `{args.preset}` preset, {scene}", "",
         f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
-        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; CPU {cpu_line()}; machine reference {machine:.0f} ms (one "
-        f"forward+backward of the tiled pure-PyTorch rasterizer, 20k splats on {machine_mesh} at 256², "
-        f"`bench_rasterizer.machine_reference_ms`); the run "
+        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; CPU {cpu_line()}; the anchor {machine:.0f} ms a step "
+        f"(`reconstruction.render.anchor`), the production run {1000 * rec.twin.timings_s['total'] / machine:.1f}x the anchor; the run "
         f"then keeps both cores busy ({load_line()} at its end); "
         f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
         f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "

@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_rasterizer [--mesh PATH] [--sizes 256 512] [--counts 10000 ...] [--no-production]
 
-Gaussians are sampled on a real mesh (YCB banana from ../shared/data when present, else an icosphere),
+Gaussians are sampled on a real mesh (by default the speed anchor's YCB banana, `reconstruction/render/anchor.py`),
 flattened along the surface normal, with the camera zoomed so the object covers ~30% of the image.
 Every configuration runs in a fresh subprocess so its peak memory is its own; inside it, our
 rasterizer and a tiled pure-PyTorch pipeline (projection + tile binning + per-tile torch compositing,
@@ -33,12 +33,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._common import REPO, RESULTS, SHARED, cpu_line
+from benchmarks._common import REPO, RESULTS, cpu_line
 from reconstruction.parallel import openmp_wait
 from reconstruction.render import rasterize
+from reconstruction.render.anchor import ANCHOR_MESH, TARGET_COVERAGE, diagonal_camera, torch_tiled_rasterize
+from reconstruction.render.anchor import fit_focal as anchor_focal
+from reconstruction.render.anchor import surface_gaussians as make_gaussians
 
-DEFAULT_MESH = SHARED / "objects" / "ycb" / "011_banana" / "textured.obj"
-TARGET_COVERAGE = 0.30
+DEFAULT_MESH = ANCHOR_MESH
 # The `cpu` preset's training batch: every view in one call. The focal puts the banana on ~10% of the tiles.
 PRODUCTION = {"n_cams": 10, "width": 320, "height": 240, "n": 15_000, "focal": 360.0}
 # Floating-point operations per shaded (pixel, Gaussian) pair, an FMA counting as 2: forward ~60
@@ -54,59 +56,15 @@ FLOPS_PER_PAIR = 160
 def load_mesh(path: Path):
     import trimesh
 
-    if path.exists():
-        return trimesh.load(path, force="mesh"), path.name
-    return trimesh.creation.icosphere(subdivisions=4, radius=0.05), "icosphere (shared data absent)"
+    return trimesh.load(path, force="mesh"), path.name
 
 
-def quats_from_normals(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """wxyz quaternions rotating +z onto each normal, with a random spin about the normal."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, normals)
-    s = np.linalg.norm(axis, axis=1, keepdims=True)
-    c = normals @ z
-    half = np.arctan2(s[:, 0], c) / 2.0
-    axis = np.where(s > 1e-9, axis / np.maximum(s, 1e-12), np.array([1.0, 0.0, 0.0]))
-    align = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], axis=1)
-    spin = rng.uniform(0.0, np.pi, len(normals))
-    q2 = np.stack([np.cos(spin), np.zeros_like(spin), np.zeros_like(spin), np.sin(spin)], axis=1)
-    w1, v1 = align[:, :1], align[:, 1:]
-    w2, v2 = q2[:, :1], q2[:, 1:]
-    return np.concatenate([w1 * w2 - (v1 * v2).sum(1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], axis=1)
-
-
-def make_gaussians(mesh, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Surface Gaussians: tangent sigma ~ half the mean sample spacing, normal sigma a tenth of that."""
-    import trimesh
-
-    rng = np.random.default_rng(seed)
-    points, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    spacing = math.sqrt(mesh.area / n)
-    tangent = 0.5 * spacing * np.exp(0.3 * rng.standard_normal((n, 2)))
-    scales = np.concatenate([tangent, 0.1 * tangent[:, :1]], axis=1)
-    return {
-        "means": torch.tensor(points, dtype=torch.float32),
-        "quats": torch.tensor(quats_from_normals(mesh.face_normals[faces], rng), dtype=torch.float32),
-        "scales": torch.tensor(scales, dtype=torch.float32),
-        "opacities": torch.tensor(rng.uniform(0.3, 1.0, n), dtype=torch.float32),
-        "colors": torch.tensor(rng.uniform(0.0, 1.0, (n, 3)), dtype=torch.float32),
-    }
-
-
-def camera(mesh, size: int, focal: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Looks at the mesh centre from a diagonal, 4 bounding radii away."""
-    centre = mesh.bounds.mean(axis=0)
-    radius = float(np.linalg.norm(mesh.extents)) / 2.0
-    eye = centre + 4.0 * radius * np.array([0.5, -0.6, 0.62]) / np.linalg.norm([0.5, -0.6, 0.62])
-    fwd = (centre - eye) / np.linalg.norm(centre - eye)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    R = np.stack([right, down, fwd])
-    viewmat = np.eye(4)
-    viewmat[:3, :3], viewmat[:3, 3] = R, -R @ eye
-    K = np.array([[focal, 0.0, size / 2], [0.0, focal, size / 2], [0.0, 0.0, 1.0]])
-    return torch.tensor(viewmat, dtype=torch.float32)[None], torch.tensor(K, dtype=torch.float32)[None]
+def fit_focal(mesh, size: int) -> tuple[float, float]:
+    """Focal length at which alpha > 0.5 covers ~30% of the image (returns focal, coverage)."""
+    focal = anchor_focal(mesh, size)
+    viewmat, K = diagonal_diagonal_camera(mesh, size, focal)
+    _, alphas, _ = rasterize(*make_gaussians(mesh, 20_000, seed=1).values(), viewmat, K, size, size)
+    return focal, float((alphas > 0.5).float().mean())
 
 
 def ring_cameras(mesh, n_cams: int, width: int, height: int, focal: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,156 +84,6 @@ def ring_cameras(mesh, n_cams: int, width: int, height: int, focal: float) -> tu
         viewmats.append(viewmat)
     K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
     return torch.tensor(np.stack(viewmats), dtype=torch.float32), torch.tensor(np.stack([K] * n_cams), dtype=torch.float32)
-
-
-def fit_focal(mesh, size: int) -> tuple[float, float]:
-    """Focal length at which alpha > 0.5 covers ~30% of the image (returns focal, coverage)."""
-    g = make_gaussians(mesh, 20_000, seed=1)
-    focal = float(size)
-    for _ in range(4):
-        viewmat, K = camera(mesh, size, focal)
-        _, alphas, _ = rasterize(*g.values(), viewmat, K, size, size)
-        coverage = float((alphas > 0.5).float().mean())
-        focal *= math.sqrt(TARGET_COVERAGE / max(coverage, 1e-3))
-    viewmat, K = camera(mesh, size, focal)
-    _, alphas, _ = rasterize(*g.values(), viewmat, K, size, size)
-    return focal, float((alphas > 0.5).float().mean())
-
-
-def machine_reference_ms(mesh_path: Path = DEFAULT_MESH, iters: int = 3) -> tuple[float, str]:
-    """(median ms, mesh name) of one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²: a fixed
-    workload (torch is pinned, the code frozen) that says how fast this machine ran when a benchmark's timings were taken.
-
-    On the YCB banana the same 2-core host has run it in 607-741 ms (the afternoon of 2026-11-26) and in 1135-2715 ms
-    (the nights after, with no AMX passed through): a wall time is read against the reference taken beside it. Without
-    the shared data the splats lie on an icosphere, a different workload whose figures compare only with each other.
-
-    It runs in its own process with OpenMP workers that sleep at once (OMP_WAIT_POLICY=PASSIVE), as every reading
-    before 2026-11-27 did: made of thousands of small torch ops, it reads mostly how fast a sleeping core wakes. With
-    the engine's short spin (`reconstruction.parallel.configure_openmp`) it read 633-654 ms (once 3188) on a machine
-    where it read 1123-1576 ms without, the same quarter hour.
-    """
-    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
-    env["OMP_WAIT_POLICY"] = "PASSIVE"
-    cmd = [sys.executable, "-m", "benchmarks.bench_rasterizer", "--mesh", str(mesh_path), "--reference", str(iters)]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env, cwd=REPO).stdout
-    ms, name = json.loads(out.strip().splitlines()[-1])
-    return ms, name
-
-
-def _reference_in_process(mesh_path: Path, iters: int) -> tuple[float, str]:
-    """`machine_reference_ms` in this process, under whatever OpenMP wait policy torch loaded with."""
-    mesh, name = load_mesh(mesh_path)
-    if mesh_path.exists():
-        name = f"{mesh_path.parent.name}/{mesh_path.name}"  # 011_banana/textured.obj, not a bare file name
-    focal, _ = fit_focal(mesh, 256)
-    g = make_gaussians(mesh, 20_000)
-    viewmat, K = camera(mesh, 256, focal)
-    params = [g[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
-    target = torch.rand(256, 256, 3, generator=torch.Generator().manual_seed(0))
-
-    def step():
-        for p in params:
-            p.grad = None
-        rgb, _ = torch_tiled_rasterize(*params, viewmat[0], K[0], 256, 256)
-        ((rgb - target) ** 2).sum().backward()
-
-    step()
-    return time_iterations(step, min_seconds=0.0, min_iters=iters, max_iters=iters)[0], name
-
-
-# --------------------------------------------------------------------------- tiled pure-PyTorch baseline
-
-
-def torch_project(means, quats, scales, opacities, viewmat, K, width, height, eps2d=0.3, near=0.01):
-    """gsplat's pinhole projection in torch: (means2d, conics, depths, radii [N, 2], visible)."""
-    q = torch.nn.functional.normalize(quats, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1,
-    ).reshape(-1, 3, 3)
-    M = R * scales[:, None, :]
-    Rc, t = viewmat[:3, :3], viewmat[:3, 3]
-    mc = means @ Rc.T + t
-    cov_c = Rc @ (M @ M.transpose(1, 2)) @ Rc.T
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tz = mc[:, 2].clamp_min(near)
-    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
-    tx = tz * torch.clamp(mc[:, 0] / tz, -(cx / fx + lim_x), (width - cx) / fx + lim_x)
-    ty = tz * torch.clamp(mc[:, 1] / tz, -(cy / fy + lim_y), (height - cy) / fy + lim_y)
-    zero = torch.zeros_like(tz)
-    J = torch.stack([fx / tz, zero, -fx * tx / tz**2, zero, fy / tz, -fy * ty / tz**2], -1).reshape(-1, 2, 3)
-    cov2 = J @ cov_c @ J.transpose(1, 2) + eps2d * torch.eye(2)
-    det = cov2[:, 0, 0] * cov2[:, 1, 1] - cov2[:, 0, 1] ** 2
-    conics = torch.stack([cov2[:, 1, 1], -cov2[:, 0, 1], cov2[:, 0, 0]], -1) / det[:, None]
-    means2d = torch.stack([fx * mc[:, 0] / tz + cx, fy * mc[:, 1] / tz + cy], -1)
-    with torch.no_grad():
-        extent = torch.sqrt(2.0 * torch.log(255.0 * opacities.clamp_min(1.0 / 255.0)))
-        radii = torch.ceil(extent[:, None] * torch.stack([cov2[:, 0, 0], cov2[:, 1, 1]], -1).sqrt())
-        visible = (mc[:, 2] > near) & (det > 0) & (opacities >= 1.0 / 255.0)
-        visible &= (means2d + radii > 0).all(-1) & (means2d[:, 0] - radii[:, 0] < width)
-        visible &= means2d[:, 1] - radii[:, 1] < height
-    return means2d, conics, mc[:, 2], radii, visible
-
-
-@torch.no_grad()
-def torch_bin(means2d, radii, depths, visible, width, height, tile_size):
-    """Tile lists as in gsplat's isect_tiles: (gaussian ids sorted by (tile, depth), tile offsets)."""
-    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    lo = torch.floor((means2d - radii) / tile_size).long()
-    hi = torch.ceil((means2d + radii) / tile_size).long()
-    lo[:, 0].clamp_(0, tiles_x), hi[:, 0].clamp_(0, tiles_x)
-    lo[:, 1].clamp_(0, tiles_y), hi[:, 1].clamp_(0, tiles_y)
-    span = (hi - lo).clamp_min(0)
-    counts = span[:, 0] * span[:, 1] * visible
-    ids = torch.repeat_interleave(torch.arange(len(counts)), counts)
-    local = torch.arange(len(ids)) - torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
-    tx = lo[ids, 0] + local % span[ids, 0]
-    ty = lo[ids, 1] + local // span[ids, 0]
-    tile = ty * tiles_x + tx
-    depth_rank = torch.argsort(torch.argsort(depths, stable=True))
-    order = torch.argsort(tile * len(depths) + depth_rank[ids])
-    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long)
-    offsets[1:] = torch.cumsum(torch.bincount(tile, minlength=tiles_x * tiles_y), 0)
-    return ids[order], offsets
-
-
-def torch_tiled_rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, tile_size=16):
-    """Tiled pure-PyTorch rasterizer with gsplat classic semantics; one camera, [H, W, 3] and [H, W]."""
-    means2d, conics, depths, radii, visible = torch_project(means, quats, scales, opacities, viewmat, K, width, height)
-    ids, offsets = torch_bin(means2d, radii, depths, visible, width, height, tile_size)
-    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    ys, xs = torch.meshgrid(torch.arange(tile_size) + 0.5, torch.arange(tile_size) + 0.5, indexing="ij")
-    local_pix = torch.stack([xs, ys], -1).reshape(-1, 2)
-    tiles_rgb, tiles_t = [], []
-    for t in range(tiles_x * tiles_y):
-        g = ids[offsets[t] : offsets[t + 1]]
-        if len(g) == 0:
-            tiles_rgb.append(torch.zeros(tile_size * tile_size, 3, dtype=means2d.dtype))
-            tiles_t.append(torch.ones(tile_size * tile_size, dtype=means2d.dtype))
-            continue
-        origin = torch.tensor([(t % tiles_x) * tile_size, (t // tiles_x) * tile_size], dtype=torch.float32)
-        d = (local_pix + origin)[:, None, :] - means2d[g][None]
-        a, b, c = conics[g].unbind(-1)
-        sigma = 0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) + b * d[..., 0] * d[..., 1]
-        alpha = torch.clamp(opacities[g] * torch.exp(-sigma), max=0.999)
-        alpha = torch.where((sigma >= 0) & (alpha >= 1.0 / 255.0), alpha, torch.zeros_like(alpha))
-        t_after = torch.cumprod(1.0 - alpha, dim=1)
-        contributes = t_after > 1e-4
-        t_before = torch.cat([torch.ones_like(t_after[:, :1]), t_after[:, :-1]], 1)
-        weights = torch.where(contributes, alpha * t_before, torch.zeros_like(alpha))
-        tiles_rgb.append(weights @ colors[g])
-        tiles_t.append(torch.where(contributes, 1.0 - alpha, torch.ones_like(alpha)).prod(1))
-    rgb = torch.stack(tiles_rgb).reshape(tiles_y, tiles_x, tile_size, tile_size, 3)
-    trans = torch.stack(tiles_t).reshape(tiles_y, tiles_x, tile_size, tile_size)
-    rgb = rgb.permute(0, 2, 1, 3, 4).reshape(tiles_y * tile_size, tiles_x * tile_size, 3)[:height, :width]
-    trans = trans.permute(0, 2, 1, 3).reshape(tiles_y * tile_size, tiles_x * tile_size)[:height, :width]
-    return rgb, 1.0 - trans
-
-
-# --------------------------------------------------------------------------- measurement
 
 
 def peak_rss_mib() -> float:
@@ -304,7 +112,7 @@ def time_iterations(step, min_seconds: float, min_iters: int, max_iters: int) ->
 def run_one(mesh_path: Path, size: int, n: int, focal: float, torch_iters: int) -> dict:
     mesh, _ = load_mesh(mesh_path)
     g = make_gaussians(mesh, n)
-    viewmat, K = camera(mesh, size, focal)
+    viewmat, K = diagonal_camera(mesh, size, focal)
     params = {k: v.clone().requires_grad_(True) for k, v in g.items()}
     target = torch.rand(1, size, size, 3, generator=torch.Generator().manual_seed(0))
 
@@ -438,11 +246,7 @@ def main() -> int:
     ap.add_argument("--no-production", action="store_true", help="skip the batched production-shaped rows")
     ap.add_argument("--one", nargs=4, metavar=("SIZE", "N", "FOCAL", "TORCH_ITERS"), help=argparse.SUPPRESS)
     ap.add_argument("--production-one", choices=["alpha", "sh2"], help=argparse.SUPPRESS)
-    ap.add_argument("--reference", type=int, metavar="ITERS", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.reference:
-        print(json.dumps(_reference_in_process(args.mesh, args.reference)))
-        return 0
     if args.one:
         size, n, focal, torch_iters = int(args.one[0]), int(args.one[1]), float(args.one[2]), int(args.one[3])
         print(json.dumps(run_one(args.mesh, size, n, focal, torch_iters)))

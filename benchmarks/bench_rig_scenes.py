@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance
-from benchmarks.bench_rasterizer import machine_reference_ms
+from reconstruction.render.anchor import anchor_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
 SCENES = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane",
@@ -167,12 +167,12 @@ def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int], train_
 
 
 def machine_reading(twin_dir: Path) -> dict:
-    """The machine's speed now (`bench_rasterizer.machine_reference_ms`) and its CPU (`cpu_line`) when the twin in
+    """The speed anchor's step now (`reconstruction.render.anchor.anchor_ms`) and the CPU (`cpu_line`) when the twin in
     `twin_dir` is about to be trained; None for both when one is there to reuse, since its time was taken on the
     machine of its own day."""
     if (twin_dir / "twin.json").exists():
         return {"machine_ref_ms": None, "cpu": None}
-    return {"machine_ref_ms": machine_reference_ms()[0], "cpu": cpu_line()}
+    return {"machine_ref_ms": anchor_ms(), "cpu": cpu_line()}
 
 
 def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
@@ -295,19 +295,21 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
              "Geometry: symmetric mean closest-point distance to the true surface (exact, from 20k samples of each surface), "
              "% of the diameter; geo change: the median over scenes of the twin's change against its CAD; crossing faces: "
              "faces that cross another (libigl), summed over scenes; watertight: scenes whose welded mesh is closed. Train time on 2 shared "
-             "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `machine ms`: "
-             "the machine's speed just before each run (median over the scenes), one forward+backward of the tiled pure-PyTorch rasterizer at "
-             "20k splats, 256² (`bench_rasterizer.machine_reference_ms`; 607-741 ms on the machine of the afternoon of "
-             "2026-11-26, 1480-1812 ms that night).", "",
-             "| variant | scenes | train s | median s | load | machine ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
+             "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `anchor ms`: "
+             "the speed anchor's step read just before each twin trained (median over the scenes; one forward+backward of the tiled "
+             "pure-PyTorch rasterizer at 20k splats, 256², `reconstruction.render.anchor`); `x anchor`: the median over the scenes of "
+             "each twin's train time over the anchor step read beside it, the figure that carries from one machine to another.", "",
+             "| variant | scenes | train s | median s | x anchor | load | anchor ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
              "ADD-S reg % | ADD-S twin % | improved | Sim(3) reg % | Sim(3) twin % | CAD geo % | twin geo % | geo change | "
-             "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |", "|---" * 25 + "|"]
+             "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |", "|---" * 26 + "|"]
     for variant, by in runs.items():
         ds = list(by.values())
         cad = [d for d in ds if "pose_trained" in d]
         machine = [d["machine_ref_ms"] for d in ds if d.get("machine_ref_ms") is not None]
+        ratios = [1000.0 * d["train_wall_s"] / d["machine_ref_ms"] for d in ds if d.get("machine_ref_ms")]
         row = [variant, str(len(ds)), f"{np.mean([d['train_wall_s'] for d in ds]):.0f}",
-               f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.mean([d['load'] for d in ds]):.1f}",
+               f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.median(ratios):.1f}x" if ratios else "-",
+               f"{np.mean([d['load'] for d in ds]):.1f}",
                f"{np.median(machine):.0f}" if machine else "-"]
         row += [f"{np.nanmean([_m(d, k) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "psnr", "ssim", "lpips")]
         # Runs without test-time refinement (`--refine-steps 0`) have no refined metrics: '-', not nan.

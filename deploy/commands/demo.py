@@ -204,6 +204,9 @@ def demo(sample: Path | None, preset: str, work: Path | None, validate_only: boo
         tmp = Path(tempfile.mkdtemp(prefix="cadsplat-demo-"))
         work = tmp
     work.mkdir(parents=True, exist_ok=True)
+    from reconstruction.render.anchor import anchor_ms, ratio_line
+
+    anchor = anchor_ms()  # read beside the run, so its wall time can be stated as a ratio that carries across machines
     try:
         r = run_demo(root, work, preset=preset)
     finally:
@@ -218,5 +221,5 @@ def demo(sample: Path | None, preset: str, work: Path | None, validate_only: boo
     click.echo(f"Registration error (median over train cameras): {ri['rotation_deg_median']:.2f} deg / {ri['center_pct_median']:.2f} % "
                f"after retrieval, {rr['rotation_deg_median']:.2f} deg / {rr['center_pct_median']:.2f} % after reconstruction "
                f"(paper T_opt: 2.9 deg / 6.1 %).")
-    click.echo(f"Wall time: library {tw['library']:.0f} s, reconstruction {tw['reconstruct']:.0f} s, evaluation {tw['evaluate']:.0f} s"
-               + (f"; twin kept in {work / 'twin'}" if tmp is None else "") + ".")
+    click.echo(f"Wall time: library {tw['library']:.0f} s, reconstruction {ratio_line(tw['reconstruct'], anchor)}, "
+               f"evaluation {tw['evaluate']:.0f} s" + (f"; twin kept in {work / 'twin'}" if tmp is None else "") + ".")
