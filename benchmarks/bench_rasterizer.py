@@ -62,7 +62,7 @@ def load_mesh(path: Path):
 def fit_focal(mesh, size: int) -> tuple[float, float]:
     """Focal length at which alpha > 0.5 covers ~30% of the image (returns focal, coverage)."""
     focal = anchor_focal(mesh, size)
-    viewmat, K = diagonal_diagonal_camera(mesh, size, focal)
+    viewmat, K = diagonal_camera(mesh, size, focal)
     _, alphas, _ = rasterize(*make_gaussians(mesh, 20_000, seed=1).values(), viewmat, K, size, size)
     return focal, float((alphas > 0.5).float().mean())
 

@@ -57,7 +57,7 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
     text = bench.write_report(tmp_path, 0)
     rows = {line.split(" | ")[0][2:]: line.split(" | ") for line in text.splitlines() if line.startswith("| new-") or line.startswith("| old-")}
     header = next(line for line in text.splitlines() if line.startswith("| variant")).split(" | ")
-    median, machine = header.index("median s"), header.index("machine ms")
+    median, machine = header.index("median s"), header.index("anchor ms")
     assert rows["new-cpu-vall"][median] == "67.0" and rows["new-cpu-vall"][machine] == "1700"
     assert rows["old-cpu-vall"][median] == "27.0" and rows["old-cpu-vall"][machine] == "-"
     # Runs without test-time refinement leave its columns empty rather than nan.
