@@ -82,10 +82,13 @@ def _opened(cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], 
         rig_id, calibration_id, thresholds, settings = "simulated", "synthetic-ring", Thresholds(), CameraSettings(size[0], size[1])
         uncertainty, units = None, "m"
     else:
-        from calibration.calibfile import read_calibration
+        from calibration.calibfile import CalibrationFileError, read_calibration
 
-        calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
-        units = read_calibration(cfg.calibration).units if cfg.calibration else None
+        try:
+            calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
+            units = read_calibration(cfg.calibration).units if cfg.calibration else None
+        except CalibrationFileError as e:
+            raise click.ClickException(f"the rig does not start: {e}") from None
         cameras = build_cameras(cfg, calibration)
         store = build_store(cfg, root)
         if min_free_gb is not None:

@@ -113,3 +113,26 @@ def test_a_second_writer_on_one_store_is_refused_naming_the_first(tmp_path):
     assert code == 0, err
     assert len(ids) == len(set(ids)) >= 1 and assert_store_sound(store, ids) == sorted(ids)
     assert not any((store / "quarantine").iterdir())
+
+
+def test_a_calibration_in_unknown_units_stops_the_rig_at_start_in_one_sentence(tmp_path):
+    """`units: "meters"` would make every capture's transforms.json unreadable (all quarantined, frames discarded)."""
+    import json
+
+    import numpy as np
+
+    from calibration.calibfile import CalibrationDoc, CalibrationStore
+    from calibration.camera import Camera
+
+    k = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    CalibrationStore(tmp_path / "calibration.json").commit(CalibrationDoc({c: Camera(k, 64, 48, np.zeros(0), np.eye(4)) for c in "ab"}, source="board"))
+    doc = json.loads((tmp_path / "calibration.json").read_text())
+    (tmp_path / "calibration.json").write_text(json.dumps({**doc, "units": "meters"}))
+    (tmp_path / "rig.toml").write_text(
+        'rig_id = "bench"\ncalibration = "calibration.json"\n[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 64\nheight = 48\n'
+        '[[cameras]]\nid = "b"\ndriver = "pattern"\nwidth = 64\nheight = 48\n[storage]\nroot = "caps"\nmin_free_gb = 0\n'
+    )
+    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120)
+    assert r.returncode != 0 and not _committed(r.stdout) and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert f"{tmp_path / 'calibration.json'}: units 'meters' is not a unit cadsplat knows (one of m, mm, cm, in" in r.stderr
+    assert not (tmp_path / "caps" / "captures").exists() or not any((tmp_path / "caps" / "captures").iterdir())
