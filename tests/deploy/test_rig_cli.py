@@ -115,10 +115,8 @@ def test_a_second_writer_on_one_store_is_refused_naming_the_first(tmp_path):
     assert not any((store / "quarantine").iterdir())
 
 
-def test_a_calibration_in_unknown_units_stops_the_rig_at_start_in_one_sentence(tmp_path):
-    """`units: "meters"` would make every capture's transforms.json unreadable (all quarantined, frames discarded)."""
-    import json
-
+def _calibrated_rig(tmp_path: Path) -> Path:
+    """rig.toml of two pattern cameras with a board calibration.json beside it and its store in caps/."""
     import numpy as np
 
     from calibration.calibfile import CalibrationDoc, CalibrationStore
@@ -126,13 +124,45 @@ def test_a_calibration_in_unknown_units_stops_the_rig_at_start_in_one_sentence(t
 
     k = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
     CalibrationStore(tmp_path / "calibration.json").commit(CalibrationDoc({c: Camera(k, 64, 48, np.zeros(0), np.eye(4)) for c in "ab"}, source="board"))
-    doc = json.loads((tmp_path / "calibration.json").read_text())
-    (tmp_path / "calibration.json").write_text(json.dumps({**doc, "units": "meters"}))
     (tmp_path / "rig.toml").write_text(
         'rig_id = "bench"\ncalibration = "calibration.json"\n[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 64\nheight = 48\n'
         '[[cameras]]\nid = "b"\ndriver = "pattern"\nwidth = 64\nheight = 48\n[storage]\nroot = "caps"\nmin_free_gb = 0\n'
     )
+    return tmp_path / "rig.toml"
+
+
+def test_a_calibration_in_unknown_units_stops_the_rig_at_start_in_one_sentence(tmp_path):
+    """`units: "meters"` would make every capture's transforms.json unreadable (all quarantined, frames discarded)."""
+    import json
+
+    _calibrated_rig(tmp_path)
+    doc = json.loads((tmp_path / "calibration.json").read_text())
+    (tmp_path / "calibration.json").write_text(json.dumps({**doc, "units": "meters"}))
     r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120)
     assert r.returncode != 0 and not _committed(r.stdout) and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert f"{tmp_path / 'calibration.json'}: units 'meters' is not a unit cadsplat knows (one of m, mm, cm, in" in r.stderr
     assert not (tmp_path / "caps" / "captures").exists() or not any((tmp_path / "caps" / "captures").iterdir())
+
+
+def test_the_kiosk_on_the_store_of_a_running_rig_is_refused_naming_it(tmp_path):
+    """The kiosk (`Appliance.from_config`) writes captures into rig.toml's store too: while `rig watch --config` holds it,
+    the kiosk is refused naming the rig's pid, before it opens cameras, trigger or store."""
+    import pytest
+
+    from calibration.guard import LockHeld
+    from deploy.appliance import Appliance
+    from rig.store import writer_holds
+
+    config = _calibrated_rig(tmp_path)
+    rig = subprocess.Popen(_cadsplat("rig", "watch", "--config", str(config)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env=_env(), cwd=REPO)
+    try:
+        deadline = time.monotonic() + 120
+        while not writer_holds(tmp_path / "caps") and rig.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        with pytest.raises(LockHeld, match=rf"in use by rig watch \(pid {rig.pid}\)"):
+            Appliance.from_config(config, tmp_path / "library", tmp_path / "work")
+    finally:
+        rig.send_signal(signal.SIGTERM)
+        rig.communicate(timeout=60)
+    assert rig.returncode == 0
