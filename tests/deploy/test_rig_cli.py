@@ -162,7 +162,7 @@ def test_the_kiosk_on_the_store_of_a_running_rig_is_refused_naming_it(tmp_path):
             time.sleep(0.1)
         with pytest.raises(LockHeld, match=rf"in use by rig watch \(pid {rig.pid}\)"):
             Appliance.from_config(config, tmp_path / "library", tmp_path / "work")
+        assert rig.poll() is None, rig.communicate()
     finally:
-        rig.send_signal(signal.SIGTERM)
+        rig.send_signal(signal.SIGTERM)  # may land before the rig installs its handler: its exit status is not the point here
         rig.communicate(timeout=60)
-    assert rig.returncode == 0
