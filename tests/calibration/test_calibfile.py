@@ -7,7 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from calibration.calibfile import CalibrationDoc, CalibrationFileError, CalibrationStore, read_calibration
+from calibration.calibfile import (
+    CalibrationDoc,
+    CalibrationFileError,
+    CalibrationStore,
+    read_calibration,
+)
 from calibration.camera import Camera
 
 
