@@ -9,6 +9,9 @@
 3. SIGKILL at N random points of `cadsplat service run` (preview preset) on 2 simulated captures, then
    one uninterrupted run to the end.
 
+4. One writer per store (issue 58): a second rig on a store `rig watch` holds; `store import-spill` during
+   `rig watch`; `store verify` during `rig watch` (`--parts two-writers,import-during-watch,verify-during-watch`).
+
 After each fault it checks what the acceptance asks: every capture committed and verifying or refused
 and counted, 0 lost, 0 half-written outputs, one sentence per failure. Writes a markdown table to
 benchmarks/results/faults.md.
@@ -178,6 +181,100 @@ def kill_service(tmp: Path, kills: int, rng: random.Random) -> dict:
     return tally
 
 
+def _spill_one(spill_root: Path, store: Path) -> str:
+    """One capture waiting in `store`'s spill (as a rig leaves it when the store stayed read-only); returns its id."""
+    import numpy as np
+
+    from calibration.camera import Camera
+    from calibration.capture import FrameData
+    from rig.store import Spill
+
+    k = np.array([[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]])
+    frames = [FrameData(f"cam{i}", np.full((72, 96, 3), 60 + 40 * i, np.uint8), Camera(k, 96, 72, np.zeros(0), np.eye(4)), f"cam{i}", i)
+              for i in range(3)]
+    capture_id = "090000-20260101T000000Z"  # above any id the rig reaches here, so the import cannot collide
+    Spill(spill_root, store).write(capture_id, frames, {"rig_id": "bench"})
+    return capture_id
+
+
+def two_writers(tmp: Path, runs: int) -> dict:
+    """`rig watch` holds a store; a second `rig watch --max-captures 2`, then a `rig capture`, are started on it."""
+    import subprocess
+
+    from deploy.commands.store import verify_store
+    from tests.deploy.test_rig_cli import SMALL, _env, watching
+
+    tally = {"runs": runs, "second_writers": 0, "refused": 0, "named_first_pid": 0, "not_one_sentence": 0, "second_captures": 0,
+             "first_captures": 0, "reused_ids": 0, "quarantined": 0, "verify_problems": 0}
+    for n in range(runs):
+        store = tmp / f"writers-{n}"
+        with watching(store) as first:
+            for argv in (("watch", "--simulate", "--rate", "4", "--max-captures", "2"), ("capture", "--simulate")):
+                r = subprocess.run(cadsplat("rig", *argv, "--store", str(store), *SMALL), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=300, check=False)
+                tally["second_writers"] += 1
+                tally["refused"] += r.returncode != 0
+                tally["named_first_pid"] += f"(pid {first.pid})" in r.stderr
+                tally["not_one_sentence"] += not one_sentence(r.stderr.strip())
+                tally["second_captures"] += len(reported(r.stdout))
+        ids = reported(first.result[1])
+        tally["first_captures"] += len(ids)
+        tally["reused_ids"] += len(ids) - len(set(ids))
+        tally["quarantined"] += sum(1 for _ in (store / "quarantine").iterdir())
+        tally["verify_problems"] += len(verify_store(store, tmp / "no-spill")[1])
+    return tally
+
+
+def import_during_watch(tmp: Path, runs: int, per_run: int = 5) -> dict:
+    """`store import-spill` started `per_run` times while `rig watch` writes (a capture waits in the spill); then once
+    after the rig stopped."""
+    import subprocess
+
+    from deploy.commands.store import verify_store
+    from tests.deploy.test_rig_cli import SMALL, _env, watching
+
+    tally = {"runs": runs, "imports_during_watch": 0, "refused": 0, "named_rig_pid": 0, "not_one_sentence": 0, "quarantined": 0,
+             "rig_captures": 0, "imported_after_stop": 0, "verify_problems": 0}
+    for n in range(runs):
+        store, spill = tmp / f"import-{n}", tmp / f"import-{n}.spill"
+        waiting = _spill_one(spill, store)
+        argv = cadsplat("store", "import-spill", str(store), "--spill", str(spill))
+        with watching(store, "--rate", "8", *SMALL) as rig:
+            for _ in range(per_run):
+                r = subprocess.run(argv, capture_output=True, text=True, env=_env(), cwd=REPO, timeout=300, check=False)
+                tally["imports_during_watch"] += 1
+                tally["refused"] += r.returncode != 0
+                tally["named_rig_pid"] += f"(pid {rig.pid})" in r.stderr
+                tally["not_one_sentence"] += r.returncode != 0 and not one_sentence(r.stderr.strip())
+        tally["rig_captures"] += len(reported(rig.result[1]))
+        tally["quarantined"] += sum(1 for _ in (store / "quarantine").iterdir())
+        r = subprocess.run(argv, capture_output=True, text=True, env=_env(), cwd=REPO, timeout=300, check=False)
+        tally["imported_after_stop"] += r.returncode == 0 and f"imported {waiting}" in r.stdout
+        tally["verify_problems"] += len(verify_store(store, spill)[1])
+    return tally
+
+
+def verify_during_watch(tmp: Path, verifies: int, per_run: int = 20) -> dict:
+    """`store verify` (in-process, as the CLI runs it) `verifies` times while `rig watch` writes 8 views of 640x480 at
+    4 Hz, in runs of `per_run` (0.2 s apart) on a fresh store. `saw_live_write`: runs that found a capture in .incoming/ (each a
+    false alarm before the writer's lock was asked)."""
+    from deploy.commands.store import verify_store
+    from tests.deploy.test_rig_cli import watching
+
+    tally = {"verifies": 0, "saw_live_write": 0, "false_alarms": 0, "rig_captures": 0, "verify_problems_after_stop": 0}
+    for n in range(-(-verifies // per_run)):
+        store = tmp / f"verify-{n}"
+        with watching(store, "--rate", "4", "--views", "8", "--size", "640", "480", "--min-free-gb", "0") as rig:
+            for _ in range(min(per_run, verifies - tally["verifies"])):
+                counts, problems = verify_store(store, tmp / "no-spill")
+                tally["verifies"] += 1
+                tally["saw_live_write"] += counts["in_flight"] > 0
+                tally["false_alarms"] += bool(problems)
+                time.sleep(0.2)
+        tally["rig_captures"] += len(reported(rig.result[1]))
+        tally["verify_problems_after_stop"] += len(verify_store(store, tmp / "no-spill")[1])
+    return tally
+
+
 def table(title: str, tally: dict) -> str:
     return f"### {title}\n\n| " + " | ".join(tally) + " |\n|" + "---|" * len(tally) + "\n| " + " | ".join(str(v) for v in tally.values()) + " |\n"
 
@@ -186,7 +283,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
     ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
-    ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3)")
+    ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3), "
+                    "two-writers, import-during-watch, verify-during-watch (part 4)")
+    ap.add_argument("--writer-runs", type=int, default=10, help="runs of the two-writers and import-during-watch parts")
+    ap.add_argument("--verifies", type=int, default=100, help="store verify runs of the verify-during-watch part (acceptance: 100)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
     ap.add_argument("--seed", type=int, default=16)
     args = ap.parse_args()
@@ -210,6 +310,17 @@ def main() -> None:
         if "kills" in parts and service_kills:
             sections.append(table(f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
                                   kill_service(tmp, service_kills, rng)))
+            print(sections[-1], flush=True)
+        if "two-writers" in parts:
+            sections.append(table(f"Two writers on one store: a second `rig watch` and a `rig capture` while `rig watch` runs ({args.writer_runs} runs)",
+                                  two_writers(tmp, args.writer_runs)))
+            print(sections[-1], flush=True)
+        if "import-during-watch" in parts:
+            sections.append(table(f"`store import-spill` during `rig watch` ({args.writer_runs} runs of 5, a capture waiting in the spill)",
+                                  import_during_watch(tmp, args.writer_runs)))
+            print(sections[-1], flush=True)
+        if "verify-during-watch" in parts:
+            sections.append(table(f"`store verify` during `rig watch` ({args.verifies} verifies)", verify_during_watch(tmp, args.verifies)))
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

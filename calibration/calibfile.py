@@ -23,6 +23,7 @@ import numpy as np
 from calibration.camera import Camera
 from calibration.fileio import atomic_create_bytes, atomic_write_bytes, json_default
 from calibration.multiview import RigCalibration
+from calibration.units import UNIT_TO_M
 
 FORMAT = "cadsplat.calibration/1"
 
@@ -182,9 +183,13 @@ def from_document(d: dict, where: str = "calibration") -> CalibrationDoc:
         raise CalibrationFileError(f"{where}: camera entry is malformed ({e})") from None
     if not cameras:
         raise CalibrationFileError(f"{where}: lists no cameras")
+    units = d.get("units")
+    if units is not None and (not isinstance(units, str) or units not in UNIT_TO_M):
+        # Checked here, where a calibration is loaded: captures state these units and every one would be refused later.
+        raise CalibrationFileError(f"{where}: units {units!r} is not a unit cadsplat knows (one of {', '.join(UNIT_TO_M)}, or no units for an unknown scale)")
     return CalibrationDoc(
         cameras, figures, d.get("source", "board"), d.get("board"), d.get("version"), d.get("parent"), d.get("created", ""), d.get("notes", {}), d.get("fiducials"),
-        d.get("units"),
+        units,
     )
 
 

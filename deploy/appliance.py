@@ -110,11 +110,12 @@ class Appliance:
         from calibration.keeper import Keeper
         from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
         from rig.config import load_config
-        from rig.store import Spill, default_spill_dir
+        from rig.store import Spill, default_spill_dir, lock_store
 
         cfg = load_config(config_path)
         if cfg.calibration is None:
             raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
+        lock = lock_store(cfg.storage.root, "kiosk")  # one writer per store: a `rig watch` on it refuses the kiosk, and back
         calibration = load_rig_calibration(cfg.calibration).cameras
         drivers = build_cameras(cfg, calibration)
         trigger = build_trigger(cfg.trigger).start()
@@ -123,7 +124,7 @@ class Appliance:
         work.mkdir(parents=True, exist_ok=True)
         spill = Spill(cfg.storage.spill or default_spill_dir(), store.root)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill)
+                   rig_id=cfg.rig_id, closers=[trigger.stop, lock.release], inspection=cfg.inspection, spill=spill)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),

@@ -395,13 +395,14 @@ class Acquisition:
         on_idle: Callable[[], None] | None = None,
         poll_s: float = 0.1,
     ) -> None:
-        """Handle triggers until `stop` is set or `max_captures` are taken. A capture in flight always completes."""
-        while not stop.is_set() and (max_captures is None or self.taken < max_captures or self.held):
+        """Handle triggers until `stop` is set or `max_captures` are taken. A capture in flight always completes.
+
+        Held captures count as taken: at the cap the loop ends whatever it holds and `close` writes them (or
+        spills them); waiting for the store instead would keep taking triggers past the cap."""
+        while not stop.is_set() and (max_captures is None or self.taken < max_captures):
             for out in self.flush_held() if self.held else ():
                 if on_outcome is not None:
                     on_outcome(out)
-            if max_captures is not None and self.taken >= max_captures and not self.held:
-                break
             ev = source.get(timeout=poll_s)
             if ev is None:
                 if self.reference_every_s is not None and time.monotonic() - self._reference_t >= self.reference_every_s:

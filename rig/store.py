@@ -8,6 +8,7 @@ Layout under the store root:
     references/          the empty-rig reference, versioned (rig.reference)
     store.json           the capture counter (ids are never reused, even across crashes)
     .reserve             disk space held back for the next capture (released when the disk fills)
+    .lock                the one writer's lock (`lock_store`): a rig or an import holds it for its life
 
 A capture is assembled under `.incoming/<id>` by `calibration.capture.write_capture` (every file
 fsynced, read back and verified), then renamed into `captures/` and both directories fsynced. A
@@ -24,6 +25,12 @@ A store that cannot be written at all (read-only, I/O error) loses no capture ei
 writes a capture it could not commit into the spill (`Spill`, a directory on another filesystem,
 in this same capture format) and `CaptureStore.import_spill` moves it into the store under its id
 once the store is writable again (the rig's next start, or `cadsplat store import-spill`).
+
+One writer per store: opening a `CaptureStore` moves whatever is in `.incoming/` to quarantine and
+continues the id counter, which is only sound when no other process writes. So every writer (the rig's
+commands, `store import-spill`) takes `lock_store` before it opens the store, and a second one is
+refused naming the first; a reader (`store verify`) asks `writer_holds` whether what is in
+`.incoming/` is in flight rather than left by a crash.
 """
 
 from __future__ import annotations
@@ -41,10 +48,11 @@ from typing import Callable, Sequence
 
 from calibration.capture import Capture, CaptureError, FrameData, read_capture, write_capture
 from calibration.fileio import atomic_write_bytes, atomic_write_json, fsync_dir
+from calibration.guard import LockHeld, ProcessLock, hold_lock
 from rig.reference import ReferenceStore
 
 CAPTURES, QUARANTINE, INCOMING, STATE = "captures", "quarantine", ".incoming", "store.json"
-REFERENCES, RESERVE = "references", ".reserve"
+REFERENCES, RESERVE, LOCK = "references", ".reserve", ".lock"
 REASON = "reason.json"
 IMPORTING = ".import"  # suffix of a spilled capture being copied into .incoming/ (its source stays in the spill)
 DISK_FULL = "STOPPED: disk full"
@@ -88,6 +96,28 @@ def _allocate(path: Path, size: int) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def lock_store(root: str | os.PathLike, role: str) -> ProcessLock:
+    """Make this process the store's one writer until it ends (or releases the lock); take it before opening the
+    store. Raises calibration.guard.LockHeld, one sentence naming the writer that holds it and its pid."""
+    return hold_lock(root, role, name=LOCK)
+
+
+def writer_holds(root: str | os.PathLike) -> bool:
+    """True while a writer holds the store's lock, so what its `.incoming/` holds is being written, not damage.
+
+    Probes with a shared lock held for an instant; False when the store was never locked or its lock file cannot
+    be opened (a read-only mount), so leftovers are then reported."""
+    if not (Path(root) / LOCK).is_file():
+        return False
+    try:
+        hold_lock(root, "store verify", name=LOCK, shared=True).release()
+    except LockHeld:
+        return True
+    except OSError:
+        return False
+    return False
 
 
 class CaptureStore:

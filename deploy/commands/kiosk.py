@@ -30,7 +30,12 @@ def kiosk(simulate: bool, config: Path | None, library: Path | None, work: Path 
     else:
         if library is None or work is None:
             raise click.ClickException("--config needs --library LIB and --work DIR")
-        backend = Appliance.from_config(config, library, work, preset=preset, interval_s=interval)
+        from calibration.guard import LockHeld
+
+        try:
+            backend = Appliance.from_config(config, library, work, preset=preset, interval_s=interval)
+        except LockHeld as e:
+            raise click.ClickException(f"{e} (one writer per store)") from None
     try:
         Kiosk(backend).run()
     finally:

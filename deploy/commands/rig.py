@@ -7,6 +7,9 @@ triggers are counted on the status line) and `RESUMED ...` when space returns. A
 read-only until the rig stops: its held captures go to the spill (`--spill`, `[storage] spill`)
 and are imported into the store on the next start (`spilled <id>: ...`, then `imported <id>`).
 
+One writer per store: each of these commands holds the store's lock (rig.store.lock_store) for its
+life, so a second rig (or `store import-spill`) on the same store is refused naming the first's pid.
+
 `reference` takes the empty-rig reference (the belt must be empty); the simulated rig takes one
 itself on its first start, and `watch --reference-every S` retakes it on schedule.
 """
@@ -40,9 +43,33 @@ def _load(config: str | None, simulate: bool):
 
 
 @contextmanager
-def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None,
-             spill_dir: str | None):
-    """Open cameras and store (config or simulated), importing what waits in the spill; yields the acquisition."""
+def _session(role: str, cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None,
+             min_free_gb: float | None, spill_dir: str | None):
+    """Take the store's writer lock (as `role`), open cameras and store (config or simulated), importing what waits in
+    the spill; yields the acquisition. The lock is held until the acquisition is closed: opening the store quarantines
+    what is left in its .incoming/ and continues its id counter, which only its one writer may do."""
+    from calibration.guard import LockHeld
+    from rig.store import lock_store
+
+    if simulate and store_dir is None:
+        raise click.ClickException("--simulate needs --store DIR (where the simulated captures go)")
+    root = Path(store_dir) if store_dir else cfg.storage.root
+    try:
+        lock = lock_store(root, role)
+    except LockHeld as e:
+        raise click.ClickException(f"{e} (one writer per store)") from None
+    except OSError as e:
+        raise click.ClickException(f"cannot open the capture store {root} ({e.strerror or e})") from None
+    try:
+        with _opened(cfg, simulate, root, views, size, mesh, min_free_gb, spill_dir) as acq:
+            yield acq
+    finally:
+        lock.release()
+
+
+@contextmanager
+def _opened(cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None, spill_dir: str | None):
+    """Open cameras and the store at `root` (whose lock the caller holds); yields the acquisition."""
     from rig.acquisition import Acquisition, Thresholds, open_cameras
     from rig.assembly import build_cameras, build_store, load_rig_calibration, simulated_cameras
     from rig.camera import CameraError, CameraSettings
@@ -50,19 +77,20 @@ def _session(cfg, simulate: bool, store_dir: str | None, views: int, size: tuple
 
     synthetic = None
     if simulate:
-        if store_dir is None:
-            raise click.ClickException("--simulate needs --store DIR (where the simulated captures go)")
         cameras, synthetic = simulated_cameras(views, size[0], size[1], Path(mesh) if mesh else None)
-        store = CaptureStore(store_dir, min_free_bytes=int((1.0 if min_free_gb is None else min_free_gb) * 1e9))
+        store = CaptureStore(root, min_free_bytes=int((1.0 if min_free_gb is None else min_free_gb) * 1e9))
         rig_id, calibration_id, thresholds, settings = "simulated", "synthetic-ring", Thresholds(), CameraSettings(size[0], size[1])
         uncertainty, units = None, "m"
     else:
-        from calibration.calibfile import read_calibration
+        from calibration.calibfile import CalibrationFileError, read_calibration
 
-        calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
-        units = read_calibration(cfg.calibration).units if cfg.calibration else None
+        try:
+            calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
+            units = read_calibration(cfg.calibration).units if cfg.calibration else None
+        except CalibrationFileError as e:
+            raise click.ClickException(f"the rig does not start: {e}") from None
         cameras = build_cameras(cfg, calibration)
-        store = build_store(cfg, Path(store_dir) if store_dir else None)
+        store = build_store(cfg, root)
         if min_free_gb is not None:
             store.min_free_bytes = int(min_free_gb * 1e9)
         rig_id, thresholds, settings = cfg.rig_id, cfg.thresholds, cfg.cameras[0].settings
@@ -207,7 +235,7 @@ def capture(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_d
     from rig.triggers import SoftwareTrigger
 
     cfg = _load(config, simulate)
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
+    with _session("rig capture", cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         out = acq.handle(SoftwareTrigger().fire({"from": "cli"}))
         _report(out)
     if out.status != "committed":
@@ -226,7 +254,7 @@ def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir
 
     cfg = _load(config, simulate)
     stop = threading.Event()
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
+    with _session("rig watch", cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         acq.reference_every_s = reference_every
         if simulate:
             plc = SimulatedPlc(trigger_kind, rate)
@@ -254,7 +282,7 @@ def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir
 def reference(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) -> None:
     """Take the empty-rig reference now (the belt must be empty): a new version every capture records."""
     cfg = _load(config, simulate)
-    with _session(cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
+    with _session("rig reference", cfg, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir) as acq:
         out = acq.take_reference("taken on command")
         _report(out)
     if out.status != "reference":

@@ -3,9 +3,12 @@
 `verify` checks each committed capture against its transforms.json manifest, each quarantine entry
 for its reason, each empty-rig reference version against its digests, that nothing was left
 half-written and that no capture waits in the spill. Exit 0 when everything verifies, 1 otherwise.
+It may run while the rig writes: what a live writer has in flight is counted, not reported as damage.
 
 `import-spill` moves the captures the rig spilled (the store was unwritable until it stopped) into
-the store under their ids, as the rig's next start does; run it with the rig stopped.
+the store under their ids, as the rig's next start does. It is a writer: while a rig holds the store
+it is refused (naming the rig's pid), since the rig imports the spill itself when it starts and opening
+the store would quarantine the capture the rig is writing.
 """
 
 from __future__ import annotations
@@ -20,13 +23,14 @@ SPILL_HELP = "The rig's spill directory (default: storage.spill of --config, els
 
 def verify_store(root: Path, spill_dir: Path | None = None) -> tuple[dict, list[str]]:
     """(counts, problems): one sentence per capture, quarantine entry or reference that does not verify, and per
-    capture still waiting in the spill (`spill_dir`, default rig.store.default_spill_dir())."""
+    capture still waiting in the spill (`spill_dir`, default rig.store.default_spill_dir()). Captures a running
+    writer (the rig) has in flight are counted as `in_flight`, not as damage."""
     from calibration.capture import CaptureError, read_capture
     from rig.reference import ReferenceStore
-    from rig.store import CAPTURES, INCOMING, QUARANTINE, REASON, REFERENCES, Spill, default_spill_dir
+    from rig.store import CAPTURES, INCOMING, QUARANTINE, REASON, REFERENCES, Spill, default_spill_dir, writer_holds
 
     problems: list[str] = []
-    counts = {"captures": 0, "verified": 0, "quarantined": 0, "references": 0, "spilled": 0}
+    counts = {"captures": 0, "verified": 0, "quarantined": 0, "references": 0, "spilled": 0, "in_flight": 0}
     captures = sorted(p for p in (root / CAPTURES).iterdir() if p.is_dir()) if (root / CAPTURES).is_dir() else []
     for cap in captures:
         counts["captures"] += 1
@@ -47,7 +51,11 @@ def verify_store(root: Path, spill_dir: Path | None = None) -> tuple[dict, list[
     counts["references"] = len(refs.versions())
     problems += refs.verify()
     left = [p.name for p in (root / INCOMING).iterdir()] if (root / INCOMING).is_dir() else []
-    if left:
+    # Listed before the writer is asked for: entries seen while a writer holds the store are its captures in flight
+    # (it quarantined what an earlier crash left when it opened the store); with none, they are a crash's leftovers.
+    if left and writer_holds(root):
+        counts["in_flight"] = len(left)
+    elif left:
         problems.append(f"{root / INCOMING}: {len(left)} half-written entries (opening the store moves them to quarantine)")
     for path, capture_id, _ in Spill(spill_dir or default_spill_dir(), root).entries():
         counts["spilled"] += 1
@@ -101,7 +109,8 @@ def verify(root: Path, spill: Path | None, config: str | None) -> None:
     for p in problems:
         click.echo(p)
     click.echo(f"{counts['verified']}/{counts['captures']} captures verify, {counts['quarantined']} quarantined, "
-               f"{counts['references']} empty-rig reference version(s), {counts['spilled']} waiting in the spill; {len(problems)} problem(s)")
+               f"{counts['references']} empty-rig reference version(s), {counts['spilled']} waiting in the spill"
+               + (f", {counts['in_flight']} being written by the rig" if counts["in_flight"] else "") + f"; {len(problems)} problem(s)")
     if problems:
         raise click.exceptions.Exit(1)
 
@@ -111,15 +120,25 @@ def verify(root: Path, spill: Path | None, config: str | None) -> None:
 @_spill_options
 def import_spill(root: Path, spill: Path | None, config: str | None) -> None:
     """Move the captures waiting in the spill into the capture store ROOT under their ids (with the rig stopped)."""
-    from rig.store import CaptureStore, Spill
+    from calibration.guard import LockHeld
+    from rig.store import CaptureStore, Spill, lock_store
 
     _require_store(root)
     waiting = Spill(_spill_dir(spill, config), root)
     try:
-        store = CaptureStore(root, min_free_bytes=0)
+        lock = lock_store(root, "store import-spill")
+    except LockHeld as e:
+        raise click.ClickException(f"{e}; a running rig imports the spill itself when it starts") from None
     except OSError as e:
         raise click.ClickException(f"cannot open the capture store {root} ({e.strerror or e})") from None
-    imported, problem = store.import_spill(waiting)
+    try:
+        try:
+            store = CaptureStore(root, min_free_bytes=0)
+        except OSError as e:
+            raise click.ClickException(f"cannot open the capture store {root} ({e.strerror or e})") from None
+        imported, problem = store.import_spill(waiting)
+    finally:
+        lock.release()
     for r in imported:
         click.echo(f"imported {r.capture_id}" + (f" into quarantine: {r.reason}" if r.status == "quarantined" else ""))
     click.echo(f"{len(imported)} capture(s) imported from {waiting.dir}")

@@ -5,8 +5,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
-from calibration.calibfile import CalibrationDoc, CalibrationStore, read_calibration
+from calibration.calibfile import (
+    CalibrationDoc,
+    CalibrationFileError,
+    CalibrationStore,
+    read_calibration,
+)
 from calibration.camera import Camera
 
 
@@ -26,3 +32,15 @@ def test_board_calibration_says_metric_and_sfm_says_unknown(tmp_path):
     doc = json.loads((tmp_path / "sfm.json").read_text())
     assert "units" not in doc and doc["scale"].startswith("unknown")
     assert read_calibration(tmp_path / "sfm.json").units is None
+
+
+def test_a_calibration_in_units_it_does_not_know_is_refused_where_it_is_loaded(tmp_path):
+    CalibrationStore(tmp_path / "c.json").commit(CalibrationDoc(cams(), source="board"))
+    doc = json.loads((tmp_path / "c.json").read_text())
+    for bad in ("meters", ["m"]):
+        (tmp_path / "c.json").write_text(json.dumps({**doc, "units": bad}))
+        with pytest.raises(CalibrationFileError) as e:
+            read_calibration(tmp_path / "c.json")
+        assert str(e.value).startswith(f"{tmp_path / 'c.json'}: units {bad!r} is not a unit cadsplat knows (one of m, mm, cm, in")
+    (tmp_path / "c.json").write_text(json.dumps({**doc, "units": "mm"}))
+    assert read_calibration(tmp_path / "c.json").units == "mm"

@@ -1,11 +1,17 @@
-"""`cadsplat store verify | import-spill` and the rig's start importing the spill (in-process, pattern cameras)."""
+"""`cadsplat store verify | import-spill` and the rig's start importing the spill (in-process, pattern cameras), and both
+while a `rig watch` subprocess writes."""
 
 from __future__ import annotations
 
 import errno
+import subprocess
+import time
 
 from deploy.cli import main
+from deploy.commands.store import verify_store
+from tests.conftest import REPO
 from tests.deploy.test_faults import _rig_sites, _run_rig, spill_of
+from tests.deploy.test_rig_cli import SMALL, _cadsplat, _committed, _env, watching
 from tests.faultfs import FaultyDisk
 from tests.rig.conftest import assert_store_sound
 
@@ -53,3 +59,37 @@ def test_the_rig_imports_the_spill_when_it_starts(tmp_path, capsys):
     out = capsys.readouterr().out
     assert [line.split()[1] for line in out.splitlines() if line.startswith("imported ")] == ids
     assert spill_of(root).entries() == [] and set(ids) <= set(assert_store_sound(root, ids))
+
+
+def test_import_spill_while_the_rig_writes_is_refused_and_quarantines_nothing(tmp_path):
+    """A second writer: refused by the store's lock, naming the rig's pid, before it opens the store (which would move the
+    rig's capture in flight to quarantine as an interrupted write)."""
+    store = tmp_path / "store"
+    with watching(store, "--rate", "8", *SMALL) as rig:
+        for _ in range(3):
+            r = subprocess.run(_cadsplat("store", "import-spill", str(store), "--spill", str(tmp_path / "spill")), capture_output=True, text=True,
+                               env=_env(), cwd=REPO, timeout=120, check=False)
+            assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+            assert f"is in use by rig watch (pid {rig.pid})" in r.stderr and "imports the spill itself when it starts" in r.stderr
+    code, out, err = rig.result
+    assert code == 0, err
+    assert not any((store / "quarantine").iterdir()) and assert_store_sound(store, _committed(out))
+
+
+def test_verify_while_the_rig_writes_reports_no_damage_and_leftovers_after_it(tmp_path, capsys):
+    """What sits in .incoming/ while the rig holds the store is in flight, not damage (here: a planted entry and the
+    rig's own live writes, verified over and over); once the rig has stopped, a leftover is reported."""
+    store, spill = tmp_path / "store", str(tmp_path / "spill")
+    in_flight = store / ".incoming" / "099999-20260101T000000Z"
+    with watching(store, "--rate", "20", "--views", "4", "--size", "320", "240", "--min-free-gb", "0"):
+        in_flight.mkdir()
+        capsys.readouterr()
+        assert main(["store", "verify", str(store), "--spill", spill]) == 0
+        assert "being written by the rig; 0 problem(s)" in capsys.readouterr().out
+        in_flight.rmdir()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            assert verify_store(store, tmp_path / "spill")[1] == []
+        in_flight.mkdir()
+    assert main(["store", "verify", str(store), "--spill", spill]) == 1
+    assert "1 half-written entries" in capsys.readouterr().out

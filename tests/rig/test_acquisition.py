@@ -238,3 +238,32 @@ def test_captures_record_the_calibration_they_were_taken_under(store_root):
     meta = acq.store.read(out.capture_id).meta
     assert meta["calibration_id"] == "calibration-v0003"
     assert meta["calibration_uncertainty"] == {"rotation_deg": 0.04, "translation_mm": 0.4}
+
+
+def test_the_loop_ends_at_max_captures_while_the_store_holds_none_of_them(store_root, tmp_path, monkeypatch):
+    """The store goes read-only: every capture is held in memory. At `max_captures` the loop still ends (held
+    captures count) instead of taking trigger after trigger, and the held ones go to the spill at close."""
+    import errno
+
+    from rig.store import Spill
+
+    acq = make_acquisition(store_root, trigger_filter=TriggerFilter(debounce_ns=0), spill=Spill(tmp_path / "spill", store_root))
+
+    def read_only(*_a, **_kw):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(acq.store, "commit", read_only)
+    src = SoftwareTrigger()
+    for _ in range(20):
+        src.fire()
+    stop = threading.Event()
+    runner = threading.Thread(target=acq.run, args=(src, stop), kwargs={"max_captures": 3, "poll_s": 0.01})
+    runner.start()
+    runner.join(timeout=60)
+    ended_by_itself = not runner.is_alive()
+    stop.set()
+    runner.join()
+    outs = acq.close()
+    assert ended_by_itself, "the loop ran on past --max-captures while it held captures"
+    assert src.events.qsize() == 17 and acq.counts["held"] == 0
+    assert [o.status for o in outs] == ["spilled"] * 3 and acq.counts["spilled"] == 3

@@ -222,3 +222,28 @@ def test_a_spilled_invalid_capture_goes_to_quarantine_once_with_its_reason(tmp_p
     assert problem == "" and [(r.capture_id, r.status, r.reason) for r in imported] == [(cid, "quarantined", "no frame from cam1")]
     assert store.quarantined_ids() == [cid] and store.quarantine_reason(cid) == "no frame from cam1"  # one entry, not two
     assert store.capture_ids() == [] and spill.entries() == []
+
+
+def test_one_writer_holds_the_store_for_its_life_and_a_reader_can_tell(store_root):
+    """`lock_store` refuses a second writer naming the first (another process); `writer_holds` tells a reader that
+    .incoming/ holds captures in flight, and never creates a lock file on a store nobody locked."""
+    import subprocess
+    import sys
+
+    from calibration.guard import LockHeld
+    from rig.store import LOCK, lock_store, writer_holds
+    from tests.conftest import REPO
+
+    assert not writer_holds(store_root) and not (store_root / LOCK).exists()
+    code = f"from rig.store import lock_store; lock_store({str(store_root)!r}, 'rig watch'); print('held', flush=True); input()"
+    rig = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert rig.stdout.readline().strip() == "held"
+        assert writer_holds(store_root)
+        with pytest.raises(LockHeld, match=rf"in use by rig watch \(pid {rig.pid}\)"):
+            lock_store(store_root, "store import-spill")
+    finally:
+        rig.communicate("\n", timeout=60)
+    assert not writer_holds(store_root)
+    lock_store(store_root, "store import-spill").release()
