@@ -25,6 +25,7 @@ import numpy as np
 
 from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_bytes, sha256_file
+from calibration.guard import PathOutside, contained
 from calibration.so3 import project_to_so3
 from calibration.units import UNIT_TO_M
 
@@ -104,8 +105,10 @@ class Capture:
         rel = self.meta.get("background", {}).get(camera_id)
         if rel is None:
             return None
+        frame = next((f for f in self.frames if f.camera_id == camera_id), None)
+        if frame is None:
+            return None
         img = read_image(self.root / rel)[..., :3]
-        frame = next(f for f in self.frames if f.camera_id == camera_id)
         return undistort_image(frame.camera, img)[0] if undistort else img
 
     def _check_size(self, frame: CaptureFrame, img: np.ndarray) -> None:
@@ -217,6 +220,9 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
         if not rel:
             raise CaptureError(f"{tf_path}: frame {i} has no file_path")
         rel = _resolve_image_path(root, rel)
+        _inside(root, rel, f"{tf_path}: frame {i} file_path")
+        if fd.get("mask_path"):
+            _inside(root, fd["mask_path"], f"{tf_path}: frame {i} mask_path")
         where = f"{tf_path.name} frame {i} ({rel})"
         if not (root / rel).exists():
             missing.append(rel)
@@ -243,14 +249,24 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
     for f in frames:
         if f.mask_path and not (root / f.mask_path).exists():
             raise CaptureError(f"{root / f.mask_path}: mask file is missing")
+    for cam_id, rel in meta.get("background", {}).items():
+        _inside(root, rel, f"{tf_path}: cadsplat.background.{cam_id}")
     if verify:
         for rel, digest in digests.items():
-            p = root / rel
+            p = _inside(root, rel, f"{tf_path}: cadsplat.sha256 entry")
             if not p.exists():
                 raise CaptureError(f"{p}: listed in the manifest but missing")
             if sha256_file(p) != digest:
                 raise CaptureError(f"{p}: sha256 does not match the manifest (file changed or corrupt)")
     return Capture(root=root, frames=tuple(frames), meta=meta, missing=tuple(missing))
+
+
+def _inside(root: Path, rel: str, what: str) -> Path:
+    """`root`/`rel` resolved, or CaptureError when a capture names a file outside its own folder."""
+    try:
+        return contained(root, rel, what=what)
+    except PathOutside as e:
+        raise CaptureError(str(e)) from None
 
 
 def _resolve_image_path(root: Path, rel: str) -> str:

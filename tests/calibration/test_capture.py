@@ -184,3 +184,36 @@ def test_views_of_different_sizes_share_a_canvas_top_left(tmp_path):
         np.testing.assert_array_equal(cam.crop(images[i]), image)
         np.testing.assert_array_equal(cam.crop(masks[i]), mask)
         assert np.count_nonzero(images[i]) == np.count_nonzero(image) and masks[i].sum() == mask.sum()
+
+
+def _redirect(root, how, outside):
+    """Point one path the capture names at `outside` (a copy of its image, so only containment can refuse it)."""
+    doc = json.loads((root / "transforms.json").read_text())
+    if how == "absolute":
+        doc["frames"][1]["file_path"] = str(outside)
+    elif how == "dotdot":
+        doc["frames"][1]["file_path"] = f"../{outside.name}"
+    elif how == "mask-dotdot":
+        doc["frames"][1]["mask_path"] = f"../{outside.name}"
+    elif how == "background-dotdot":
+        doc["cadsplat"]["background"]["cam01"] = f"../{outside.name}"
+    elif how == "manifest-dotdot":
+        doc["cadsplat"]["sha256"][f"../{outside.name}"] = "0" * 64
+    elif how == "symlink":
+        (root / "images/cam01.png").unlink()
+        (root / "images/cam01.png").symlink_to(outside)
+    (root / "transforms.json").write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("how", ["absolute", "dotdot", "mask-dotdot", "background-dotdot", "manifest-dotdot", "symlink"])
+def test_paths_a_capture_names_stay_inside_it(tmp_path, how):
+    """Issue 58 (3): a capture's file_path, mask_path, background and manifest paths never read outside its folder."""
+    frames = small_frames()
+    root = tmp_path / "cap"
+    write_capture(root, frames, backgrounds={"cam01": frames[1].image})
+    outside = tmp_path / "secret.png"
+    outside.write_bytes((root / "images/cam01.png").read_bytes())
+    _redirect(root, how, outside)
+    with pytest.raises(CaptureError, match=r"leads outside|is absolute") as err:
+        read_capture(root, verify=False) if how != "manifest-dotdot" else read_capture(root)
+    assert "\n" not in str(err.value) and "transforms.json" in str(err.value)

@@ -143,3 +143,21 @@ def test_directory_exports_are_atomic_and_replace_only_their_format(world, tmp_p
     (other / "a.txt").write_text("keep")
     assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(other), "--overwrite"]) != 0
     assert "holds no colmap export" in capsys.readouterr().err and (other / "a.txt").exists()
+
+
+@pytest.mark.parametrize("command", ["register", "reconstruct", "evaluate", "calibrate-check"])
+def test_a_capture_path_leading_outside_is_refused_in_one_sentence(world, tmp_path, capsys, command):
+    """Issue 58 (3): a capture whose file_path leaves its folder (here by a symbolic link to a copy of the image) is refused."""
+    local = {k: tmp_path / k for k in ("twin", "capture", "lib")}
+    for key, path in local.items():
+        shutil.copytree(world[key], path)
+    outside = tmp_path / "outside.png"
+    outside.write_bytes((local["capture"] / "images/v1.png").read_bytes())
+    (local["capture"] / "images/v1.png").unlink()
+    (local["capture"] / "images/v1.png").symlink_to(outside)
+    out = tmp_path / "out"
+    argv = [a.format(out=out, calibration=world["calibration"], **local) for a in CASES[command][0]]
+    rc = main(argv)
+    captured = capsys.readouterr()
+    assert rc != 0 and "Traceback" not in captured.err + captured.out
+    assert len(captured.err.strip().splitlines()) == 1 and "leads outside" in captured.err
