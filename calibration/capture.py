@@ -208,18 +208,16 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
         doc = json.loads(tf_path.read_text())
     except json.JSONDecodeError as e:
         raise CaptureError(f"{tf_path}: invalid JSON ({e.msg} at line {e.lineno})") from None
-    frames_doc = doc.get("frames")
-    if not isinstance(frames_doc, list) or not frames_doc:
-        raise CaptureError(f"{tf_path}: has no frames")
+    except UnicodeDecodeError:
+        raise CaptureError(f"{tf_path}: not a text file") from None
+    check_document(doc, tf_path)
+    frames_doc = doc["frames"]
     meta = doc.get("cadsplat", {})
     digests = meta.get("sha256", {})
     frames: list[CaptureFrame] = []
     missing: list[str] = []
     for i, fd in enumerate(frames_doc):
-        rel = fd.get("file_path")
-        if not rel:
-            raise CaptureError(f"{tf_path}: frame {i} has no file_path")
-        rel = _resolve_image_path(root, rel)
+        rel = _resolve_image_path(root, fd["file_path"])
         _inside(root, rel, f"{tf_path}: frame {i} file_path")
         if fd.get("mask_path"):
             _inside(root, fd["mask_path"], f"{tf_path}: frame {i} mask_path")
@@ -259,6 +257,77 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
             if sha256_file(p) != digest:
                 raise CaptureError(f"{p}: sha256 does not match the manifest (file changed or corrupt)")
     return Capture(root=root, frames=tuple(frames), meta=meta, missing=tuple(missing))
+
+
+# The keys a reader of a capture uses, by the JSON type each must have; other keys are carried as they are.
+_NUMBER_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "camera_angle_x", "camera_angle_y")
+_META_TABLES = ("sha256", "background", "calibration_uncertainty", "camera_settings")
+
+
+def check_document(doc, tf_path: Path) -> None:
+    """Raise CaptureError naming `tf_path` and the key when a transforms.json document has a wrong JSON type
+    where a reader relies on one (frames, their paths, poses and intrinsics, the cadsplat block)."""
+
+    def bad(key: str, want: str, got) -> CaptureError:
+        shown = repr(got) if len(repr(got)) <= 40 else f"a {type(got).__name__}"
+        return CaptureError(f"{tf_path}: {key} must be {want}, got {shown}")
+
+    def is_number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    def intrinsics(d: dict, where: str) -> None:
+        for key in _NUMBER_KEYS:
+            if d.get(key) is not None and not is_number(d[key]):
+                raise bad(f"{where}{key}", "a number", d[key])
+        for key in ("w", "h"):
+            if d.get(key) is not None and not d[key] > 0:
+                raise bad(f"{where}{key}", "a positive number of pixels", d[key])
+        dist = d.get("dist")
+        if dist is not None and not (isinstance(dist, list) and all(is_number(x) for x in dist)):
+            raise bad(f"{where}dist", "a list of numbers", dist)
+
+    if not isinstance(doc, dict):
+        raise bad("the document", "a JSON object", doc)
+    frames = doc.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise CaptureError(f"{tf_path}: has no frames (frames must be a non-empty list of objects)")
+    intrinsics(doc, "")
+    for i, fd in enumerate(frames):
+        where = f"frames[{i}]"
+        if not isinstance(fd, dict):
+            raise bad(where, "an object", fd)
+        if not isinstance(fd.get("file_path"), str) or not fd["file_path"]:
+            raise bad(f"{where}.file_path", "a non-empty string", fd.get("file_path"))
+        if fd.get("mask_path") is not None and not isinstance(fd["mask_path"], str):
+            raise bad(f"{where}.mask_path", "a string", fd["mask_path"])
+        m = fd.get("transform_matrix")
+        if m is None:
+            raise CaptureError(f"{tf_path}: {where}.transform_matrix is missing")
+        if not (isinstance(m, list) and all(isinstance(row, list) and all(is_number(x) for x in row) for row in m)):
+            raise bad(f"{where}.transform_matrix", "a 4x4 list of numbers", m)
+        if fd.get("camera_id") is not None and not isinstance(fd["camera_id"], (str, int)):
+            raise bad(f"{where}.camera_id", "a string", fd["camera_id"])
+        if fd.get("timestamp_ns") is not None and (isinstance(fd["timestamp_ns"], bool) or not isinstance(fd["timestamp_ns"], int)):
+            raise bad(f"{where}.timestamp_ns", "an integer", fd["timestamp_ns"])
+        intrinsics(fd, f"{where}.")
+    meta = doc.get("cadsplat", {})
+    if not isinstance(meta, dict):
+        raise bad("cadsplat", "an object", meta)
+    for key in _META_TABLES:
+        if key in meta and not isinstance(meta[key], dict):
+            raise bad(f"cadsplat.{key}", "an object", meta[key])
+    if meta.get("units") is not None and not isinstance(meta["units"], str):
+        raise bad("cadsplat.units", "a string", meta["units"])
+    for key in ("sha256", "background"):
+        for name, value in meta.get(key, {}).items():
+            if not isinstance(value, str):
+                raise bad(f"cadsplat.{key}.{name}", "a string", value)
+    for name, value in meta.get("calibration_uncertainty", {}).items():
+        if value is not None and not is_number(value):
+            raise bad(f"cadsplat.calibration_uncertainty.{name}", "a number", value)
+    for name, value in meta.get("camera_settings", {}).items():
+        if not isinstance(value, dict):
+            raise bad(f"cadsplat.camera_settings.{name}", "an object", value)
 
 
 def _inside(root: Path, rel: str, what: str) -> Path:
