@@ -217,3 +217,50 @@ def test_paths_a_capture_names_stay_inside_it(tmp_path, how):
     with pytest.raises(CaptureError, match=r"leads outside|is absolute") as err:
         read_capture(root, verify=False) if how != "manifest-dotdot" else read_capture(root)
     assert "\n" not in str(err.value) and "transforms.json" in str(err.value)
+
+
+def png_bomb(path, width: int, height: int) -> int:
+    """Write an all-black RGB PNG of width x height, streamed through zlib so the canvas is never in memory; returns its size in bytes."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z, row, idat = zlib.compressobj(9), b"\0" * (1 + 3 * width), []
+    for _ in range(height):
+        idat.append(z.compress(row))
+    idat.append(z.flush())
+    data = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", b"".join(idat)) + chunk(b"IEND", b""))
+    path.write_bytes(data)
+    return len(data)
+
+
+def test_a_png_bomb_is_refused_from_its_header_without_decoding(tmp_path, monkeypatch):
+    """Issue 58 (9): a few-hundred-KB PNG declaring 12000x12000 is refused in one sentence before any pixel is decoded."""
+    import cv2
+
+    root = tmp_path / "cap"
+    write_capture(root, small_frames())
+    size = png_bomb(root / "images/cam01.png", 12000, 12000)
+    assert size < 1 << 20
+    doc = json.loads((root / "transforms.json").read_text())
+    for key in ("w", "h"):
+        doc["frames"][1].pop(key)  # the size is read from the header, as for a nerfstudio capture that states none
+    (root / "transforms.json").write_text(json.dumps(doc))
+
+    def no_decoding(*_a, **_k):
+        raise AssertionError("the bomb was decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", no_decoding)
+    with pytest.raises(CaptureError, match=r"cam01\.png: image declares 12000x12000 pixels \(144 MP\), above the cap of 50 MP") as err:
+        read_capture(root, verify=False)
+    assert "\n" not in str(err.value)
+    doc["frames"][1].update(w=12000, h=12000)
+    (root / "transforms.json").write_text(json.dumps(doc))
+    cap = read_capture(root, verify=False)
+    with pytest.raises(CaptureError, match=r"cam01\.png: image declares 12000x12000 pixels .*it was not decoded"):
+        cap.view(1)
+    with pytest.raises(CaptureError, match=r"above the cap of 0\.001 MP"):
+        read_capture(root, verify=False, max_pixels=1000).image(0)

@@ -236,3 +236,33 @@ def test_the_installed_entry_point_prints_one_line(world, tmp_path, spoil):
                           capture_output=True, text=True, cwd=repo, env={**os.environ, "PYTHONPATH": str(repo)}, timeout=300)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr + proc.stdout
     assert len(proc.stderr.strip().splitlines()) == 1 and "transforms.json" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("command", ["register", "reconstruct", "evaluate"])
+def test_a_png_bomb_in_a_capture_is_refused_in_one_sentence(world, tmp_path, capsys, monkeypatch, request, command):
+    """Issue 58 (9): a capture whose image declares 12000x12000 (its manifest updated to match) is refused before decoding."""
+    import cv2
+
+    from calibration.fileio import sha256_file
+    from tests.calibration.test_capture import png_bomb
+
+    capture = tmp_path / "capture"
+    shutil.copytree(world["capture"], capture)
+    png_bomb(capture / "images/v1.png", 12000, 12000)
+    doc = json.loads((capture / "transforms.json").read_text())
+    doc["cadsplat"]["sha256"]["images/v1.png"] = sha256_file(capture / "images/v1.png")
+    (capture / "transforms.json").write_text(json.dumps(doc))
+    bomb, real = (capture / "images/v1.png").read_bytes(), cv2.imdecode
+
+    def imdecode(data, flags):
+        assert bytes(data) != bomb, "the bomb was decoded"
+        return real(data, flags)
+
+    monkeypatch.setattr(cv2, "imdecode", imdecode)
+    out = tmp_path / "out"
+    lib = request.getfixturevalue("library") if command == "register" else world["lib"]  # register reads the library before the images
+    argv = [a.format(out=out, twin=world["twin"], capture=capture, lib=lib, calibration=world["calibration"]) for a in READERS[command]]
+    rc = main(argv)
+    captured = capsys.readouterr()
+    assert rc != 0 and "Traceback" not in captured.err + captured.out
+    assert len(captured.err.strip().splitlines()) == 1 and "v1.png: image declares 12000x12000 pixels" in captured.err, captured.err
