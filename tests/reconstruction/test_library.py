@@ -141,7 +141,7 @@ def test_library_paths_stay_inside_the_library(tmp_path, how):
 
 def test_a_replaced_mesh_is_refused_on_load_naming_its_model(tmp_path, monkeypatch):
     """Issue 58 (3): the mesh must be the one the library was built from (its recorded sha256), checked once per load."""
-    import reconstruction.library as library
+    from reconstruction import library
 
     root = _one_box_library(tmp_path)
     hashed = []
