@@ -243,7 +243,8 @@ def build_library(mesh_dir, out_dir, *, unit: str = "m", workers: int | None = N
         "sha256": {**digests, **{m.shard.relative_to(out_dir).as_posix(): sha256_file(m.shard) for m in models}},
     }
     atomic_write_json(out_dir / LIBRARY_JSON, doc)
-    return load_library(out_dir)
+    # What was just written and hashed is handed on as it is; `load_library` verifies it for every later reader.
+    return Library(out_dir, models, grid, skipped, warnings)
 
 
 def _previous_entries(out_dir: Path) -> dict:
