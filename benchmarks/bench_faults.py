@@ -8,9 +8,10 @@
 2. SIGKILL at N random points of `cadsplat rig watch --simulate` (one store, restarted after each kill).
 3. SIGKILL at N random points of `cadsplat service run` (preview preset) on 2 simulated captures, then
    one uninterrupted run to the end.
-
-4. One writer per store (issue 58): a second rig on a store `rig watch` holds; `store import-spill` during
+4. One writer per store: a second rig on a store `rig watch` holds; `store import-spill` during
    `rig watch`; `store verify` during `rig watch` (`--parts two-writers,import-during-watch,verify-during-watch`).
+5. (`--parts bomb`) PNG decompression bombs in a capture through `cadsplat register`: refused in one
+   sentence, with the process's peak RSS (os.wait4's rusage), beside what decoding the bomb costs.
 
 After each fault it checks what the acceptance asks: every capture committed and verifying or refused
 and counted, 0 lost, 0 half-written outputs, one sentence per failure. Writes a markdown table to
@@ -24,6 +25,8 @@ import errno
 import os
 import random
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -274,6 +277,64 @@ def verify_during_watch(tmp: Path, verifies: int, per_run: int = 20) -> dict:
         tally["verify_problems_after_stop"] += len(verify_store(store, tmp / "no-spill")[1])
     return tally
 
+BOMBS = ((12000, 12000), (30000, 30000))
+
+
+def _peak_rss(argv: list[str], err_path: Path) -> tuple[int, float, str]:
+    """Run `argv` to its end: (exit code, its peak RSS in MB from the kernel's rusage of that child, its stderr)."""
+    with open(err_path, "w") as err:
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage.ru_maxrss / 1024, err_path.read_text().strip()
+
+
+def bomb_capture(tmp: Path, width: int, height: int) -> tuple[Path, int]:
+    """A 2-view capture whose second image is an all-black PNG declaring width x height, its manifest updated to match."""
+    import json
+
+    import numpy as np
+
+    from calibration.camera import Camera
+    from calibration.capture import FrameData, write_capture
+    from calibration.fileio import sha256_file
+    from tests.calibration.test_capture import png_bomb
+
+    cam, rng = Camera.from_fov(1.0, 48, 36), np.random.default_rng(0)
+    root = write_capture(tmp / f"bomb-{width}x{height}", [FrameData(f"v{i}", rng.integers(0, 255, (36, 48, 3), dtype=np.uint8), cam, f"cam{i}")
+                                                          for i in range(2)]).root
+    size = png_bomb(root / "images/v1.png", width, height)
+    doc = json.loads((root / "transforms.json").read_text())
+    doc["cadsplat"]["sha256"]["images/v1.png"] = sha256_file(root / "images/v1.png")
+    (root / "transforms.json").write_text(json.dumps(doc))
+    return root, size
+
+
+def bomb_runs(tmp: Path) -> list[dict]:
+    """Each bomb through `cadsplat register` (refused from its header), and the 12000x12000 one decoded as read_image did
+    before the cap (cv2.imdecode, then float32), each in its own process."""
+    from reconstruction.library import build_library
+
+    lib = tmp / "bomb-lib"
+    build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
+    rows, caps = [], [bomb_capture(tmp, width, height) for width, height in BOMBS]
+    for (width, height), (cap, size) in zip(BOMBS, caps):
+        rc, peak, err = _peak_rss(cadsplat("register", str(cap), "--library", str(lib), "--out", str(tmp / "reg.json")), tmp / "bomb.err")
+        rows.append({"image": f"{width}x{height} RGB PNG, {size / 1024:.0f} KB", "run": "cadsplat register", "exit": rc,
+                     "refused_before_decoding": "not decoded" in err, "one_sentence": one_sentence(err), "peak_rss_mb": f"{peak:.0f}"})
+    cap, size = caps[0]
+    decode = ("import sys, cv2, numpy as np; d = np.fromfile(sys.argv[1], np.uint8); "
+              "img = cv2.imdecode(d, cv2.IMREAD_UNCHANGED); print(np.ascontiguousarray(img, dtype=np.float32).shape)")
+    rc, peak, _ = _peak_rss([sys.executable, "-c", decode, str(cap / "images/v1.png")], tmp / "decode.err")
+    rows.append({"image": f"{BOMBS[0][0]}x{BOMBS[0][1]} RGB PNG, {size / 1024:.0f} KB", "run": "decoded without the cap (read_image before)",
+                 "exit": rc, "refused_before_decoding": False, "one_sentence": "-", "peak_rss_mb": f"{peak:.0f}"})
+    return rows
+
+
+def rows_table(title: str, rows: list[dict]) -> str:
+    return (f"### {title}\n\n| " + " | ".join(rows[0]) + " |\n|" + "---|" * len(rows[0]) + "\n"
+            + "".join("| " + " | ".join(str(v) for v in r.values()) + " |\n" for r in rows))
+
 
 def table(title: str, tally: dict) -> str:
     return f"### {title}\n\n| " + " | ".join(tally) + " |\n|" + "---|" * len(tally) + "\n| " + " | ".join(str(v) for v in tally.values()) + " |\n"
@@ -284,7 +345,7 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
     ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
     ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3), "
-                    "two-writers, import-during-watch, verify-during-watch (part 4)")
+                    "two-writers, import-during-watch, verify-during-watch (part 4), bomb (part 5)")
     ap.add_argument("--writer-runs", type=int, default=10, help="runs of the two-writers and import-during-watch parts")
     ap.add_argument("--verifies", type=int, default=100, help="store verify runs of the verify-during-watch part (acceptance: 100)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
@@ -321,6 +382,9 @@ def main() -> None:
             print(sections[-1], flush=True)
         if "verify-during-watch" in parts:
             sections.append(table(f"`store verify` during `rig watch` ({args.verifies} verifies)", verify_during_watch(tmp, args.verifies)))
+            print(sections[-1], flush=True)
+        if "bomb" in parts:
+            sections.append(rows_table("PNG decompression bombs in a capture (issue 58, 9)", bomb_runs(tmp)))
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
-from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, sha256_bytes, sha256_file
+from calibration.fileio import MAX_IMAGE_PIXELS, ImageTooLarge, atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, image_header_size, sha256_bytes, sha256_file
+from calibration.guard import PathOutside, contained
 from calibration.so3 import project_to_so3
 from calibration.units import UNIT_TO_M
 
@@ -52,6 +53,7 @@ class Capture:
     frames: tuple[CaptureFrame, ...]
     meta: dict = field(default_factory=dict)
     missing: tuple[str, ...] = ()
+    max_pixels: int = MAX_IMAGE_PIXELS  # the largest image decoded (fileio.image_header_size)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -67,19 +69,19 @@ class Capture:
     def image(self, i: int, *, undistort: bool = True) -> np.ndarray:
         """RGB float32 [H, W, 3] in [0, 1], undistorted to the pinhole camera by default."""
         frame = self.frames[i]
-        img = read_image(self.root / frame.file_path)[..., :3]
+        img = read_image(self.root / frame.file_path, self.max_pixels)[..., :3]
         self._check_size(frame, img)
         return undistort_image(frame.camera, img)[0] if undistort else img
 
     def mask(self, i: int, *, undistort: bool = True) -> np.ndarray | None:
         """Object mask bool [H, W] from masks/ (or the image's alpha channel); None when the capture has none."""
         frame = self.frames[i]
-        return self._mask(frame, None if frame.mask_path else read_image(self.root / frame.file_path), undistort)
+        return self._mask(frame, None if frame.mask_path else read_image(self.root / frame.file_path, self.max_pixels), undistort)
 
     def view(self, i: int, *, undistort: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """`image(i)` and `mask(i)` with the image file decoded once (its alpha is the mask without masks/)."""
         frame = self.frames[i]
-        img = read_image(self.root / frame.file_path)
+        img = read_image(self.root / frame.file_path, self.max_pixels)
         self._check_size(frame, img)
         rgb = img[..., :3]
         return (undistort_image(frame.camera, rgb)[0] if undistort else rgb), self._mask(frame, img, undistort)
@@ -87,7 +89,7 @@ class Capture:
     def _mask(self, frame: CaptureFrame, img: np.ndarray | None, undistort: bool) -> np.ndarray | None:
         """The mask of `frame` from its masks/ file, else from the alpha of its decoded image `img`."""
         if frame.mask_path:
-            m = read_image(self.root / frame.mask_path)
+            m = read_image(self.root / frame.mask_path, self.max_pixels)
             m = m[..., 0] if m.ndim == 3 else m
         elif img.ndim == 3 and img.shape[2] == 4:
             m = img[..., 3]
@@ -104,8 +106,10 @@ class Capture:
         rel = self.meta.get("background", {}).get(camera_id)
         if rel is None:
             return None
-        img = read_image(self.root / rel)[..., :3]
-        frame = next(f for f in self.frames if f.camera_id == camera_id)
+        frame = next((f for f in self.frames if f.camera_id == camera_id), None)
+        if frame is None:
+            return None
+        img = read_image(self.root / rel, self.max_pixels)[..., :3]
         return undistort_image(frame.camera, img)[0] if undistort else img
 
     def _check_size(self, frame: CaptureFrame, img: np.ndarray) -> None:
@@ -114,16 +118,11 @@ class Capture:
             raise CaptureError(f"{frame.file_path}: image is {w}x{h} but transforms.json says {frame.camera.width}x{frame.camera.height}")
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Decode an image file to float32 in [0, 1]: [H, W] gray, or [H, W, 3|4] RGB(A). Truncated or corrupt files raise CaptureError."""
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: file is missing") from None
-    if data.size == 0:
-        raise CaptureError(f"{path}: file is empty")
-    if path.suffix.lower() == ".png" and not _png_complete(data):
-        raise CaptureError(f"{path}: PNG is truncated (no IEND chunk)")
+def read_image(path: Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Decode an image file to float32 in [0, 1]: [H, W] gray, or [H, W, 3|4] RGB(A). Truncated or corrupt files,
+    and images whose header declares more than `max_pixels` (checked before decoding), raise CaptureError."""
+    data = _encoded(path)
+    _header_size(path, data, max_pixels)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise CaptureError(f"{path}: not a readable image (corrupt or unsupported format)")
@@ -133,6 +132,28 @@ def read_image(path: Path) -> np.ndarray:
         img = img[..., [2, 1, 0, 3]]
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     return np.ascontiguousarray(img, dtype=np.float32) / np.float32(scale)
+
+
+def _encoded(path: Path) -> np.ndarray:
+    """The bytes of image file `path`, refused when missing, empty or a truncated PNG."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: file is missing") from None
+    if data.size == 0:
+        raise CaptureError(f"{path}: file is empty")
+    if path.suffix.lower() == ".png" and not _png_complete(data):
+        raise CaptureError(f"{path}: PNG is truncated (no IEND chunk)")
+    return data
+
+
+def _header_size(path: Path, data: np.ndarray, max_pixels: int) -> tuple[int, int]:
+    try:
+        return image_header_size(data.tobytes(), max_pixels)
+    except ImageTooLarge as e:
+        raise CaptureError(f"{path}: image {e}") from None
+    except ValueError:
+        raise CaptureError(f"{path}: not a readable image (corrupt or unsupported format)") from None
 
 
 def _png_complete(data: np.ndarray) -> bool:
@@ -190,11 +211,12 @@ def _pose(matrix, where: str) -> np.ndarray:
     return c2w_opengl_to_opencv(m)
 
 
-def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing: bool = False) -> Capture:
+def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing: bool = False, max_pixels: int = MAX_IMAGE_PIXELS) -> Capture:
     """Read a capture directory (or a transforms.json path).
 
     verify: check every sha256 the manifest records. allow_missing: frames whose image file is
-    absent are dropped and listed in `Capture.missing` instead of raising.
+    absent are dropped and listed in `Capture.missing` instead of raising. max_pixels: no image
+    whose header declares more is decoded (rig.toml [limits] max_image_pixels).
     """
     path = Path(path)
     tf_path = path if path.is_file() else path / TRANSFORMS
@@ -205,23 +227,24 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
         doc = json.loads(tf_path.read_text())
     except json.JSONDecodeError as e:
         raise CaptureError(f"{tf_path}: invalid JSON ({e.msg} at line {e.lineno})") from None
-    frames_doc = doc.get("frames")
-    if not isinstance(frames_doc, list) or not frames_doc:
-        raise CaptureError(f"{tf_path}: has no frames")
+    except UnicodeDecodeError:
+        raise CaptureError(f"{tf_path}: not a text file") from None
+    check_document(doc, tf_path)
+    frames_doc = doc["frames"]
     meta = doc.get("cadsplat", {})
     digests = meta.get("sha256", {})
     frames: list[CaptureFrame] = []
     missing: list[str] = []
     for i, fd in enumerate(frames_doc):
-        rel = fd.get("file_path")
-        if not rel:
-            raise CaptureError(f"{tf_path}: frame {i} has no file_path")
-        rel = _resolve_image_path(root, rel)
+        rel = _resolve_image_path(root, fd["file_path"])
+        _inside(root, rel, f"{tf_path}: frame {i} file_path")
+        if fd.get("mask_path"):
+            _inside(root, fd["mask_path"], f"{tf_path}: frame {i} mask_path")
         where = f"{tf_path.name} frame {i} ({rel})"
         if not (root / rel).exists():
             missing.append(rel)
             continue
-        k, w, h, dist = _intrinsics(fd, doc, where, lambda: _image_size(root / rel))
+        k, w, h, dist = _intrinsics(fd, doc, where, lambda: _image_size(root / rel, max_pixels))
         c2w = _pose(fd.get("transform_matrix"), where)
         frames.append(
             CaptureFrame(
@@ -243,14 +266,95 @@ def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing:
     for f in frames:
         if f.mask_path and not (root / f.mask_path).exists():
             raise CaptureError(f"{root / f.mask_path}: mask file is missing")
+    for cam_id, rel in meta.get("background", {}).items():
+        _inside(root, rel, f"{tf_path}: cadsplat.background.{cam_id}")
     if verify:
         for rel, digest in digests.items():
-            p = root / rel
+            p = _inside(root, rel, f"{tf_path}: cadsplat.sha256 entry")
             if not p.exists():
                 raise CaptureError(f"{p}: listed in the manifest but missing")
             if sha256_file(p) != digest:
                 raise CaptureError(f"{p}: sha256 does not match the manifest (file changed or corrupt)")
-    return Capture(root=root, frames=tuple(frames), meta=meta, missing=tuple(missing))
+    return Capture(root=root, frames=tuple(frames), meta=meta, missing=tuple(missing), max_pixels=max_pixels)
+
+
+# The keys a reader of a capture uses, by the JSON type each must have; other keys are carried as they are.
+_NUMBER_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "camera_angle_x", "camera_angle_y")
+_META_TABLES = ("sha256", "background", "calibration_uncertainty", "camera_settings")
+
+
+def check_document(doc, tf_path: Path) -> None:
+    """Raise CaptureError naming `tf_path` and the key when a transforms.json document has a wrong JSON type
+    where a reader relies on one (frames, their paths, poses and intrinsics, the cadsplat block)."""
+
+    def bad(key: str, want: str, got) -> CaptureError:
+        shown = repr(got) if len(repr(got)) <= 40 else f"a {type(got).__name__}"
+        return CaptureError(f"{tf_path}: {key} must be {want}, got {shown}")
+
+    def is_number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    def intrinsics(d: dict, where: str) -> None:
+        for key in _NUMBER_KEYS:
+            if d.get(key) is not None and not is_number(d[key]):
+                raise bad(f"{where}{key}", "a number", d[key])
+        for key in ("w", "h"):
+            if d.get(key) is not None and not d[key] > 0:
+                raise bad(f"{where}{key}", "a positive number of pixels", d[key])
+        dist = d.get("dist")
+        if dist is not None and not (isinstance(dist, list) and all(is_number(x) for x in dist)):
+            raise bad(f"{where}dist", "a list of numbers", dist)
+
+    if not isinstance(doc, dict):
+        raise bad("the document", "a JSON object", doc)
+    frames = doc.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise CaptureError(f"{tf_path}: has no frames (frames must be a non-empty list of objects)")
+    intrinsics(doc, "")
+    for i, fd in enumerate(frames):
+        where = f"frames[{i}]"
+        if not isinstance(fd, dict):
+            raise bad(where, "an object", fd)
+        if not isinstance(fd.get("file_path"), str) or not fd["file_path"]:
+            raise bad(f"{where}.file_path", "a non-empty string", fd.get("file_path"))
+        if fd.get("mask_path") is not None and not isinstance(fd["mask_path"], str):
+            raise bad(f"{where}.mask_path", "a string", fd["mask_path"])
+        m = fd.get("transform_matrix")
+        if m is None:
+            raise CaptureError(f"{tf_path}: {where}.transform_matrix is missing")
+        if not (isinstance(m, list) and all(isinstance(row, list) and all(is_number(x) for x in row) for row in m)):
+            raise bad(f"{where}.transform_matrix", "a 4x4 list of numbers", m)
+        if fd.get("camera_id") is not None and not isinstance(fd["camera_id"], (str, int)):
+            raise bad(f"{where}.camera_id", "a string", fd["camera_id"])
+        if fd.get("timestamp_ns") is not None and (isinstance(fd["timestamp_ns"], bool) or not isinstance(fd["timestamp_ns"], int)):
+            raise bad(f"{where}.timestamp_ns", "an integer", fd["timestamp_ns"])
+        intrinsics(fd, f"{where}.")
+    meta = doc.get("cadsplat", {})
+    if not isinstance(meta, dict):
+        raise bad("cadsplat", "an object", meta)
+    for key in _META_TABLES:
+        if key in meta and not isinstance(meta[key], dict):
+            raise bad(f"cadsplat.{key}", "an object", meta[key])
+    if meta.get("units") is not None and not isinstance(meta["units"], str):
+        raise bad("cadsplat.units", "a string", meta["units"])
+    for key in ("sha256", "background"):
+        for name, value in meta.get(key, {}).items():
+            if not isinstance(value, str):
+                raise bad(f"cadsplat.{key}.{name}", "a string", value)
+    for name, value in meta.get("calibration_uncertainty", {}).items():
+        if value is not None and not is_number(value):
+            raise bad(f"cadsplat.calibration_uncertainty.{name}", "a number", value)
+    for name, value in meta.get("camera_settings", {}).items():
+        if not isinstance(value, dict):
+            raise bad(f"cadsplat.camera_settings.{name}", "an object", value)
+
+
+def _inside(root: Path, rel: str, what: str) -> Path:
+    """`root`/`rel` resolved, or CaptureError when a capture names a file outside its own folder."""
+    try:
+        return contained(root, rel, what=what)
+    except PathOutside as e:
+        raise CaptureError(str(e)) from None
 
 
 def _resolve_image_path(root: Path, rel: str) -> str:
@@ -263,9 +367,9 @@ def _resolve_image_path(root: Path, rel: str) -> str:
     return rel
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    img = read_image(path)
-    return img.shape[1], img.shape[0]
+def _image_size(path: Path, max_pixels: int) -> tuple[int, int]:
+    """(width, height) from the image's header, for a document that states no size; no pixel is decoded."""
+    return _header_size(path, _encoded(path), max_pixels)
 
 
 @dataclass

@@ -1,18 +1,51 @@
-"""Atomic, verified file writes: temp file + fsync + rename, and sha256 digests.
+"""Atomic, verified file writes: temp file + fsync + rename, and sha256 digests; image headers read before decoding.
 
 Every file the appliance writes goes through here so a crash or a full disk never leaves a
-half-written file under its final name.
+half-written file under its final name. Every image it reads has its declared size checked against
+a pixel cap first, so a decompression bomb (a small PNG declaring a huge canvas) is never decoded.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
+
+
+# The largest image decoded by default: a 12 MP sensor (4056x3040) four times over. rig.toml's
+# [limits] max_image_pixels changes it for a rig (rig.config); its bound stays under PIL's own bomb limit.
+MAX_IMAGE_PIXELS = 50_000_000
+
+
+class ImageTooLarge(ValueError):
+    """An image whose header declares more pixels than the cap; it was not decoded."""
+
+
+def image_header_size(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> tuple[int, int]:
+    """(width, height) that the encoded image `data` declares, read from its header (PIL opens lazily, no
+    pixel is decoded) and checked against `max_pixels`. Raises ImageTooLarge over the cap, ValueError
+    when no image format is recognised."""
+    from PIL import Image, UnidentifiedImageError
+
+    cap = f"the cap of {max_pixels / 1e6:g} MP (rig.toml [limits] max_image_pixels); it was not decoded"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            with Image.open(io.BytesIO(data)) as im:
+                w, h = im.size
+        except Image.DecompressionBombError:
+            raise ImageTooLarge(f"declares more than {2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} MP, above {cap}") from None
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+            raise ValueError(f"no image header recognised ({type(e).__name__})") from None
+    if w * h > max_pixels:
+        raise ImageTooLarge(f"declares {w}x{h} pixels ({w * h / 1e6:.0f} MP), above {cap}")
+    return w, h
 
 
 def sha256_bytes(data: bytes) -> str:

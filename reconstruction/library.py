@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 
 from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file
+from calibration.guard import PathOutside, contained
 from calibration.units import UNIT_TO_M
 from reconstruction.mesh_io import MeshError, read_mesh_parts, unit_of
 from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, model_frame, open_index, read_shard, render_model_views, shard_key, write_shard
@@ -242,7 +243,8 @@ def build_library(mesh_dir, out_dir, *, unit: str = "m", workers: int | None = N
         "sha256": {**digests, **{m.shard.relative_to(out_dir).as_posix(): sha256_file(m.shard) for m in models}},
     }
     atomic_write_json(out_dir / LIBRARY_JSON, doc)
-    return load_library(out_dir)
+    # What was just written and hashed is handed on as it is; `load_library` verifies it for every later reader.
+    return Library(out_dir, models, grid, skipped, warnings)
 
 
 def _previous_entries(out_dir: Path) -> dict:
@@ -289,7 +291,11 @@ def _run_jobs(jobs: list, workers: int | None, progress: bool) -> dict:
 
 
 def load_library(path) -> Library:
-    """Open a built library directory (the index is memory-mapped on first use)."""
+    """Open a built library directory (the index is memory-mapped on first use).
+
+    Every mesh and shard it names must lie inside the library, and every mesh must still have the
+    sha256 recorded at build time: each is hashed once here, so a replaced mesh is refused before use.
+    """
     root = Path(path)
     p = root / LIBRARY_JSON
     if not p.exists():
@@ -298,13 +304,44 @@ def load_library(path) -> Library:
         doc = json.loads(p.read_text())
     except json.JSONDecodeError as e:
         raise LibraryError(f"{p}: invalid JSON ({e.msg} at line {e.lineno})") from None
-    if doc.get("format") != FORMAT:
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise LibraryError(f"{p}: not a {FORMAT} library")
-    models = [
-        ModelEntry(m["id"], root / m["file"], m["unit"], m["sha256"], tuple(m.get("part_names", [])), int(m.get("components", 1)), tuple(m["extent_m"]), root / m["shard"])
-        for m in doc["models"]
-    ]
+    if not isinstance(doc.get("models"), list) or not isinstance(doc.get("grid"), dict):
+        raise LibraryError(f"{p}: models must be a list and grid a table")
+    models = [_model_entry(m, i, root, p) for i, m in enumerate(doc["models"])]
     for m in models:
         if not m.shard.exists():
             raise LibraryError(f"{m.shard}: index shard of {m.id} is missing; rebuild the library")
-    return Library(root, models, GridSpec(**doc["grid"]), doc.get("skipped", []), doc.get("warnings", []))
+        if not m.mesh_path.is_file():
+            raise LibraryError(f"{m.mesh_path}: mesh of {m.id} is missing; rebuild the library")
+        if sha256_file(m.mesh_path) != m.sha256:
+            raise LibraryError(f"{m.mesh_path}: the mesh of model {m.id} is not the one the library was built from (sha256 differs); rebuild the library")
+    try:
+        grid = GridSpec(**doc["grid"])
+    except TypeError as e:
+        raise LibraryError(f"{p}: grid is malformed ({e})") from None
+    return Library(root, models, grid, doc.get("skipped", []), doc.get("warnings", []))
+
+
+def _model_entry(m, i: int, root: Path, doc_path: Path) -> ModelEntry:
+    """models[i] of library.json as a ModelEntry, its paths kept inside `root`; LibraryError naming the key otherwise."""
+    where = f"{doc_path}: models[{i}]"
+    if not isinstance(m, dict):
+        raise LibraryError(f"{where} must be a table")
+    for key in ("id", "file", "unit", "sha256", "shard"):
+        if not isinstance(m.get(key), str) or not m[key]:
+            raise LibraryError(f"{where}.{key} must be a non-empty string, got {m.get(key)!r}")
+    if m["unit"] not in UNIT_TO_M:
+        raise LibraryError(f"{where}.unit {m['unit']!r} is not one of {', '.join(UNIT_TO_M)}")
+    extent = m.get("extent_m")
+    if not (isinstance(extent, list) and len(extent) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in extent)):
+        raise LibraryError(f"{where}.extent_m must be a list of 3 numbers, got {extent!r}")
+    if not isinstance(m.get("part_names", []), list) or isinstance(m.get("components", 1), bool) or not isinstance(m.get("components", 1), int):
+        raise LibraryError(f"{where}: part_names must be a list and components an integer")
+    try:
+        mesh_path = contained(root, m["file"], what=f"{where}.file")
+        shard = contained(root, m["shard"], what=f"{where}.shard")
+    except PathOutside as e:
+        raise LibraryError(str(e)) from None
+    return ModelEntry(m["id"], mesh_path, m["unit"], m["sha256"], tuple(str(n) for n in m.get("part_names", [])), int(m.get("components", 1)),
+                      tuple(float(x) for x in extent), shard)

@@ -13,6 +13,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from calibration.fileio import MAX_IMAGE_PIXELS
 from rig.acquisition import Thresholds
 from rig.camera import CameraSettings
 from rig.triggers import DEFAULT_CAN_FORMAT, DEFAULT_SERIAL_PATTERN
@@ -78,6 +79,7 @@ class RigConfig:
     calibration: Path | None = None
     registration: "RegistrationConfig" = field(default_factory=lambda: RegistrationConfig())
     inspection: InspectionConfig | None = None
+    max_image_pixels: int = MAX_IMAGE_PIXELS  # [limits]: no image declaring more is decoded (calibration.fileio)
 
 
 @dataclass(frozen=True)
@@ -104,7 +106,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     """A validated RigConfig from a parsed TOML document; relative paths are relative to `base`."""
     v = _Validator(name)
     # [simulation] (material, density of exported twins) is read and checked by simulation.asset.rig_simulation_table.
-    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration", "inspection"})
+    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration", "inspection", "limits"})
     rig_id = v.string(doc, "rig_id", default="rig")
     calibration = v.string(doc, "calibration", default="")
     cams_doc = doc.get("cameras")
@@ -115,6 +117,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     dup = next((i for i in ids if ids.count(i) > 1), None)
     if dup:
         raise ConfigError(f"{name}: cameras[].id must be unique, '{dup}' appears twice")
+    max_image_pixels = _max_image_pixels(v, v.table(doc, "limits"), cameras)
     return RigConfig(
         rig_id=rig_id,
         cameras=cameras,
@@ -124,7 +127,18 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         calibration=(base / calibration) if calibration else None,
         registration=_registration(v, v.table(doc, "registration")),
         inspection=_inspection(v, v.table(doc, "inspection")) if "inspection" in doc else None,
+        max_image_pixels=max_image_pixels,
     )
+
+
+def _max_image_pixels(v: "_Validator", d: dict, cameras: tuple[CameraConfig, ...]) -> int:
+    """[limits] max_image_pixels: at least every camera's frame, and under PIL's own decompression-bomb limit."""
+    v.known(d, "limits", {"max_image_pixels"})
+    cap = v.integer(d, "limits.max_image_pixels", default=MAX_IMAGE_PIXELS, lo=1_000_000, hi=150_000_000)
+    for i, c in enumerate(cameras):
+        if c.settings.width * c.settings.height > cap:
+            raise ConfigError(f"{v.name}: limits.max_image_pixels ({cap}) is below cameras[{i}]'s {c.settings.width}x{c.settings.height} frames; raise it")
+    return cap
 
 
 def _registration(v: "_Validator", d: dict) -> RegistrationConfig:

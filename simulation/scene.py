@@ -29,7 +29,8 @@ material = "plastic"      # or density = 1050 (kg/m^3)
 collision_tolerance = 0.1    # volume error allowed for the collision shapes
 fixed = false             # a fixture welded to the world
 ```
-Paths are relative to the scene file.
+Paths are relative to the scene file. Sizes that drive memory or run time are bounded (`BOUNDS`, and the
+rendered frames `MAX_FRAME_PIXELS`); a scene past one is refused in one sentence naming the key.
 """
 
 from __future__ import annotations
@@ -49,6 +50,22 @@ _TOP_KEYS = {"duration", "fps", "timestep", "gravity", "floor", "camera", "twin"
 _TWIN_KEYS = {"name", "path", "unit", "pos", "euler_deg", "quat", "bottom", "material", "density", "collision_tolerance", "fixed", "splats"}
 _CAMERA_KEYS = {"mode", "eye", "target", "up", "width", "height", "fov_deg", "turns"}
 _FLOOR_KEYS = {"enabled", "friction", "size"}
+
+# Upper bounds of the values that size an allocation or a loop, each with what it sizes.
+BOUNDS: dict[str, tuple[float, str]] = {
+    "duration": (600.0, "s; ten minutes of simulated time"),
+    "fps": (240.0, "frames per second"),
+    "timestep": (0.1, "s"),
+    "splats": (1_000_000, "splats per twin, each sampled and rendered every frame"),
+    "camera width": (4096, "pixels"),
+    "camera height": (4096, "pixels"),
+    "floor size": (1000.0, "m"),
+}
+MIN_TIMESTEP = 1e-5  # s
+MAX_PHYSICS_STEPS = 10_000_000  # duration / timestep
+MAX_TWINS = 100
+# Every rendered frame (uint8 RGB) is held for the video: frames x width x height pixels, 1.5 GB of them.
+MAX_FRAME_PIXELS = 500_000_000
 
 
 @dataclass(frozen=True)
@@ -116,6 +133,17 @@ def _positive(value, key: str) -> float:
     return v
 
 
+def _bounded(value, key: str, *, integer: bool = False) -> float:
+    """A positive number no larger than its bound in BOUNDS (`key`'s last word names the bound, e.g. "twin #2 splats")."""
+    if integer and (isinstance(value, bool) or not isinstance(value, int)):
+        raise SceneError(f"{key} must be a whole number, got {value!r}")
+    v = _positive(value, key)
+    hi, what = BOUNDS[key if key in BOUNDS else key.rsplit(" ", 1)[-1]]
+    if v > hi:
+        raise SceneError(f"{key} must be at most {hi:.15g} ({what}), got {value!r}")
+    return v
+
+
 def _unknown(doc: dict, allowed: set[str], where: str) -> None:
     extra = sorted(set(doc) - allowed)
     if extra:
@@ -156,7 +184,7 @@ def _placement(doc: dict, i: int, base: Path) -> Placement:
         density=None if doc.get("density") is None else _positive(doc["density"], f"{where} density"),
         collision_tolerance=_positive(doc.get("collision_tolerance", 0.1), f"{where} collision_tolerance"),
         fixed=bool(doc.get("fixed", False)),
-        splats=int(_positive(doc.get("splats", 20000), f"{where} splats")),
+        splats=int(_bounded(doc.get("splats", 20000), f"{where} splats", integer=True)),
     )
 
 
@@ -166,24 +194,31 @@ def parse_scene(doc: dict, base: Path) -> Scene:
     twins = doc.get("twin", [])
     if not isinstance(twins, list) or not twins:
         raise SceneError("the scene has no [[twin]] entries")
+    if len(twins) > MAX_TWINS:
+        raise SceneError(f"the scene has {len(twins)} [[twin]] entries; at most {MAX_TWINS}")
+    if not all(isinstance(t, dict) for t in twins):
+        raise SceneError("each [[twin]] must be a table")
     placements = [_placement(t, i, base) for i, t in enumerate(twins)]
     names = [p.name for p in placements]
     if len(set(names)) != len(names):
         raise SceneError(f"twin names must be unique, got {', '.join(names)}")
-    floor = doc.get("floor", {})
+    floor, cam = doc.get("floor", {}), doc.get("camera", {})
+    if not isinstance(floor, dict) or not isinstance(cam, dict):
+        raise SceneError("[floor] and [camera] must be tables")
     _unknown(floor, _FLOOR_KEYS, "[floor]")
     contact = ContactParams()
     if "friction" in floor:
         contact = ContactParams(friction=(_positive(floor["friction"], "floor friction"), *contact.friction[1:]))
-    timestep = _positive(doc.get("timestep", 0.001), "timestep")
+    timestep = _bounded(doc.get("timestep", 0.001), "timestep")
+    if timestep < MIN_TIMESTEP:
+        raise SceneError(f"timestep must be at least {MIN_TIMESTEP:g} s, got {timestep!r}")
     options = SimOptions(
         timestep=timestep,
         gravity=_vec(doc.get("gravity", (0, 0, -9.81)), 3, "gravity"),
         floor=bool(floor.get("enabled", True)),
-        floor_size=_positive(floor.get("size", 5.0), "floor size"),
+        floor_size=_bounded(floor.get("size", 5.0), "floor size"),
         contact=ContactParams(friction=contact.friction, solref=(2 * timestep, 1.0)),
     )
-    cam = doc.get("camera", {})
     _unknown(cam, _CAMERA_KEYS, "[camera]")
     mode = cam.get("mode", "turntable")
     if mode not in ("fixed", "turntable"):
@@ -194,14 +229,21 @@ def parse_scene(doc: dict, base: Path) -> Scene:
         eye=_vec(cam.get("eye", d.eye), 3, "camera eye"),
         target=_vec(cam.get("target", d.target), 3, "camera target"),
         up=_vec(cam.get("up", d.up), 3, "camera up"),
-        width=int(_positive(cam.get("width", d.width), "camera width")),
-        height=int(_positive(cam.get("height", d.height), "camera height")),
+        width=int(_bounded(cam.get("width", d.width), "camera width", integer=True)),
+        height=int(_bounded(cam.get("height", d.height), "camera height", integer=True)),
         fov_deg=_positive(cam.get("fov_deg", d.fov_deg), "camera fov_deg"),
         turns=float(cam.get("turns", d.turns)),
     )
     if not camera.fov_deg < 180:
         raise SceneError(f"camera fov_deg must be below 180, got {camera.fov_deg}")
-    return Scene(placements, options, _positive(doc.get("duration", 2.0), "duration"), _positive(doc.get("fps", 25), "fps"), camera)
+    duration, fps = _bounded(doc.get("duration", 2.0), "duration"), _bounded(doc.get("fps", 25), "fps")
+    if duration / timestep > MAX_PHYSICS_STEPS:
+        raise SceneError(f"duration / timestep is {duration / timestep:.3g} physics steps; at most {MAX_PHYSICS_STEPS:,} (shorten duration or raise timestep)")
+    frame_pixels = (math.floor(duration * fps + 1e-9) + 1) * camera.width * camera.height
+    if frame_pixels > MAX_FRAME_PIXELS:
+        raise SceneError(f"duration x fps x camera width x height is {frame_pixels:,} rendered pixels, held for the video; "
+                         f"at most {MAX_FRAME_PIXELS:,} (shorten duration, or lower fps or the camera size)")
+    return Scene(placements, options, duration, fps, camera)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

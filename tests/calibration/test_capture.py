@@ -184,3 +184,83 @@ def test_views_of_different_sizes_share_a_canvas_top_left(tmp_path):
         np.testing.assert_array_equal(cam.crop(images[i]), image)
         np.testing.assert_array_equal(cam.crop(masks[i]), mask)
         assert np.count_nonzero(images[i]) == np.count_nonzero(image) and masks[i].sum() == mask.sum()
+
+
+def _redirect(root, how, outside):
+    """Point one path the capture names at `outside` (a copy of its image, so only containment can refuse it)."""
+    doc = json.loads((root / "transforms.json").read_text())
+    if how == "absolute":
+        doc["frames"][1]["file_path"] = str(outside)
+    elif how == "dotdot":
+        doc["frames"][1]["file_path"] = f"../{outside.name}"
+    elif how == "mask-dotdot":
+        doc["frames"][1]["mask_path"] = f"../{outside.name}"
+    elif how == "background-dotdot":
+        doc["cadsplat"]["background"]["cam01"] = f"../{outside.name}"
+    elif how == "manifest-dotdot":
+        doc["cadsplat"]["sha256"][f"../{outside.name}"] = "0" * 64
+    elif how == "symlink":
+        (root / "images/cam01.png").unlink()
+        (root / "images/cam01.png").symlink_to(outside)
+    (root / "transforms.json").write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("how", ["absolute", "dotdot", "mask-dotdot", "background-dotdot", "manifest-dotdot", "symlink"])
+def test_paths_a_capture_names_stay_inside_it(tmp_path, how):
+    """Issue 58 (3): a capture's file_path, mask_path, background and manifest paths never read outside its folder."""
+    frames = small_frames()
+    root = tmp_path / "cap"
+    write_capture(root, frames, backgrounds={"cam01": frames[1].image})
+    outside = tmp_path / "secret.png"
+    outside.write_bytes((root / "images/cam01.png").read_bytes())
+    _redirect(root, how, outside)
+    with pytest.raises(CaptureError, match=r"leads outside|is absolute") as err:
+        read_capture(root, verify=False) if how != "manifest-dotdot" else read_capture(root)
+    assert "\n" not in str(err.value) and "transforms.json" in str(err.value)
+
+
+def png_bomb(path, width: int, height: int) -> int:
+    """Write an all-black RGB PNG of width x height, streamed through zlib so the canvas is never in memory; returns its size in bytes."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z, row, idat = zlib.compressobj(9), b"\0" * (1 + 3 * width), []
+    for _ in range(height):
+        idat.append(z.compress(row))
+    idat.append(z.flush())
+    data = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", b"".join(idat)) + chunk(b"IEND", b""))
+    path.write_bytes(data)
+    return len(data)
+
+
+def test_a_png_bomb_is_refused_from_its_header_without_decoding(tmp_path, monkeypatch):
+    """Issue 58 (9): a few-hundred-KB PNG declaring 12000x12000 is refused in one sentence before any pixel is decoded."""
+    import cv2
+
+    root = tmp_path / "cap"
+    write_capture(root, small_frames())
+    size = png_bomb(root / "images/cam01.png", 12000, 12000)
+    assert size < 1 << 20
+    doc = json.loads((root / "transforms.json").read_text())
+    for key in ("w", "h"):
+        doc["frames"][1].pop(key)  # the size is read from the header, as for a nerfstudio capture that states none
+    (root / "transforms.json").write_text(json.dumps(doc))
+
+    def no_decoding(*_a, **_k):
+        raise AssertionError("the bomb was decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", no_decoding)
+    with pytest.raises(CaptureError, match=r"cam01\.png: image declares 12000x12000 pixels \(144 MP\), above the cap of 50 MP") as err:
+        read_capture(root, verify=False)
+    assert "\n" not in str(err.value)
+    doc["frames"][1].update(w=12000, h=12000)
+    (root / "transforms.json").write_text(json.dumps(doc))
+    cap = read_capture(root, verify=False)
+    with pytest.raises(CaptureError, match=r"cam01\.png: image declares 12000x12000 pixels .*it was not decoded"):
+        cap.view(1)
+    with pytest.raises(CaptureError, match=r"above the cap of 0\.001 MP"):
+        read_capture(root, verify=False, max_pixels=1000).image(0)

@@ -143,3 +143,126 @@ def test_directory_exports_are_atomic_and_replace_only_their_format(world, tmp_p
     (other / "a.txt").write_text("keep")
     assert main(["export", str(world["twin"]), "--format", "colmap", "--out", str(other), "--overwrite"]) != 0
     assert "holds no colmap export" in capsys.readouterr().err and (other / "a.txt").exists()
+
+
+@pytest.mark.parametrize("command", ["register", "reconstruct", "evaluate", "calibrate-check"])
+def test_a_capture_path_leading_outside_is_refused_in_one_sentence(world, tmp_path, capsys, command):
+    """Issue 58 (3): a capture whose file_path leaves its folder (here by a symbolic link to a copy of the image) is refused."""
+    local = {k: tmp_path / k for k in ("twin", "capture", "lib")}
+    for key, path in local.items():
+        shutil.copytree(world[key], path)
+    outside = tmp_path / "outside.png"
+    outside.write_bytes((local["capture"] / "images/v1.png").read_bytes())
+    (local["capture"] / "images/v1.png").unlink()
+    (local["capture"] / "images/v1.png").symlink_to(outside)
+    out = tmp_path / "out"
+    argv = [a.format(out=out, calibration=world["calibration"], **local) for a in CASES[command][0]]
+    rc = main(argv)
+    captured = capsys.readouterr()
+    assert rc != 0 and "Traceback" not in captured.err + captured.out
+    assert len(captured.err.strip().splitlines()) == 1 and "leads outside" in captured.err
+
+
+def _frames0(doc: dict) -> dict:
+    return doc["frames"][0]
+
+
+# "<key>-<how>" -> what spoils the capture's transforms.json at that key (issue 58, 14)
+MALFORMED = {
+    "frames-not-objects": lambda d: d.update(frames=[1, 2]),
+    "frames-an-object": lambda d: d.update(frames={"a": 1}),
+    "cadsplat-a-list": lambda d: d.update(cadsplat=[]),
+    "document-a-list": None,
+    "file_path-a-number": lambda d: _frames0(d).update(file_path=7),
+    "file_path-missing": lambda d: _frames0(d).pop("file_path"),
+    "mask_path-a-list": lambda d: _frames0(d).update(mask_path=["masks/v0.png"]),
+    "transform_matrix-missing": lambda d: _frames0(d).pop("transform_matrix"),
+    "transform_matrix-strings": lambda d: _frames0(d).update(transform_matrix=[["a"] * 4] * 4),
+    "transform_matrix-a-number": lambda d: _frames0(d).update(transform_matrix=3),
+    "fl_x-a-string": lambda d: _frames0(d).update(fl_x="fifty"),
+    "w-a-list": lambda d: _frames0(d).update(w=[48]),
+    "h-negative": lambda d: _frames0(d).update(h=-36),
+    "cx-a-bool": lambda d: _frames0(d).update(cx=True),
+    "dist-a-string": lambda d: _frames0(d).update(dist="0 0 0 0"),
+    "fl_y-shared-an-object": lambda d: d.update(fl_y={"v": 1}),
+    "timestamp_ns-a-string": lambda d: _frames0(d).update(timestamp_ns="noon"),
+    "camera_id-a-list": lambda d: _frames0(d).update(camera_id=[0]),
+    "sha256-a-list": lambda d: d["cadsplat"].update(sha256=["images/v0.png"]),
+    "sha256-entry-a-number": lambda d: d["cadsplat"]["sha256"].update({"images/v0.png": 5}),
+    "background-a-string": lambda d: d["cadsplat"].update(background="background/"),
+    "units-a-list": lambda d: d["cadsplat"].update(units=[]),
+    "calibration_uncertainty-text": lambda d: d["cadsplat"].update(calibration_uncertainty={"rotation_deg": "small"}),
+}
+READERS = {"register": CASES["register"][0], "reconstruct": CASES["reconstruct"][0], "evaluate": CASES["evaluate"][0],
+           "calibrate-check": CASES["calibrate-check"][0], "render": ["render", "{twin}", "--views", "{capture}", "--out", "{out}"]}
+
+
+@pytest.mark.parametrize("command", list(READERS))
+@pytest.mark.parametrize("spoil", list(MALFORMED))
+def test_wrong_json_types_in_transforms_json_are_one_sentence(world, tmp_path, capsys, command, spoil):
+    """Issue 58 (14): every command that reads a capture names the file and the key of a wrong JSON type, in one line."""
+    capture = tmp_path / "capture"
+    shutil.copytree(world["capture"], capture)
+    doc = json.loads((capture / "transforms.json").read_text())
+    if MALFORMED[spoil] is None:
+        doc = doc["frames"]
+    else:
+        MALFORMED[spoil](doc)
+    (capture / "transforms.json").write_text(json.dumps(doc))
+    out = tmp_path / "out"
+    argv = [a.format(out=out, twin=world["twin"], capture=capture, lib=world["lib"], calibration=world["calibration"]) for a in READERS[command]]
+    rc = main(argv)
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert rc != 0 and "Traceback" not in captured.err + captured.out
+    assert len(err.splitlines()) == 1 and "transforms.json" in err and spoil.split("-")[0] in err, err
+    assert not out.exists() and not Path(f"{out}.json").exists()
+
+
+@pytest.mark.parametrize("spoil", ["frames-not-objects", "cadsplat-a-list", "file_path-a-number"])
+def test_the_installed_entry_point_prints_one_line(world, tmp_path, spoil):
+    """The issue's three documents through `python -m deploy.cli register`: exit 2, one line on stderr, no traceback."""
+    import os
+    import subprocess
+    import sys
+
+    capture = tmp_path / "capture"
+    shutil.copytree(world["capture"], capture)
+    doc = json.loads((capture / "transforms.json").read_text())
+    MALFORMED[spoil](doc)
+    (capture / "transforms.json").write_text(json.dumps(doc))
+    repo = Path(__file__).resolve().parents[2]
+    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "register", str(capture), "--library", str(world["lib"]), "--out", str(tmp_path / "r.json")],
+                          capture_output=True, text=True, cwd=repo, env={**os.environ, "PYTHONPATH": str(repo)}, timeout=300, check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr + proc.stdout
+    assert len(proc.stderr.strip().splitlines()) == 1 and "transforms.json" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("command", ["register", "reconstruct", "evaluate"])
+def test_a_png_bomb_in_a_capture_is_refused_in_one_sentence(world, tmp_path, capsys, monkeypatch, request, command):
+    """Issue 58 (9): a capture whose image declares 12000x12000 (its manifest updated to match) is refused before decoding."""
+    import cv2
+
+    from calibration.fileio import sha256_file
+    from tests.calibration.test_capture import png_bomb
+
+    capture = tmp_path / "capture"
+    shutil.copytree(world["capture"], capture)
+    png_bomb(capture / "images/v1.png", 12000, 12000)
+    doc = json.loads((capture / "transforms.json").read_text())
+    doc["cadsplat"]["sha256"]["images/v1.png"] = sha256_file(capture / "images/v1.png")
+    (capture / "transforms.json").write_text(json.dumps(doc))
+    bomb, real = (capture / "images/v1.png").read_bytes(), cv2.imdecode
+
+    def imdecode(data, flags):
+        assert bytes(data) != bomb, "the bomb was decoded"
+        return real(data, flags)
+
+    monkeypatch.setattr(cv2, "imdecode", imdecode)
+    out = tmp_path / "out"
+    lib = request.getfixturevalue("library") if command == "register" else world["lib"]  # register reads the library before the images
+    argv = [a.format(out=out, twin=world["twin"], capture=capture, lib=lib, calibration=world["calibration"]) for a in READERS[command]]
+    rc = main(argv)
+    captured = capsys.readouterr()
+    assert rc != 0 and "Traceback" not in captured.err + captured.out
+    assert len(captured.err.strip().splitlines()) == 1 and "v1.png: image declares 12000x12000 pixels" in captured.err, captured.err

@@ -54,9 +54,9 @@ def decodes(monkeypatch):
     counts: Counter = Counter()
     original = calibration.capture.read_image
 
-    def counting(path):
+    def counting(path, *args):
         counts[Path(path).resolve()] += 1
-        return original(path)
+        return original(path, *args)
 
     monkeypatch.setattr(calibration.capture, "read_image", counting)
     return counts

@@ -107,3 +107,61 @@ def test_missing_or_bad_library(tmp_path):
         build_library(tmp_path, tmp_path / "lib", progress=False)
     with pytest.raises(LibraryError, match="unit 'ft'"):
         build_library(tmp_path, tmp_path / "lib", unit="ft", progress=False)
+
+
+def _one_box_library(tmp_path):
+    src = tmp_path / "meshes"
+    src.mkdir()
+    trimesh.creation.box([0.1, 0.05, 0.02]).export(src / "plate.stl")
+    return build_library(src, tmp_path / "lib", grid=GRID, workers=1, progress=False, log=lambda s: None).root
+
+
+@pytest.mark.parametrize("how", ["absolute", "dotdot", "symlink", "shard-dotdot"])
+def test_library_paths_stay_inside_the_library(tmp_path, how):
+    """Issue 58 (3): a library's mesh `file` (and shard) is read only from inside the library."""
+    root = _one_box_library(tmp_path)
+    doc = json.loads((root / "library.json").read_text())
+    outside = tmp_path / "elsewhere.stl"
+    outside.write_bytes((root / doc["models"][0]["file"]).read_bytes())  # same bytes: only containment refuses it
+    if how == "absolute":
+        doc["models"][0]["file"] = str(outside)
+    elif how == "dotdot":
+        doc["models"][0]["file"] = "../elsewhere.stl"
+    elif how == "shard-dotdot":
+        (tmp_path / "elsewhere.npz").write_bytes((root / doc["models"][0]["shard"]).read_bytes())
+        doc["models"][0]["shard"] = "../elsewhere.npz"
+    else:
+        (root / doc["models"][0]["file"]).unlink()
+        (root / doc["models"][0]["file"]).symlink_to(outside)
+    (root / "library.json").write_text(json.dumps(doc))
+    with pytest.raises(LibraryError, match=r"models\[0\]\.(file|shard) .*(leads outside|is absolute)") as err:
+        load_library(root)
+    assert "\n" not in str(err.value)
+
+
+def test_a_replaced_mesh_is_refused_on_load_naming_its_model(tmp_path, monkeypatch):
+    """Issue 58 (3): the mesh must be the one the library was built from (its recorded sha256), checked once per load."""
+    from reconstruction import library
+
+    root = _one_box_library(tmp_path)
+    hashed = []
+    real = library.sha256_file
+    monkeypatch.setattr(library, "sha256_file", lambda p: hashed.append(p) or real(p))
+    lib = load_library(root)
+    lib.load_mesh("plate")
+    lib.load_mesh("plate")
+    assert len(hashed) == 1  # at load, not at each use
+    trimesh.creation.box([0.2, 0.05, 0.02]).export(root / "meshes" / "plate.stl")
+    with pytest.raises(LibraryError, match=r"mesh of model plate is not the one the library was built from") as err:
+        load_library(root)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("models", [[1, 2], [{"id": "plate"}], [{"id": "p", "file": 7, "unit": "m", "sha256": "0", "shard": "x", "extent_m": [1, 1, 1]}]])
+def test_malformed_library_json_is_one_sentence(tmp_path, models):
+    root = _one_box_library(tmp_path)
+    doc = json.loads((root / "library.json").read_text())
+    doc["models"] = models
+    (root / "library.json").write_text(json.dumps(doc))
+    with pytest.raises(LibraryError, match=r"library\.json: models\[0\]"):
+        load_library(root)

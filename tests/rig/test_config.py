@@ -66,3 +66,14 @@ def test_unreadable_files_are_one_sentence(tmp_path):
     bad.write_text("cameras = [[[")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+
+
+def test_the_image_pixel_cap_is_a_limit_of_the_rig():
+    """Issue 58 (9): [limits] max_image_pixels, 50 MP unless set, never below the rig's own frames."""
+    assert parse_config(MINIMAL).max_image_pixels == 50_000_000
+    assert parse_config({**MINIMAL, "limits": {"max_image_pixels": 20_000_000}}).max_image_pixels == 20_000_000
+    big = {"cameras": [{"id": "cam0", "driver": "pattern", "width": 8000, "height": 6000}]}
+    with pytest.raises(ConfigError, match=r"limits\.max_image_pixels \(20000000\) is below cameras\[0\]'s 8000x6000 frames"):
+        parse_config({**big, "limits": {"max_image_pixels": 20_000_000}})
+    with pytest.raises(ConfigError, match=r"limits\.max_image_pixels must be an integer in \[1000000, 150000000\]"):
+        parse_config({**MINIMAL, "limits": {"max_image_pixels": 10**9}})
