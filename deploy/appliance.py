@@ -49,6 +49,7 @@ class Appliance:
         closers=(),
         inspection=None,
         spill=None,
+        registration=None,
     ) -> None:
         from deploy.service import PipelineService
         from deploy.steps import PipelineConfig, make_step_runner
@@ -88,7 +89,8 @@ class Appliance:
                                        backgrounds=dict(backgrounds or {}), spill=spill)
         cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
                              inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
-                             inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None)
+                             inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None,
+                             **({"registration": registration} if registration is not None else {}))
         self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
                                        on_event=self._on_service_event)
         self._threads = [
@@ -112,7 +114,10 @@ class Appliance:
         from rig.config import load_config
         from rig.store import Spill, default_spill_dir
 
+        from reconstruction.registration import RegistrationConfig
+
         cfg = load_config(config_path)
+        registration = RegistrationConfig.from_dict(cfg.registration, where=f"{config_path}: registration")
         if cfg.calibration is None:
             raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
         calibration = load_rig_calibration(cfg.calibration).cameras
@@ -123,7 +128,7 @@ class Appliance:
         work.mkdir(parents=True, exist_ok=True)
         spill = Spill(cfg.storage.spill or default_spill_dir(), store.root)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill)
+                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill, registration=registration)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),

@@ -70,7 +70,7 @@ def test_a_service_job_decodes_each_image_once_and_masks_and_registers_once(tmp_
     import reconstruction.masks
     import reconstruction.registration
 
-    for module, name, calls in ((reconstruction.registration, "register", registered), (reconstruction.masks, "capture_masks", masked)):
+    for module, name, calls in ((reconstruction.registration, "register_views", registered), (reconstruction.masks, "capture_masks", masked)):
         original = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _o=original, _c=calls, **k: (_c.append(1), _o(*a, **k))[1])
     cfg = PipelineConfig(library=str(library), preset="preview", export_formats=("ply",))
