@@ -68,3 +68,18 @@ def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
     bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
     return top * (1 - fy) + bottom * fy
+
+
+def break_tie(images: np.ndarray, cameras_rig: list[Camera], verts: np.ndarray, faces: np.ndarray, pose: Sim3, score: float, alt_pose: Sim3,
+              alt_score: float, ambiguity: dict) -> tuple[Sim3, float]:
+    """The winner of a near-tie between `pose` (the silhouettes' choice, objective `score`) and `alt_pose`: the alternative
+    when its colours agree better across views by the PHOTO_DECISIVE ratio. Records both disagreements and what decided
+    in `ambiguity` (its score_gap turns negative and its alternative becomes `pose` when the images overrule)."""
+    pd, pd_alt = photo_disagreement(images, cameras_rig, verts, faces, pose), photo_disagreement(images, cameras_rig, verts, faces, alt_pose)
+    decisive = bool(pd_alt < PHOTO_DECISIVE * pd)
+    if decisive:
+        ambiguity["alternative_sim3_rig_to_object"] = pose.to_dict()
+        pose, score, alt_score, pd, pd_alt = alt_pose, alt_score, score, pd_alt, pd
+        ambiguity["score_gap"], ambiguity["alternative_score"] = float(score - alt_score), float(alt_score)
+    ambiguity.update(photo_disagreement=pd, alternative_photo_disagreement=pd_alt, decided_by="images" if decisive else "silhouettes")
+    return pose, score

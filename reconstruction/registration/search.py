@@ -19,6 +19,7 @@ nothing above threshold (RegistrationError naming the best IoU found).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from calibration.so3 import geodesic_angle_deg
 from reconstruction.library import Library
 from reconstruction.parallel import num_threads, parallel_for
 from reconstruction.registration.hypotheses import Hypothesis, match_views, observe, sim3_from_pair
-from reconstruction.registration.photo import PHOTO_DECISIVE, photo_disagreement
+from reconstruction.registration.photo import break_tie
 from reconstruction.registration.refine import refine, result_of
 from reconstruction.registration.result import RegistrationError, RegistrationResult
 from reconstruction.registration.scale import SCALE_TOLERANCE, scale_band
@@ -92,6 +93,34 @@ def check_inputs(masks: np.ndarray, cameras_rig: list[Camera]) -> np.ndarray:
     return masks
 
 
+@dataclass
+class _Search:
+    """What the stages of one library search share: the inputs, the scale band and the scoring meshes loaded so far."""
+
+    masks: np.ndarray
+    cameras: list[Camera]
+    library: Library
+    band: tuple[float, float]
+    expected: float | None  # a metric rig's scale; None: unknown
+    fix_scale: bool
+    refine_evals: int
+    meshes: dict[int, tuple[np.ndarray, np.ndarray, int]] = field(default_factory=dict)
+
+    @property
+    def index(self):
+        return self.library.index
+
+    def mesh(self, model: int) -> tuple[np.ndarray, np.ndarray, int]:
+        if model not in self.meshes:
+            self.meshes[model] = scoring_shape(self.library, self.index.model_ids[model])
+        return self.meshes[model]
+
+    def refine(self, scorer: Scorer, model: int, sim: Sim3, max_evals: int) -> tuple[Sim3, float]:
+        v_, f_, w_ = self.mesh(model)
+        return refine(scorer, v_, f_, sim, self.index.centers[model], float(self.index.radii[model]), max_evals=max_evals, fix_scale=self.fix_scale,
+                      band=self.band, winding=w_)
+
+
 def register(
     masks: np.ndarray,
     cameras_rig: list[Camera],
@@ -118,12 +147,7 @@ def register(
     masks = check_inputs(masks, cameras_rig)
     band = scale_band(rig_metres_per_unit, scale_tolerance)
     index = library.index
-    model_mask = None
-    if model_ids is not None:
-        keep = {m for m in model_ids}
-        model_mask = np.array([m in keep for m in index.model_ids])
-        if not model_mask.any():
-            raise RegistrationError(f"none of the requested models ({', '.join(sorted(keep))}) is in the library")
+    model_mask = _model_mask(index.model_ids, model_ids)
     rng = np.random.default_rng(seed)
     timings = {}
 
@@ -143,17 +167,44 @@ def register(
     scale_observable = spread > 1e-9 * max(1.0, float(np.abs(centers).max()))
     # A metric rig's scale is known up to the part's tolerance; without baselines and units it is set to 1.
     expected = None if rig_metres_per_unit is None else float(rig_metres_per_unit)
+    search = _Search(masks, cameras_rig, library, band, expected, fix_scale=not scale_observable, refine_evals=refine_evals)
 
     t = time.perf_counter()
     scorer = Scorer(masks, cameras_rig, SCORE_PX)
-    meshes: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+    candidates = _ransac(search, hyps, seeds, centers, spread, rng, iterations, paired=scale_observable)
+    scored = _score_candidates(scorer, candidates, search.mesh)
+    if not scored:
+        scored = _single_view_scores(search, scorer, hyps, seeds, top_k)
+    timings["ransac"] = time.perf_counter() - t
+    scored.sort(key=lambda s: -s[0])
 
-    def mesh(model: int):
-        if model not in meshes:
-            meshes[model] = scoring_shape(library, index.model_ids[model])
-        return meshes[model]
+    t = time.perf_counter()
+    fine = Scorer(masks, cameras_rig, REFINE_PX)
+    shortlist, contenders = _decide(search, scorer, fine, scored)
+    (score, best_model, refined) = contenders[0]
+    model_ties = _model_ties(index, contenders)
+    refined, score, ambiguity = _symmetry(search, fine, best_model, refined, score, shortlist + scored, images)
+    timings["refine"] = time.perf_counter() - t
+    return result_of(masks, cameras_rig, library, best_model, refined, score, fine, alternatives=_alternatives(index, scored, best_model),
+                     ambiguity=ambiguity, model_ties=model_ties, timings=timings, t0=t0, truncated=truncated, scale_observable=scale_observable,
+                     rig_metres_per_unit=rig_metres_per_unit, band=band)
 
-    scored: list[tuple[float, int, Sim3]] = []
+
+def _model_mask(model_ids: list[str], wanted: list[str] | None) -> np.ndarray | None:
+    """bool [M]: the library models the search may use (None: all)."""
+    if wanted is None:
+        return None
+    keep = set(wanted)
+    mask = np.array([m in keep for m in model_ids])
+    if not mask.any():
+        raise RegistrationError(f"none of the requested models ({', '.join(sorted(keep))}) is in the library")
+    return mask
+
+
+def _ransac(search: _Search, hyps: list[list[Hypothesis]], seeds: list[int], centers: np.ndarray, spread: float, rng: np.random.Generator,
+            iterations: int, *, paired: bool = True) -> list[tuple[int, Sim3]]:
+    """(model, Sim(3)) candidates from `iterations` random draws: a seed view's hypothesis, and with `paired` (the scale is
+    observable) a hypothesis of the same model in another view at a distinct camera centre for the scale. Repeated draws are skipped."""
     by_model_view: dict[tuple[int, int], list[Hypothesis]] = {}
     for v, hs in enumerate(hyps):
         for h in hs:
@@ -164,7 +215,7 @@ def register(
         vi = seeds[rng.integers(len(seeds))]
         hi = hyps[vi][rng.integers(len(hyps[vi]))]
         second, key2 = None, None
-        if scale_observable:
+        if paired:
             partners = [v for v in range(len(hyps)) if v != vi and (hi.model, v) in by_model_view and np.linalg.norm(centers[v] - centers[vi]) > 1e-9 * max(1.0, spread)]
             if not partners:
                 continue
@@ -176,86 +227,88 @@ def register(
         if key in seen:
             continue
         seen.add(key)
-        candidates += [(hi.model, sim) for sim in sim3_from_pair(hi, second, cameras_rig, index.centers[hi.model], band=band,
-                                                                expected_scale=expected)]
-    scored += _score_candidates(scorer, candidates, mesh)
-    if not scored:
-        # Every hypothesising model appears in one view only: no pair to take a scale from.
-        for vi in seeds:
-            for h in hyps[vi][:top_k]:
-                sim = sim3_from_pair(h, None, cameras_rig, index.centers[h.model], band=band, expected_scale=expected)[0]
-                v_, f_, w_ = mesh(h.model)
-                scored.append((float(scorer.scores(v_, f_, sim, winding=w_)[1].mean()), h.model, sim))
-    timings["ransac"] = time.perf_counter() - t
-    scored.sort(key=lambda s: -s[0])
+        candidates += [(hi.model, sim) for sim in sim3_from_pair(hi, second, search.cameras, search.index.centers[hi.model], band=search.band,
+                                                                expected_scale=search.expected)]
+    return candidates
 
-    # A discrete grid lets a near-symmetric wrong pose outscore the right one before refinement,
-    # so the best few distinct candidates are refined briefly and the best after that wins.
-    t = time.perf_counter()
-    fix_scale = not scale_observable
+
+def _single_view_scores(search: _Search, scorer: Scorer, hyps: list[list[Hypothesis]], seeds: list[int], top_k: int) -> list[tuple[float, int, Sim3]]:
+    """Every hypothesising model appears in one view only: no pair to take a scale from, so each seed hypothesis alone."""
+    scored = []
+    for vi in seeds:
+        for h in hyps[vi][:top_k]:
+            sim = sim3_from_pair(h, None, search.cameras, search.index.centers[h.model], band=search.band, expected_scale=search.expected)[0]
+            v_, f_, w_ = search.mesh(h.model)
+            scored.append((float(scorer.scores(v_, f_, sim, winding=w_)[1].mean()), h.model, sim))
+    return scored
+
+
+def _decide(search: _Search, scorer: Scorer, fine: Scorer, scored: list[tuple[float, int, Sim3]]):
+    """The shortlist (the best CANDIDATES distinct candidates, briefly refined) and the contenders (the best pose of each
+    model near the top, fully refined on `fine`), each best first.
+
+    A discrete grid lets a near-symmetric wrong pose outscore the right one before refinement, so the best few distinct
+    candidates are refined briefly and the best after that wins. A look-alike (another model that fits as well) is then
+    either the winner or reported as a tie, not lost to a brief refinement.
+    """
     shortlist: list[tuple[float, int, Sim3]] = []
     for sc, m, sim in scored:
         if len(shortlist) == CANDIDATES:
             break
         if all(m != o[1] or geodesic_angle_deg(sim.rotation, o[2].rotation) > DISTINCT_DEG for o in shortlist):
-            v_, f_, w_ = mesh(m)
-            sim_r, sc_r = refine(scorer, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals // 4, fix_scale=fix_scale, band=band,
-                                 winding=w_)
+            sim_r, sc_r = search.refine(scorer, m, sim, search.refine_evals // 4)
             shortlist.append((sc_r, m, sim_r))
     shortlist.sort(key=lambda s: -s[0])
-    # The best pose of each model close to the top gets the full refinement: a look-alike (another
-    # model that fits as well) is then either the winner or reported as a tie, not lost to a brief refinement.
-    fine = Scorer(masks, cameras_rig, REFINE_PX)
     contenders: list[tuple[float, int, Sim3]] = []
     for sc, m, sim in shortlist:
         if sc >= shortlist[0][0] - TIE_SCREEN and all(m != c[1] for c in contenders) and len(contenders) < CONTENDERS:
-            v_, f_, w_ = mesh(m)
-            sim_r, sc_r = refine(fine, v_, f_, sim, index.centers[m], float(index.radii[m]), max_evals=refine_evals, fix_scale=fix_scale, band=band,
-                                 winding=w_)
+            sim_r, sc_r = search.refine(fine, m, sim, search.refine_evals)
             contenders.append((sc_r, m, sim_r))
     contenders.sort(key=lambda c: -c[0])
-    (score, best_model, refined) = contenders[0]
-    # cad_size_ratio: the tied model's size over the winner's; scale_ratio: the rig-to-object scale
-    # it fits at over the winner's. Both equal: the same shape at another size, which only a metric rig tells apart.
-    model_ties = [
+    return shortlist, contenders
+
+
+def _model_ties(index, contenders: list[tuple[float, int, Sim3]]) -> list[dict]:
+    """Other models whose refined objective is within AMBIGUOUS_GAP of the winner's. cad_size_ratio: the tied model's size
+    over the winner's; scale_ratio: the rig-to-object scale it fits at over the winner's. Both equal: the same shape at
+    another size, which only a metric rig tells apart."""
+    score, best_model, refined = contenders[0]
+    return [
         {"model_id": index.model_ids[m], "score_gap": float(score - sc), "cad_size_ratio": float(index.radii[m] / index.radii[best_model]),
          "scale_ratio": float(sim.scale / refined.scale)}
         for sc, m, sim in contenders[1:] if score - sc < AMBIGUOUS_GAP
     ]
-    verts, faces, winding = mesh(best_model)
-    center, radius = index.centers[best_model], float(index.radii[best_model])
 
-    # The best pose of the same model that is not the same pose: the symmetry report.
-    ambiguity = None
-    alt = next((s for s in shortlist + scored if s[1] == best_model and geodesic_angle_deg(s[2].rotation, refined.rotation) > DISTINCT_DEG), None)
-    if alt is not None:
-        alt_sim, alt_score = refine(fine, verts, faces, alt[2], center, radius, max_evals=refine_evals // 2, fix_scale=fix_scale, band=band,
-                                    winding=winding)
-        if alt_score > score:
-            refined, score, alt_sim, alt_score = alt_sim, alt_score, refined, score
-        gap = score - alt_score
-        ambiguity = {
-            "ambiguous": bool(gap < AMBIGUOUS_GAP),
-            "score_gap": float(gap),
-            "alternative_score": float(alt_score),
-            "rotation_deg": float(geodesic_angle_deg(alt_sim.rotation, refined.rotation)),
-            "alternative_sim3_rig_to_object": alt_sim.to_dict(),
-        }
-        if ambiguity["ambiguous"] and images is not None:
-            pd, pd_alt = photo_disagreement(images, cameras_rig, verts, faces, refined), photo_disagreement(images, cameras_rig, verts, faces, alt_sim)
-            decisive = bool(pd_alt < PHOTO_DECISIVE * pd)
-            if decisive:
-                # The images overrule the silhouettes (score_gap turns negative).
-                ambiguity["alternative_sim3_rig_to_object"] = refined.to_dict()
-                refined, score, alt_score, pd, pd_alt = alt_sim, alt_score, score, pd_alt, pd
-                ambiguity["score_gap"], ambiguity["alternative_score"] = float(score - alt_score), float(alt_score)
-            ambiguity.update(photo_disagreement=pd, alternative_photo_disagreement=pd_alt, decided_by="images" if decisive else "silhouettes")
-    timings["refine"] = time.perf_counter() - t
 
+def _symmetry(search: _Search, fine: Scorer, model: int, refined: Sim3, score: float, ranked: list[tuple[float, int, Sim3]],
+              images: np.ndarray | None) -> tuple[Sim3, float, dict | None]:
+    """The winner (pose and objective) after the symmetry check, and its report: the best pose of the same `model` in
+    `ranked` that is not the same pose is refined; the better of the two wins, and on a near-tie the `images` decide
+    (`photo.break_tie`). None: no distinct pose of that model was found."""
+    alt = next((s for s in ranked if s[1] == model and geodesic_angle_deg(s[2].rotation, refined.rotation) > DISTINCT_DEG), None)
+    if alt is None:
+        return refined, score, None
+    alt_sim, alt_score = search.refine(fine, model, alt[2], search.refine_evals // 2)
+    if alt_score > score:
+        refined, score, alt_sim, alt_score = alt_sim, alt_score, refined, score
+    gap = score - alt_score
+    ambiguity = {
+        "ambiguous": bool(gap < AMBIGUOUS_GAP),
+        "score_gap": float(gap),
+        "alternative_score": float(alt_score),
+        "rotation_deg": float(geodesic_angle_deg(alt_sim.rotation, refined.rotation)),
+        "alternative_sim3_rig_to_object": alt_sim.to_dict(),
+    }
+    if ambiguity["ambiguous"] and images is not None:
+        verts, faces, _ = search.mesh(model)
+        refined, score = break_tie(images, search.cameras, verts, faces, refined, score, alt_sim, alt_score, ambiguity)
+    return refined, score, ambiguity
+
+
+def _alternatives(index, scored: list[tuple[float, int, Sim3]], best_model: int) -> list[tuple[str, float]]:
+    """The other models' best RANSAC scores, best first (at most five)."""
     per_model: dict[int, float] = {}
     for s, m, _ in scored:
         if m != best_model and s > per_model.get(m, -1.0):
             per_model[m] = s
-    alternatives = [(index.model_ids[m], float(s)) for m, s in sorted(per_model.items(), key=lambda kv: -kv[1])[:5]]
-    return result_of(masks, cameras_rig, library, best_model, refined, score, fine, alternatives=alternatives, ambiguity=ambiguity, model_ties=model_ties,
-                     timings=timings, t0=t0, truncated=truncated, scale_observable=scale_observable, rig_metres_per_unit=rig_metres_per_unit, band=band)
+    return [(index.model_ids[m], float(s)) for m, s in sorted(per_model.items(), key=lambda kv: -kv[1])[:5]]
