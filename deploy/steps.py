@@ -27,6 +27,7 @@ from deploy.jobs import Job
 
 if TYPE_CHECKING:
     from reconstruction.registration import RegistrationConfig
+    from rig.config import RigConfig
 
 Progress = Callable[[str, int, int], None]
 
@@ -49,6 +50,20 @@ class PipelineConfig:
     inspection_tolerance_mm: float | None = None  # set: every twin is inspected against its CAD (rig.toml [inspection])
     inspection_max_unseen_pct: float | None = None
     registration: RegistrationConfig = field(default_factory=_default_registration)
+
+
+def registration_config(rig_toml: Path | None, *, loaded: RigConfig | None = None) -> RegistrationConfig:
+    """rig.toml's [registration] as a RegistrationConfig (its defaults without a rig.toml); `loaded`: that file as the
+    caller already parsed it. A bad file or key raises ConfigError / RegistrationError in one sentence naming it."""
+    from reconstruction.registration import RegistrationConfig
+
+    if rig_toml is None:
+        return RegistrationConfig()
+    if loaded is None:
+        from rig.config import load_config
+
+        loaded = load_config(rig_toml)
+    return RegistrationConfig.from_dict(loaded.registration, where=f"{rig_toml}: registration")
 
 
 REGISTRATION_JSON = "registration.json"

@@ -30,9 +30,8 @@ def service() -> None:
               help="rig.toml: its [registration] table (known_part, scale_tolerance, ...) applies to every capture.")
 def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float,
         tolerance_mm: float | None, max_unseen_pct: float | None, min_free_gb: float, rig_config: Path | None) -> None:
-    from deploy.commands.register import registration_config
     from deploy.service import PipelineService
-    from deploy.steps import PipelineConfig, make_step_runner
+    from deploy.steps import PipelineConfig, make_step_runner, registration_config
 
     def show(e) -> None:
         if e.kind == "stopped":
