@@ -39,8 +39,6 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
              seed: int) -> None:
     import time
 
-    import numpy as np
-
     from calibration.capture import read_capture
     from calibration.fileio import atomic_write_json
     from reconstruction.library import load_library
@@ -61,19 +59,12 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     if out_path.parent and not out_path.parent.exists():
         out_path.parent.mkdir(parents=True)
     if not no_overlays:
-        from calibration.fileio import atomic_write_bytes, encode_png
-
-        folder = overlay_dir or out_path.parent / f"{out_path.stem}_overlays"
-        folder.mkdir(parents=True, exist_ok=True)
-        mesh = lib.load_mesh(res.model_id)
-        doc["overlays"] = {}
-        for i, frame in enumerate(capture.frames):
-            img = overlay(views.images[i], views.masks[i], np.asarray(mesh.vertices), np.asarray(mesh.faces), views.cameras[i], res.sim3_rig_to_object)
-            name = f"{Path(frame.file_path).stem}.png"
-            doc["overlays"][frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(folder / name, encode_png(img))}
+        doc["overlays"] = write_overlays(overlay_dir or out_path.parent / f"{out_path.stem}_overlays", views, lib.load_mesh(res.model_id),
+                                         res.sim3_rig_to_object)
     atomic_write_json(out_path, doc)
-    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(views)} views (scale {res.sim3_rig_to_object.scale:.4g}; "
-               f"{res.scale_statement()}), written to {out_path}")
+    statement = res.scale_statement()
+    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(views)} views (scale {res.sim3_rig_to_object.scale:.4g}"
+               + (f"; {statement}" if statement else "") + f"), written to {out_path}")
     for tie in res.model_ties:
         click.echo(f"warning: {tie['model_id']} ({tie['cad_size_ratio']:.3g} times the size) fits within {tie['score_gap']:.3f}; "
                    + ("a metric calibration would tell them apart" if views.metres_per_unit is None else "the masks cannot tell them apart"), err=True)
@@ -92,14 +83,13 @@ def registration_config(rig_config: Path | None, *, known_part: str | None = Non
 
     from reconstruction.registration import RegistrationConfig, RegistrationError
 
-    base = RegistrationConfig()
-    if rig_config is not None:
-        from rig.config import ConfigError, load_config
+    from deploy.steps import registration_config as of_rig
+    from rig.config import ConfigError
 
-        try:
-            base = RegistrationConfig.from_dict(load_config(rig_config).registration, where=f"{rig_config}: registration")
-        except (ConfigError, RegistrationError) as e:
-            raise click.ClickException(str(e)) from None
+    try:
+        base = of_rig(rig_config)
+    except (ConfigError, RegistrationError) as e:
+        raise click.ClickException(str(e)) from None
     known_part = known_part or base.known_part
     if prior_path is not None and known_part is None:
         raise click.ClickException("--prior needs the known part (--known-part or rig.toml's [registration] known_part)")
@@ -117,8 +107,36 @@ def registration_config(rig_config: Path | None, *, known_part: str | None = Non
     return dataclasses.replace(base, known_part=known_part, prior=prior, **{k: v for k, v in given.items() if v is not None})
 
 
+def write_overlays(folder: Path, views, mesh, sim3) -> dict:
+    """One overlay PNG per view into `folder`, published whole (built beside it, then swapped in, so a failure leaves
+    the previous folder or none, never a half-written one); returns {view file: {"file", "sha256"}}."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from calibration.fileio import atomic_write_bytes, encode_png, publish_dir
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = folder.parent / f".{folder.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    out = {}
+    try:
+        for k, (i, camera) in enumerate(zip(views.indices, views.cameras)):
+            frame = views.capture.frames[i]
+            img = overlay(views.images[k], views.masks[k], np.asarray(mesh.vertices), np.asarray(mesh.faces), camera, sim3)
+            name = f"{Path(frame.file_path).stem}.png"
+            out[frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(tmp / name, encode_png(img))}
+        publish_dir(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def overlay(image, mask, vertices, faces, camera, sim3):
-    """uint8 RGB [H, W, 3] from a float photo [H, W, 3] and its bool mask [H, W]: the photo dimmed outside
+    """uint8 RGB [h, w, 3] (the `camera`'s own size) from a float photo [H, W, 3] and its bool mask [H, W], on a canvas at
+    least the camera's size where views of mixed sizes sit top-left: the photo dimmed outside
     the registered CAD silhouette (mesh `vertices` [N, 3], `faces` [F, 3] under the rig-to-object
     `sim3`, seen by the rig `camera`), its outline in green, the observed mask's outline in magenta."""
     import cv2
@@ -127,6 +145,7 @@ def overlay(image, mask, vertices, faces, camera, sim3):
     from reconstruction.registration import boundary
     from reconstruction.silhouette import render_silhouette
 
+    image, mask = camera.crop(image), camera.crop(mask)
     cam_obj = camera.with_c2w(sim3.apply_to_c2w(camera.c2w))
     sil = render_silhouette(vertices, faces, cam_obj.K, cam_obj.viewmat, camera.width, camera.height)
     out = (np.clip(image[..., :3], 0, 1) * 255).astype(np.uint8)

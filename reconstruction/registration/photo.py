@@ -74,8 +74,13 @@ def break_tie(images: np.ndarray, cameras_rig: list[Camera], verts: np.ndarray, 
               alt_score: float, ambiguity: dict) -> tuple[Sim3, float]:
     """The winner of a near-tie between `pose` (the silhouettes' choice, objective `score`) and `alt_pose`: the alternative
     when its colours agree better across views by the PHOTO_DECISIVE ratio. Records both disagreements and what decided
-    in `ambiguity` (its score_gap turns negative and its alternative becomes `pose` when the images overrule)."""
+    in `ambiguity` (its score_gap turns negative and its alternative becomes `pose` when the images overrule; both
+    disagreements are None when no surface point is seen by three views)."""
     pd, pd_alt = photo_disagreement(images, cameras_rig, verts, faces, pose), photo_disagreement(images, cameras_rig, verts, faces, alt_pose)
+    if np.isnan(pd) or np.isnan(pd_alt):
+        # No surface point is seen by three views (two views, cameras facing away): the images cannot decide.
+        ambiguity.update(photo_disagreement=None, alternative_photo_disagreement=None, decided_by="silhouettes")
+        return pose, score
     decisive = bool(pd_alt < PHOTO_DECISIVE * pd)
     if decisive:
         ambiguity["alternative_sim3_rig_to_object"] = pose.to_dict()

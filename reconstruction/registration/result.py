@@ -46,16 +46,17 @@ class RegistrationResult:
 
     @property
     def part_scale_vs_cad(self) -> float | None:
-        """Measured size of the part over its CAD model's (metric rig only): metres per rig unit / scale."""
-        if self.rig_metres_per_unit is None:
+        """Measured size of the part over its CAD model's: metres per rig unit / scale. None where nothing was measured:
+        the rig's scale is unknown, or the views do not observe it (one view, or cameras at one centre)."""
+        if self.rig_metres_per_unit is None or not self.scale_observable:
             return None
         return self.rig_metres_per_unit / self.sim3_rig_to_object.scale
 
-    def scale_statement(self) -> str:
-        """One sentence on what the registration's scale means."""
+    def scale_statement(self) -> str | None:
+        """One sentence on the part's measured size against its CAD model; None when its size was not measured."""
         ratio = self.part_scale_vs_cad
         if ratio is None:
-            return "the rig's scale is unknown, so the part's size is not measured"
+            return None
         pct = (ratio - 1.0) * 100
         word = "larger" if pct >= 0 else "smaller"
         return f"the part is {abs(pct):.1f} % {word} than its CAD model"
