@@ -21,7 +21,7 @@ from reconstruction.views import CaptureViews
 def register_views(views: CaptureViews, library: Library, config: RegistrationConfig = RegistrationConfig(), *,
                    model_id: str | Sequence[str] | None = None, seed: int = 0) -> RegistrationResult:
     """The library model in `views` and the rig-to-object Sim(3), refused (QualityError, one sentence) when the
-    masks are no object's silhouettes or the fit cannot be trusted.
+    masks are no object's silhouettes or the fit cannot be trusted (below the silhouette floor, `MaskGate.fit_floor`).
 
     `config.known_part` set: that model alone (`known_part_register`, about `config.prior` when given);
     otherwise the library search, restricted to `model_id` (one id or several) when given. The scale is a
@@ -39,7 +39,7 @@ def register_views(views: CaptureViews, library: Library, config: RegistrationCo
     else:
         res = register(masks, cameras, library, top_k=config.top_k, iou_threshold=config.iou_threshold, seed=seed, model_ids=wanted,
                        rig_metres_per_unit=views.metres_per_unit, scale_tolerance=config.scale_tolerance, images=images)
-    check_registration(res.score, res.alternatives, masks, len(library.models), res.model_id)
+    check_registration(res.score, res.alternatives, masks, len(library.models), res.model_id, per_view_iou=res.per_view_iou, names=views.names)
     return res
 
 
