@@ -7,8 +7,10 @@ is off. Without units the scale is searched. The known part (`--known-part`, or 
 `[registration] known_part`) skips the library search; `--prior` (a previous reg.json) makes it the
 fast conveyor search (yaw and position about the previous part's pose).
 
-reg.json records its capture and library (`registration.provenance`), so `cadsplat reconstruct
---registration reg.json` uses it as given and refuses it for another capture or library.
+reg.json records its capture and library (`registration.provenance`), the config it was made with and
+the path taken (`method`: library_search, known_part, known_part_prior), so `cadsplat reconstruct
+--registration reg.json` uses it as given and refuses it for another capture or library. A fit below the
+silhouette floor is refused in one sentence naming the views where the part lies outside its mask.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     from reconstruction.views import capture_views
 
     t0 = time.perf_counter()
-    cfg = registration_config(rig_config, known_part=known_part, prior_path=prior_path, scale_tolerance=scale_tolerance, top_k=top_k,
+    cfg = config_from_options(rig_config, known_part=known_part, prior_path=prior_path, scale_tolerance=scale_tolerance, top_k=top_k,
                               iou_threshold=iou_threshold)
     capture = read_capture(capture_dir)
     lib = load_library(lib_dir)
@@ -55,7 +57,6 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     res = register_views(views, lib, cfg, model_id=list(model_ids) or None, seed=seed)
     doc = registration_document(res, views, lib, cfg)
     doc["timings_s"] = {"load_and_masks": round(t_views, 4), **doc["timings_s"]}
-    doc["known_part"] = cfg.known_part
     if out_path.parent and not out_path.parent.exists():
         out_path.parent.mkdir(parents=True)
     if not no_overlays:
@@ -75,19 +76,18 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
         )
 
 
-def registration_config(rig_config: Path | None, *, known_part: str | None = None, prior_path: Path | None = None, scale_tolerance: float | None = None,
+def config_from_options(rig_config: Path | None, *, known_part: str | None = None, prior_path: Path | None = None, scale_tolerance: float | None = None,
                         top_k: int | None = None, iou_threshold: float | None = None):
     """The `RegistrationConfig` of rig.toml's [registration] (when `rig_config` is given) with the command's options over it."""
     import dataclasses
     import json
 
+    from deploy.steps import registration_config
     from reconstruction.registration import RegistrationConfig, RegistrationError
-
-    from deploy.steps import registration_config as of_rig
     from rig.config import ConfigError
 
     try:
-        base = of_rig(rig_config)
+        base = registration_config(rig_config)
     except (ConfigError, RegistrationError) as e:
         raise click.ClickException(str(e)) from None
     known_part = known_part or base.known_part
