@@ -77,18 +77,11 @@ class RigConfig:
     storage: StorageConfig = field(default_factory=StorageConfig)
     thresholds: Thresholds = field(default_factory=Thresholds)
     calibration: Path | None = None
-    registration: "RegistrationConfig" = field(default_factory=lambda: RegistrationConfig())
+    # [registration] as written: reconstruction.registration.RegistrationConfig.from_dict reads and checks it (the rig
+    # itself never registers, and rig never imports reconstruction), so its keys and defaults live in one place.
+    registration: dict = field(default_factory=dict)
     inspection: InspectionConfig | None = None
     max_image_pixels: int = MAX_IMAGE_PIXELS  # [limits]: no image declaring more is decoded (calibration.fileio)
-
-
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """[registration]: `known_part` names the library model every capture holds (a line running one
-    part: no library search); `scale_tolerance` is the part's size tolerance on a metric rig."""
-
-    known_part: str = ""
-    scale_tolerance: float = 0.10
 
 
 def load_config(path: str | os.PathLike) -> RigConfig:
@@ -125,7 +118,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         storage=_storage(v, v.table(doc, "storage"), base),
         thresholds=_thresholds(v, v.table(doc, "thresholds")),
         calibration=(base / calibration) if calibration else None,
-        registration=_registration(v, v.table(doc, "registration")),
+        registration=dict(v.table(doc, "registration")),
         inspection=_inspection(v, v.table(doc, "inspection")) if "inspection" in doc else None,
         max_image_pixels=max_image_pixels,
     )
@@ -139,14 +132,6 @@ def _max_image_pixels(v: "_Validator", d: dict, cameras: tuple[CameraConfig, ...
         if c.settings.width * c.settings.height > cap:
             raise ConfigError(f"{v.name}: limits.max_image_pixels ({cap}) is below cameras[{i}]'s {c.settings.width}x{c.settings.height} frames; raise it")
     return cap
-
-
-def _registration(v: "_Validator", d: dict) -> RegistrationConfig:
-    v.known(d, "registration", {"known_part", "scale_tolerance"})
-    return RegistrationConfig(
-        known_part=v.string(d, "registration.known_part", default=""),
-        scale_tolerance=v.number(d, "registration.scale_tolerance", default=0.10, lo=0.0, hi=0.99),
-    )
 
 
 def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:

@@ -5,10 +5,12 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from calibration.sim3 import Sim3
 from calibration.so3 import geodesic_angle_deg
@@ -82,3 +84,45 @@ def test_register_bad_input_is_one_sentence(world, tmp_path, capsys):
     assert main(["register", str(root / "scene" / "train"), "--library", str(tmp_path)]) != 0
     err = capsys.readouterr().err.strip()
     assert "no library.json" in err and err.count("\n") == 0
+
+
+def test_overlay_of_a_view_smaller_than_the_canvas():
+    # Views of mixed sizes share one canvas, each top-left (a 320x240 view among 640x480 ones): its overlay is its own size (issue 58).
+    from calibration.camera import Camera, look_at_c2w
+    from deploy.commands.register import overlay
+
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    cam = Camera.from_fov(np.radians(50), 32, 24, look_at_c2w(np.array([0.0, -0.5, 0.2]), np.zeros(3)))
+    canvas = np.zeros((48, 64, 3), np.float32)
+    mask = np.zeros((48, 64), bool)
+    mask[8:16, 10:22] = True
+    out = overlay(canvas, mask, np.asarray(box.vertices), np.asarray(box.faces), cam, Sim3.identity())
+    assert out.shape == (24, 32, 3) and out.dtype == np.uint8
+    assert (out == (255, 0, 255)).all(-1).any() and (out == (0, 255, 0)).all(-1).any()
+
+
+def test_register_a_capture_of_mixed_sizes(world, tmp_path):
+    # One view at twice the size of the others (issue 58): registered, one overlay per view at its own size, no NaN in reg.json.
+    import cv2
+
+    from calibration.capture import FrameData, read_capture, write_capture
+
+    root, _ = world
+    if not (root / "lib").exists():
+        main(["library", "build", str(root / "meshes"), "--out", str(root / "lib"), "--workers", "1", "--no-progress"])
+    cap = read_capture(root / "scene" / "train")
+    frames = []
+    for i, f in enumerate(cap.frames):
+        image, mask, cam = (cap.image(i, undistort=False) * 255).round().astype(np.uint8), cap.mask(i, undistort=False), cap.camera(i, undistorted=False)
+        if i == 0:
+            image = cv2.resize(image, (2 * cam.width, 2 * cam.height), interpolation=cv2.INTER_LINEAR)
+            mask = cv2.resize(mask.astype(np.uint8), (2 * cam.width, 2 * cam.height), interpolation=cv2.INTER_NEAREST) > 0
+            cam = cam.scaled(2 * cam.width, 2 * cam.height)
+        frames.append(FrameData(Path(f.file_path).stem, image, cam, f.camera_id, None, mask))
+    mixed = write_capture(tmp_path / "mixed", frames, meta={k: v for k, v in cap.meta.items() if k == "units"}).root
+    out = tmp_path / "reg.json"
+    assert main(["register", str(mixed), "--library", str(root / "lib"), "--out", str(out)]) == 0
+    reg = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"reg.json holds {c}"))
+    assert reg["model_id"] == "bracket" and len(reg["overlays"]) == 9
+    sizes = [Image.open(o["file"]).size for o in reg["overlays"].values()]
+    assert sizes[0] == (480, 360) and set(sizes[1:]) == {(240, 180)}
