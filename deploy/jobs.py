@@ -81,7 +81,11 @@ class Job:
 
 
 class JobStore:
-    """Jobs and their steps in `path` (SQLite). Safe to reopen after any crash."""
+    """Jobs and their steps in `path` (SQLite). Safe to reopen after any crash.
+
+    Opening only reads and records: the one service that owns the work directory recovers what a
+    crash interrupted (`requeue_interrupted`), so `service status` beside a running service changes nothing.
+    """
 
     def __init__(self, path: str | Path, *, max_attempts: int = 3) -> None:
         self.path = Path(path)
@@ -94,10 +98,12 @@ class JobStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.executescript(_SCHEMA)
-            self.recovered = self.requeue_interrupted()
         except (sqlite3.Error, OSError) as e:
-            why = "the disk is full" if is_disk_full(e) else getattr(e, "strerror", None) or str(e)
-            raise JobStoreError(f"cannot open the job store {self.path}: {why}") from None
+            raise self._cannot_open(e) from None
+
+    def _cannot_open(self, e: BaseException) -> JobStoreError:
+        why = "the disk is full" if is_disk_full(e) else getattr(e, "strerror", None) or str(e)
+        return JobStoreError(f"cannot open the job store {self.path}: {why}")
 
     def close(self) -> None:
         self._db.close()
@@ -116,6 +122,13 @@ class JobStore:
     def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             return self._db.execute(sql, args).fetchall()
+
+    def recover(self) -> int:
+        """At a service's start, requeue what the crash of the one before it interrupted; returns how many steps."""
+        try:
+            return self.requeue_interrupted()
+        except (sqlite3.Error, OSError) as e:
+            raise self._cannot_open(e) from None
 
     def requeue_interrupted(self, *, refund: bool = False) -> int:
         """Interrupted steps go back to pending; their jobs back to queued (`refund`: the attempt they

@@ -43,8 +43,8 @@ def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max
 
     cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct)
     svc = PipelineService(store, work, make_step_runner(cfg), max_queue=max_queue, on_event=show, min_free_bytes=int(min_free_gb * 1e9))
-    if svc.jobs.recovered:
-        click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")
+    if svc.recovered:
+        click.echo(f"resumed: {svc.recovered} interrupted step(s) will be redone; finished steps are kept")
     done = svc.run_forever(poll_s=poll, max_jobs=max_jobs)
     click.echo(f"stopped after {done} job(s)")
 

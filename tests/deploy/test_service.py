@@ -215,3 +215,43 @@ def test_full_disk_stops_the_service_without_failing_a_job_and_resumes(tmp_path)
         pass
     assert svc.state == "" and [j.status for j in svc.jobs.jobs()] == ["done", "done"]
     assert [e.kind for e in events][:2] == ["stopped", "resumed"]
+
+
+HOLDS = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from deploy.service import PipelineService
+    store, work, log = map(Path, sys.argv[1:4])
+    def runner(step, job, work_dir, previous):
+        log.write_text(step)
+        time.sleep(600)
+    PipelineService(store, work, runner).run_forever(poll_s=0.05, max_jobs=1)
+    """
+)
+
+
+def test_a_second_service_on_one_work_dir_is_refused_and_leaves_the_running_job_alone(tmp_path):
+    """Issue 58 (7): a second `service run` on the same --work put the first one's running job back in the queue."""
+    store, work, log = tmp_path / "store", tmp_path / "work", tmp_path / "started"
+    make_captures(store, 1)
+    script = tmp_path / "svc.py"
+    script.write_text(HOLDS)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    first = subprocess.Popen([sys.executable, str(script), str(store), str(work), str(log)], env=env)
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and not log.exists():
+            time.sleep(0.05)
+        assert log.read_text() == "register"
+        for argv in (["service", "status", "--work", str(work)],
+                     ["service", "run", "--store", str(store), "--work", str(work), "--library", str(tmp_path), "--max-jobs", "1"]):
+            r = subprocess.run([sys.executable, "-m", "deploy.cli", *argv], env=env, capture_output=True, text=True, timeout=120)
+            if argv[1] == "run":
+                assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+                assert f"pid {first.pid}" in r.stderr and "Traceback" not in r.stderr
+        job = JobStore(work / "jobs.sqlite").jobs()[0]
+        assert job.status == "running" and job.steps["register"]["status"] == "running"
+    finally:
+        first.kill()
+        first.wait()
