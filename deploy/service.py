@@ -73,11 +73,15 @@ class PipelineService:
         self.work_root = Path(work_root)
         self.work_root.mkdir(parents=True, exist_ok=True)
         hold_work_dir(self.work_root)
+        self.on_event = on_event or (lambda e: None)
         self.jobs = JobStore(self.work_root / "jobs.sqlite", max_attempts=max_attempts)
-        self.recovered = self.jobs.recover()  # steps a crash of this directory's last service interrupted
+        # The jobs whose step this directory's last service died in: requeued, or given up after max_attempts.
+        self.recovered = self.jobs.recover()
+        for job in self.recovered:
+            if job.status == "failed":
+                self.on_event(ServiceEvent("job-failed", job.id, job.capture_id, job.current_step, {"error": job.error}))
         self.run_step = run_step
         self.max_queue = max_queue
-        self.on_event = on_event or (lambda e: None)
         self.min_free_bytes, self.resume_margin_bytes, self._free_bytes = int(min_free_bytes), int(resume_margin_bytes), free_bytes
         self.state = ""  # "" while serving, else "STOPPED: disk full ..."
         self._full_at: int | None = None

@@ -255,3 +255,38 @@ def test_a_second_service_on_one_work_dir_is_refused_and_leaves_the_running_job_
     finally:
         first.kill()
         first.wait()
+
+
+POISON = textwrap.dedent(
+    """
+    import os, sys
+    from pathlib import Path
+    from deploy.service import PipelineService
+    store, work = map(Path, sys.argv[1:3])
+    def runner(step, job, work_dir, previous):
+        if job.capture_id.startswith("000000") and step == "register":
+            os._exit(137)  # as an OOM kill or a native crash ends the service: no exception, no clean-up
+        return {"step": step}
+    PipelineService(store, work, runner, max_attempts=3).run_forever(poll_s=0.05, max_jobs=1)
+    """
+)
+
+
+def test_a_job_that_kills_the_service_is_given_up_after_max_attempts_and_the_next_is_done(tmp_path, capsys):
+    """Issue 58 (8): a job whose step killed the service was requeued on every restart, uncounted, and claimed first."""
+    from deploy.cli import main
+
+    store, work = tmp_path / "store", tmp_path / "work"
+    make_captures(store, 2)
+    script = tmp_path / "svc.py"
+    script.write_text(POISON)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    codes = [subprocess.run([sys.executable, str(script), str(store), str(work)], env=env, timeout=120).returncode for _ in range(4)]
+    assert codes == [137, 137, 137, 0]  # as under systemd's Restart=: three deaths, then the queue moves on
+    poison, nxt = JobStore(work / "jobs.sqlite").jobs()
+    assert poison.status == "failed" and poison.attempts == 3
+    assert poison.error == "register: the service died during register (attempt 3 of 3); given up"
+    assert nxt.status == "done"
+    assert main(["service", "history", "--work", str(work)]) == 0
+    assert f"job {poison.id:<4} {poison.capture_id:<28} FAILED {poison.error}" in capsys.readouterr().out
+
