@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 from calibration.guard import ProcessLock, hold_lock
-from deploy.jobs import STEPS, Job, JobStore, is_disk_full
+from deploy.jobs import STEPS, Job, JobStore, JobStoreError, is_disk_full
 
 # This process's hold on each work directory it serves (one service per work directory across processes;
 # a process may open its own again, as a restart in one process does).
@@ -205,10 +205,15 @@ class PipelineService:
 
 
 def hold_work_dir(work_root: Path) -> None:
-    """Lock `work_root` for this process's life; raises LockHeld naming the other service's pid."""
+    """Lock `work_root` for this process's life; raises LockHeld naming the other service's pid, JobStoreError
+    where the lock cannot be written."""
     key = work_root.resolve()
     if key not in _WORK_LOCKS:
-        _WORK_LOCKS[key] = hold_lock(key, "cadsplat service", name=".service.lock")
+        try:
+            _WORK_LOCKS[key] = hold_lock(key, "cadsplat service", name=".service.lock")
+        except OSError as e:  # a read-only or full work directory: the job store beside the lock cannot be written either
+            why = "the disk is full" if is_disk_full(e) else e.strerror or str(e)
+            raise JobStoreError(f"cannot open the job store {key / 'jobs.sqlite'}: {why}") from None
 
 
 def remove_half_written(folder: Path) -> list[Path]:
