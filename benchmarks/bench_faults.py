@@ -304,12 +304,12 @@ def poison_job(tmp: Path, max_attempts: int = 3, restart_limit: int = 20) -> dic
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     deaths = 0
     for _ in range(restart_limit):
-        rc = subprocess.run([sys.executable, "-c", POISON_SERVICE, str(store), str(work), str(max_attempts)], env=env, timeout=300).returncode
+        rc = subprocess.run([sys.executable, "-c", POISON_SERVICE, str(store), str(work), str(max_attempts)], check=False, env=env, timeout=300).returncode
         if rc == 0:
             break
         deaths += 1
     jobs = JobStore(work / "jobs.sqlite").jobs()
-    history = subprocess.run(cadsplat("service", "history", "--work", str(work)), capture_output=True, text=True, env=env, timeout=120).stdout
+    history = subprocess.run(cadsplat("service", "history", "--work", str(work)), capture_output=True, text=True, check=False, env=env, timeout=120).stdout
     poison = jobs[0]
     return {"max_attempts": max_attempts, "service_deaths": deaths, "queue_drained": rc == 0, "poison_status": poison.status,
             "poison_error": f"`{poison.error}`", "in_history": bool(poison.error) and poison.error in history,

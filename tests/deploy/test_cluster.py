@@ -12,7 +12,7 @@ from deploy.cluster import connect, run_tasks  # noqa: E402
 def local_ray():
     try:
         resources = connect(num_cpus=2)
-    except Exception as e:  # e.g. no room for its object store, or sockets forbidden in a sandbox
+    except Exception as e:  # noqa: BLE001 - whatever stops Ray starting here (no room for its object store, sockets forbidden) skips
         pytest.skip(f"a local Ray cannot start here: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
     yield resources
     ray.shutdown()
