@@ -12,6 +12,8 @@
    `rig watch`; `store verify` during `rig watch` (`--parts two-writers,import-during-watch,verify-during-watch`).
 5. (`--parts bomb`) PNG decompression bombs in a capture through `cadsplat register`: refused in one
    sentence, with the process's peak RSS (os.wait4's rusage), beside what decoding the bomb costs.
+6. A poison job (`--parts poison`): a capture whose register step SIGKILLs the service (as the OOM killer
+   does), first in a queue of three, the service restarted after each death as systemd's Restart= does.
 
 After each fault it checks what the acceptance asks: every capture committed and verifying or refused
 and counted, 0 lost, 0 half-written outputs, one sentence per failure. Writes a markdown table to
@@ -336,6 +338,46 @@ def rows_table(title: str, rows: list[dict]) -> str:
             + "".join("| " + " | ".join(str(v) for v in r.values()) + " |\n" for r in rows))
 
 
+# A service whose register step of capture 000000 dies as an OOM-killed process does: SIGKILL, no clean-up.
+POISON_SERVICE = """
+import os, signal, sys
+from pathlib import Path
+from deploy.service import PipelineService
+def step(name, job, work_dir, previous):
+    if job.capture_id.startswith("000000") and name == "register":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return {"step": name}
+svc = PipelineService(Path(sys.argv[1]), Path(sys.argv[2]), step, max_attempts=int(sys.argv[3]))
+while svc.run_once():
+    pass
+"""
+
+
+def poison_job(tmp: Path, max_attempts: int = 3, restart_limit: int = 20) -> dict:
+    """Restart the service after every death (systemd's Restart=) until it exits by itself or `restart_limit`."""
+    import subprocess
+    import sys
+
+    from deploy.jobs import JobStore
+    from tests.deploy.test_service import make_captures
+
+    store, work = tmp / "poison-S", tmp / "poison-W"
+    make_captures(store, 3)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    deaths = 0
+    for _ in range(restart_limit):
+        rc = subprocess.run([sys.executable, "-c", POISON_SERVICE, str(store), str(work), str(max_attempts)], check=False, env=env, timeout=300).returncode
+        if rc == 0:
+            break
+        deaths += 1
+    jobs = JobStore(work / "jobs.sqlite").jobs()
+    history = subprocess.run(cadsplat("service", "history", "--work", str(work)), capture_output=True, text=True, check=False, env=env, timeout=120).stdout
+    poison = jobs[0]
+    return {"max_attempts": max_attempts, "service_deaths": deaths, "queue_drained": rc == 0, "poison_status": poison.status,
+            "poison_error": f"`{poison.error}`", "in_history": bool(poison.error) and poison.error in history,
+            "next_jobs_done": sum(j.status == "done" for j in jobs[1:]), "next_jobs": len(jobs) - 1}
+
+
 def table(title: str, tally: dict) -> str:
     return f"### {title}\n\n| " + " | ".join(tally) + " |\n|" + "---|" * len(tally) + "\n| " + " | ".join(str(v) for v in tally.values()) + " |\n"
 
@@ -345,7 +387,7 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
     ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
     ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3), "
-                    "two-writers, import-during-watch, verify-during-watch (part 4), bomb (part 5)")
+                    "two-writers, import-during-watch, verify-during-watch (part 4), bomb (part 5), poison (part 6)")
     ap.add_argument("--writer-runs", type=int, default=10, help="runs of the two-writers and import-during-watch parts")
     ap.add_argument("--verifies", type=int, default=100, help="store verify runs of the verify-during-watch part (acceptance: 100)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
@@ -385,6 +427,9 @@ def main() -> None:
             print(sections[-1], flush=True)
         if "bomb" in parts:
             sections.append(rows_table("PNG decompression bombs in a capture (issue 58, 9)", bomb_runs(tmp)))
+            print(sections[-1], flush=True)
+        if "poison" in parts:
+            sections.append(table("A poison job: its register step SIGKILLs the service, which is restarted after each death", poison_job(tmp)))
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

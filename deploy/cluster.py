@@ -12,6 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 
+# Ray's switch for clusters of several nodes (`ray_constants.ENABLE_RAY_CLUSTERS_ENV_VAR`); off, a node is loopback-only.
+_SINGLE_NODE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
 @dataclass(frozen=True)
 class ClusterResult:
     key: str
@@ -23,10 +27,17 @@ class ClusterResult:
 def connect(address: str | None = None, *, num_cpus: int | None = None, token: str | None = None) -> dict:
     """Join the Ray cluster at `address` ("auto", "ray://host:10001", "host:6379"), or start a local one.
 
-    A local instance binds loopback only. Ray's token authentication (its default) stays on: a remote
-    cluster's token comes from `token`, RAY_AUTH_TOKEN, or Ray's own token file.
+    A local instance binds loopback only (GCS, raylet, driver and workers): Ray's single-node mode, in
+    which the node's address is the loopback one; `_node_ip_address="127.0.0.1"` alone is replaced by
+    the machine's outward address and its servers then listen on every interface. Ray's token
+    authentication (its default for a local cluster) stays on: a remote cluster's token comes from
+    `token`, RAY_AUTH_TOKEN, or Ray's own token file.
     """
+    if not address:
+        # Read by Ray when it is imported, and by the processes it starts; set on the loaded module too.
+        os.environ[_SINGLE_NODE_ENV] = "0"
     import ray
+    from ray._private import ray_constants
 
     if ray.is_initialized():
         return ray.cluster_resources()
@@ -36,6 +47,7 @@ def connect(address: str | None = None, *, num_cpus: int | None = None, token: s
     if address:
         ray.init(address=address, **kwargs)
     else:
+        ray_constants.ENABLE_RAY_CLUSTER = False
         ray.init(num_cpus=num_cpus, _node_ip_address="127.0.0.1", **kwargs)
     return ray.cluster_resources()
 

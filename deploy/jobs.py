@@ -5,6 +5,10 @@ a crash or power loss the service resumes at the first unfinished step and never
 one. A step found "running" at start-up was interrupted: it goes back to "pending" (its outputs
 are written atomically, so nothing half-done is trusted). SQLite in WAL mode with synchronous=FULL
 makes every state change durable before the call returns.
+
+A job's `attempts` counts the starts of the step it is on, spent when the step starts: a step that
+kills the service (an OOM kill, a native crash) has spent its attempt before it dies, so after
+`max_attempts` such deaths the job is given up with why, and the queue moves on.
 """
 
 from __future__ import annotations
@@ -19,8 +23,6 @@ from pathlib import Path
 from typing import Iterator
 
 STEPS: tuple[str, ...] = ("register", "reconstruct", "export")
-# What an operator reads: one status per job.
-JOB_STATUSES = ("queued", "running", "done", "failed")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -81,7 +83,11 @@ class Job:
 
 
 class JobStore:
-    """Jobs and their steps in `path` (SQLite). Safe to reopen after any crash."""
+    """Jobs and their steps in `path` (SQLite). Safe to reopen after any crash.
+
+    Opening only reads and records: the one service that owns the work directory recovers what a
+    crash interrupted (`requeue_interrupted`), so `service status` beside a running service changes nothing.
+    """
 
     def __init__(self, path: str | Path, *, max_attempts: int = 3) -> None:
         self.path = Path(path)
@@ -94,10 +100,12 @@ class JobStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.executescript(_SCHEMA)
-            self.recovered = self.requeue_interrupted()
         except (sqlite3.Error, OSError) as e:
-            why = "the disk is full" if is_disk_full(e) else getattr(e, "strerror", None) or str(e)
-            raise JobStoreError(f"cannot open the job store {self.path}: {why}") from None
+            raise self._cannot_open(e) from None
+
+    def _cannot_open(self, e: BaseException) -> JobStoreError:
+        why = "the disk is full" if is_disk_full(e) else getattr(e, "strerror", None) or str(e)
+        return JobStoreError(f"cannot open the job store {self.path}: {why}")
 
     def close(self) -> None:
         self._db.close()
@@ -116,6 +124,23 @@ class JobStore:
     def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             return self._db.execute(sql, args).fetchall()
+
+    def recover(self) -> list[Job]:
+        """At a service's start: each step the service before it died in goes back to pending, its attempt
+        spent; a job whose step has had `max_attempts` is given up, saying so. Returns those jobs."""
+        try:
+            with self._tx() as db:
+                died = db.execute("SELECT s.job_id, s.step, j.attempts FROM steps s JOIN jobs j ON j.id = s.job_id WHERE s.status='running'").fetchall()
+                now = time.time()
+                for job_id, step, attempts in died:
+                    given_up = attempts >= self.max_attempts
+                    why = f"{step}: the service died during {step} (attempt {attempts} of {self.max_attempts})" + ("; given up" if given_up else "")
+                    db.execute("UPDATE steps SET status='pending', started=NULL WHERE job_id=? AND step=?", (job_id, step))
+                    db.execute("UPDATE jobs SET status=?, error=?, updated=? WHERE id=?", ("failed" if given_up else "queued", why, now, job_id))
+                db.execute("UPDATE jobs SET status='queued', updated=? WHERE status='running'", (now,))
+            return [self.get(job_id) for job_id, _, _ in died]
+        except (sqlite3.Error, OSError) as e:
+            raise self._cannot_open(e) from None
 
     def requeue_interrupted(self, *, refund: bool = False) -> int:
         """Interrupted steps go back to pending; their jobs back to queued (`refund`: the attempt they
@@ -160,17 +185,19 @@ class JobStore:
         return [self.get(r[0]) for r in self._query(q, (status,) if status else ())]
 
     def claim_next(self) -> Job | None:
-        """The oldest queued job, marked running (one attempt more), or None."""
+        """The oldest queued job, marked running, or None (its step's attempt is spent when the step starts)."""
         with self._tx() as db:
             row = db.execute("SELECT id FROM jobs WHERE status='queued' ORDER BY id LIMIT 1").fetchone()
             if row is None:
                 return None
-            db.execute("UPDATE jobs SET status='running', attempts=attempts+1, updated=? WHERE id=?", (time.time(), row[0]))
+            db.execute("UPDATE jobs SET status='running', updated=? WHERE id=?", (time.time(), row[0]))
         return self.get(row[0])
 
     def start_step(self, job_id: int, step: str) -> None:
+        """`step` is running: one attempt spent, before it can crash the process."""
         with self._tx() as db:
             db.execute("UPDATE steps SET status='running', started=? WHERE job_id=? AND step=?", (time.time(), job_id, step))
+            db.execute("UPDATE jobs SET attempts=attempts+1, updated=? WHERE id=?", (time.time(), job_id))
 
     def finish_step(self, job_id: int, step: str, output: dict) -> None:
         with self._tx() as db:
@@ -178,7 +205,7 @@ class JobStore:
                 "UPDATE steps SET status='done', finished=?, output=? WHERE job_id=? AND step=?",
                 (time.time(), json.dumps(output), job_id, step),
             )
-            db.execute("UPDATE jobs SET updated=? WHERE id=?", (time.time(), job_id))
+            db.execute("UPDATE jobs SET attempts=0, error='', updated=? WHERE id=?", (time.time(), job_id))  # the next step starts afresh
 
     def finish_job(self, job_id: int) -> None:
         with self._tx() as db:

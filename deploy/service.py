@@ -22,7 +22,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
-from deploy.jobs import STEPS, Job, JobStore, is_disk_full
+from calibration.guard import ProcessLock, hold_lock
+from deploy.jobs import STEPS, Job, JobStore, JobStoreError, is_disk_full
+
+# This process's hold on each work directory it serves (one service per work directory across processes;
+# a process may open its own again, as a restart in one process does).
+_WORK_LOCKS: dict[Path, ProcessLock] = {}
 
 
 class StepInterrupted(Exception):
@@ -45,7 +50,11 @@ class ServiceEvent:
 
 
 class PipelineService:
-    """`store_root`: the rig's capture store; `work_root`: where jobs write (job store, twins)."""
+    """`store_root`: the rig's capture store; `work_root`: where jobs write (job store, twins).
+
+    One service per work directory: a second process is refused (`LockHeld`, naming the holder's pid)
+    before it opens the job store, so it never requeues the first one's running job.
+    """
 
     def __init__(
         self,
@@ -63,10 +72,16 @@ class PipelineService:
         self.captures_dir = Path(store_root) / "captures"
         self.work_root = Path(work_root)
         self.work_root.mkdir(parents=True, exist_ok=True)
+        hold_work_dir(self.work_root)
+        self.on_event = on_event or (lambda e: None)
         self.jobs = JobStore(self.work_root / "jobs.sqlite", max_attempts=max_attempts)
+        # The jobs whose step this directory's last service died in: requeued, or given up after max_attempts.
+        self.recovered = self.jobs.recover()
+        for job in self.recovered:
+            if job.status == "failed":
+                self.on_event(ServiceEvent("job-failed", job.id, job.capture_id, job.current_step, {"error": job.error}))
         self.run_step = run_step
         self.max_queue = max_queue
-        self.on_event = on_event or (lambda e: None)
         self.min_free_bytes, self.resume_margin_bytes, self._free_bytes = int(min_free_bytes), int(resume_margin_bytes), free_bytes
         self.state = ""  # "" while serving, else "STOPPED: disk full ..."
         self._full_at: int | None = None
@@ -187,6 +202,18 @@ class PipelineService:
 
     def stop(self) -> None:
         self._stop.set()
+
+
+def hold_work_dir(work_root: Path) -> None:
+    """Lock `work_root` for this process's life; raises LockHeld naming the other service's pid, JobStoreError
+    where the lock cannot be written."""
+    key = work_root.resolve()
+    if key not in _WORK_LOCKS:
+        try:
+            _WORK_LOCKS[key] = hold_lock(key, "cadsplat service", name=".service.lock")
+        except OSError as e:  # a read-only or full work directory: the job store beside the lock cannot be written either
+            why = "the disk is full" if is_disk_full(e) else e.strerror or str(e)
+            raise JobStoreError(f"cannot open the job store {key / 'jobs.sqlite'}: {why}") from None
 
 
 def remove_half_written(folder: Path) -> list[Path]:

@@ -46,8 +46,9 @@ def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max
     cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct,
                          registration=registration_config(rig_config))
     svc = PipelineService(store, work, make_step_runner(cfg), max_queue=max_queue, on_event=show, min_free_bytes=int(min_free_gb * 1e9))
-    if svc.jobs.recovered:
-        click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")
+    requeued = sum(j.status == "queued" for j in svc.recovered)
+    if requeued:
+        click.echo(f"resumed: {requeued} interrupted step(s) will be redone; finished steps are kept")
     done = svc.run_forever(poll_s=poll, max_jobs=max_jobs)
     click.echo(f"stopped after {done} job(s)")
 
@@ -84,8 +85,11 @@ def history(work: Path, part: str | None) -> None:
     from deploy.jobs import JobStore
     from deploy.steps import inspection_history
 
-    found = inspection_history(JobStore(work / "jobs.sqlite").jobs(), part)
-    if not found:
+    jobs = JobStore(work / "jobs.sqlite").jobs()
+    found = inspection_history(jobs, part)
+    # A failed job was never registered to a part: listed when no part is asked for, so a given-up capture is seen.
+    failed = [j for j in jobs if j.status == "failed"] if part is None else []
+    if not found and not failed:
         click.echo("no inspected jobs yet" + (f" of part {part}" if part else ""))
     for model_id, rows in found.items():
         counts = {s: sum(r["status"] == s for r in rows) for s in ("PASS", "FAIL", "UNCERTAIN")}
@@ -93,3 +97,7 @@ def history(work: Path, part: str | None) -> None:
         for r in rows:
             when = time.strftime("%Y-%m-%d %H:%M", time.localtime(r["finished"])) if r["finished"] else ""
             click.echo(f"  {when}  {r['capture_id']:<28} {r['line']}")
+    if failed:
+        click.echo(f"no twin: {len(failed)} failed job(s) (`cadsplat service retry JOB_ID` after fixing the cause)")
+        for j in failed:
+            click.echo(f"  job {j.id:<4} {j.capture_id:<28} FAILED {j.error}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -40,10 +41,12 @@ def run(captures: tuple[Path, ...], library: Path, out: Path, preset: str, addre
         raise click.ClickException(f"{len(failed)} of {len(results)} captures failed: " + "; ".join(f"{r.key}: {r.error}" for r in failed))
 
 
-@worker.command("join", help="Make this machine a worker node of the Ray cluster at ADDRESS (blocks until stopped).")
+@worker.command("join", help="Make this machine a worker node of the Ray cluster at ADDRESS (blocks until stopped). "
+                "Token authentication is required (RAY_AUTH_MODE=token unless set): the token comes from RAY_AUTH_TOKEN or Ray's token file.")
 @click.option("--cluster", "address", required=True, help="The head node, host:6379.")
 @click.option("--num-gpus", default=None, type=int, help="GPUs to offer (default: what Ray detects).")
 def join(address: str, num_gpus: int | None) -> None:
     ray_bin = shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
     cmd = [ray_bin, "start", f"--address={address}", "--block"] + ([f"--num-gpus={num_gpus}"] if num_gpus is not None else [])
-    raise SystemExit(subprocess.call(cmd))
+    # A node joins only a cluster that authenticates (Ray before 2.61 leaves a started head open unless asked).
+    raise SystemExit(subprocess.call(cmd, env={"RAY_AUTH_MODE": "token", **os.environ}))

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from deploy.kiosk import Kiosk, render_calibration
+from deploy.kiosk import Kiosk, render_alarms, render_calibration
 from deploy.kiosk_state import ApplianceState, CameraStatus, drift_alarm, grade_twin
 
 
@@ -95,3 +95,23 @@ def test_the_kiosk_imports_what_a_read_only_store_left_in_the_spill(tmp_path):
         assert backend.state().message.startswith("imported 1 capture(s)")
     finally:
         backend.close()
+
+
+def test_the_kiosk_shows_a_job_given_up_after_killing_the_service(tmp_path):
+    """Issue 58 (8): a job whose step killed the appliance three times is given up, and the operator sees why."""
+    from deploy.appliance import Appliance
+    from deploy.service import PipelineService
+
+    work = tmp_path / "appliance"
+    for _ in range(3):  # three lives of the appliance's service, each ended by the same job's register step
+        jobs = PipelineService(work / "store", work / "work", lambda *_: {}).jobs
+        jobs.add("000000-poison", work / "store" / "captures" / "000000-poison")
+        job = jobs.claim_next()
+        jobs.start_step(job.id, "register")
+        jobs.close()
+    backend = Appliance.simulated(work, views=4, size=(96, 72), preset="preview", interval_s=3600)
+    try:
+        text = render_alarms(backend.state())
+    finally:
+        backend.close()
+    assert "Capture 000000-poison failed (register: the service died during register (attempt 3 of 3); given up)" in text, text

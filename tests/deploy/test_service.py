@@ -215,3 +215,78 @@ def test_full_disk_stops_the_service_without_failing_a_job_and_resumes(tmp_path)
         pass
     assert svc.state == "" and [j.status for j in svc.jobs.jobs()] == ["done", "done"]
     assert [e.kind for e in events][:2] == ["stopped", "resumed"]
+
+
+HOLDS = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from deploy.service import PipelineService
+    store, work, log = map(Path, sys.argv[1:4])
+    def runner(step, job, work_dir, previous):
+        log.write_text(step)
+        time.sleep(600)
+    PipelineService(store, work, runner).run_forever(poll_s=0.05, max_jobs=1)
+    """
+)
+
+
+def test_a_second_service_on_one_work_dir_is_refused_and_leaves_the_running_job_alone(tmp_path):
+    """Issue 58 (7): a second `service run` on the same --work put the first one's running job back in the queue."""
+    store, work, log = tmp_path / "store", tmp_path / "work", tmp_path / "started"
+    make_captures(store, 1)
+    script = tmp_path / "svc.py"
+    script.write_text(HOLDS)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    first = subprocess.Popen([sys.executable, str(script), str(store), str(work), str(log)], env=env)
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and not log.exists():
+            time.sleep(0.05)
+        assert log.read_text() == "register"
+        for argv in (["service", "status", "--work", str(work)],
+                     ["service", "run", "--store", str(store), "--work", str(work), "--library", str(tmp_path), "--max-jobs", "1"]):
+            r = subprocess.run([sys.executable, "-m", "deploy.cli", *argv], env=env, capture_output=True, text=True, check=False, timeout=120)
+            if argv[1] == "run":
+                assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+                assert f"pid {first.pid}" in r.stderr and "Traceback" not in r.stderr
+        job = JobStore(work / "jobs.sqlite").jobs()[0]
+        assert job.status == "running" and job.steps["register"]["status"] == "running"
+    finally:
+        first.kill()
+        first.wait()
+
+
+POISON = textwrap.dedent(
+    """
+    import os, sys
+    from pathlib import Path
+    from deploy.service import PipelineService
+    store, work = map(Path, sys.argv[1:3])
+    def runner(step, job, work_dir, previous):
+        if job.capture_id.startswith("000000") and step == "register":
+            os._exit(137)  # as an OOM kill or a native crash ends the service: no exception, no clean-up
+        return {"step": step}
+    PipelineService(store, work, runner, max_attempts=3).run_forever(poll_s=0.05, max_jobs=1)
+    """
+)
+
+
+def test_a_job_that_kills_the_service_is_given_up_after_max_attempts_and_the_next_is_done(tmp_path, capsys):
+    """Issue 58 (8): a job whose step killed the service was requeued on every restart, uncounted, and claimed first."""
+    from deploy.cli import main
+
+    store, work = tmp_path / "store", tmp_path / "work"
+    make_captures(store, 2)
+    script = tmp_path / "svc.py"
+    script.write_text(POISON)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    codes = [subprocess.run([sys.executable, str(script), str(store), str(work)], check=False, env=env, timeout=120).returncode for _ in range(4)]
+    assert codes == [137, 137, 137, 0]  # as under systemd's Restart=: three deaths, then the queue moves on
+    poison, nxt = JobStore(work / "jobs.sqlite").jobs()
+    assert poison.status == "failed" and poison.attempts == 3
+    assert poison.error == "register: the service died during register (attempt 3 of 3); given up"
+    assert nxt.status == "done"
+    assert main(["service", "history", "--work", str(work)]) == 0
+    assert f"job {poison.id:<4} {poison.capture_id:<28} FAILED {poison.error}" in capsys.readouterr().out
+
