@@ -3,10 +3,10 @@
 The object frame is the CAD model's own, and CAD models are drawn z-up or y-up (or any way) as their
 makers chose, so no export may assume one. Up is, first that applies:
 
-- "twin": recorded in the twin by the reconstruction that knew it (from the calibration: a board
-  lying on the conveyor, whose normal is the rig's up);
-- "rig.toml": rig.toml's `[simulation] up` (the rig frame's up, e.g. [0, 0, 1]), taken into the
-  object frame by the twin's registration;
+- "twin": recorded in the twin (twin.json `up_object`) by the reconstruction that knew it;
+- "calibration": the rig's up measured by the calibration (`board_up`: a board lying face-up on the
+  conveyor), taken into the object frame by the twin's registration;
+- "rig.toml": rig.toml's `[simulation] up` (the rig frame's up, e.g. [0, 0, 1]), taken likewise;
 - "cad": the CAD model's declared up axis (`[simulation] cad_up_axis`, or the `--cad-up-axis` flag:
   "+y", "z", "-x", ...);
 - "default": +z, the convention the library's CAD models follow, said as such in every manifest.
@@ -64,14 +64,18 @@ def board_up(board_to_rig: np.ndarray) -> np.ndarray:
 
 
 def resolve_up(
-    *, twin_up: dict | None = None, rig_up: np.ndarray | None = None, rotation_rig_to_object: np.ndarray | None = None,
-    cad_up_axis: str | None = None,
+    *, twin_up: dict | None = None, calibration_up: np.ndarray | None = None, rig_up: np.ndarray | None = None,
+    rotation_rig_to_object: np.ndarray | None = None, cad_up_axis: str | None = None,
 ) -> Up:
     """The object frame's up by precedence (module docstring): the twin's record `twin_up`
-    ({"vector", "source"}), rig.toml's rig-frame `rig_up` [3] turned by `rotation_rig_to_object`
-    [3, 3] (the registration's rotation), the CAD model's declared `cad_up_axis`, else +z."""
+    ({"vector", "source"}), the calibration's rig-frame `calibration_up` [3], rig.toml's rig-frame
+    `rig_up` [3] (both turned by `rotation_rig_to_object` [3, 3], the registration's rotation), the
+    CAD model's declared `cad_up_axis`, else +z."""
     if twin_up is not None:
         return Up(unit(twin_up["vector"], "the twin's up_object"), "twin", f"recorded in twin.json ({twin_up.get('source', 'unstated')})")
+    if calibration_up is not None and rotation_rig_to_object is not None:
+        up = np.asarray(rotation_rig_to_object, np.float64) @ unit(calibration_up, "the calibration's up")
+        return Up(unit(up), "calibration", "the calibration board lying on the conveyor, through the twin's registration")
     if rig_up is not None and rotation_rig_to_object is not None:
         up = np.asarray(rotation_rig_to_object, np.float64) @ unit(rig_up, "rig.toml's simulation.up")
         return Up(unit(up), "rig.toml", f"rig.toml's simulation.up {list(map(float, rig_up))} in the rig frame, through the twin's registration")
