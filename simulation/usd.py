@@ -214,8 +214,9 @@ def usd_stage(body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z
 def check_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z") -> None:
     """Read `path` back with pxr and check it holds `body`: a rigid body with the mass, centre of
     mass and principal inertia of the asset, the asset's triangles, one collision prim per
-    collision shape, the stage's up axis, and `splats` through UsdVol's ParticleField3DGaussianSplat
-    API (count, SH degree and coefficients, positions). Raises UsdCheckError naming the first mismatch."""
+    collision shape, the stage's up axis, `splats` through UsdVol's ParticleField3DGaussianSplat
+    API (count, SH degree and coefficients, positions), and no error from OpenUSD's validators.
+    Raises UsdCheckError naming the first mismatch."""
     from pxr import Usd, UsdGeom, UsdPhysics
 
     stage = Usd.Stage.Open(str(path))
@@ -249,6 +250,19 @@ def check_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None 
         raise UsdCheckError(f"{path}: {n_col} collision prims, expected {body.collision.hull_count + len(body.collision.primitives)}")
     if splats is not None:
         check_splats(path, root.GetChild("splats"), splats)
+    errors = validation_errors(stage)
+    if errors:
+        raise UsdCheckError(f"{path}: OpenUSD's validators report {len(errors)} error(s), the first: {errors[0]}")
+
+
+def validation_errors(stage) -> list[str]:
+    """What OpenUSD's own validators (usdValidation: stage metadata, UsdPhysics rigid bodies and
+    colliders, attribute types, composition, ...) report as errors on `stage`, one line each."""
+    from pxr import UsdValidation
+
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    found = UsdValidation.ValidationContext(validators).Validate(stage)
+    return [f"{e.GetName()}: {e.GetMessage()}" for e in found if e.GetErrorType() == UsdValidation.ValidationErrorType.Error]
 
 
 def check_splats(path, prim, splats: Gaussians) -> None:
