@@ -156,10 +156,19 @@ def test_usd_reads_back_as_the_mjcf_body_with_the_twins_splats(twin_dir, tmp_pat
     assert stage.GetRootLayer().customLayerData["cadsplat:up_source"] == "default"
 
 
-def test_usd_of_a_y_up_cad_is_a_y_up_stage_in_the_object_frame(tmp_path, rig_toml):
+def test_usd_of_a_y_up_cad_is_a_y_up_stage_in_the_object_frame_and_mujoco_stands_it_on_z(tmp_path, rig_toml):
     from pxr import Usd, UsdGeom, UsdVol
 
+    from calibration.so3 import quat_to_matrix
+
     twin = post_twin(tmp_path, "y")
+    assert main(["export", str(twin), "--format", "mjcf", "--out", str(tmp_path / "m"), "--rig", str(rig_toml), "--hull-budget", "8"]) == 0
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    body = manifest["bodies"][0]
+    assert manifest["up"]["source"] == "rig.toml" and body["collision"]["hulls"] <= body["collision"]["hull_budget"] == 8
+    assert quat_to_matrix(np.array(body["pose"]["quat_wxyz"])) @ [0, 1, 0] == pytest.approx([0, 0, 1])  # object +y onto MuJoCo's +z
+    model = load_model(tmp_path / "m" / "model.xml")
+    assert model.body_pos[1][2] == pytest.approx(0.0, abs=1e-6)  # the foot (object y = 0) on the floor
     assert main(["export", str(twin), "--format", "usd", "--out", str(tmp_path / "p.usda"), "--rig", str(rig_toml)]) == 0
     stage = Usd.Stage.Open(str(tmp_path / "p.usda"))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
