@@ -39,6 +39,7 @@ import numpy as np
 from calibration.fileio import fsync_dir
 from calibration.so3 import matrix_to_quat
 from reconstruction.gaussians import Gaussians
+from reconstruction.splats import SH_C0
 from simulation.collision import Primitive
 from simulation.mjcf import BodySpec
 from simulation.up import Up, standing, usd_up_axis
@@ -148,7 +149,7 @@ def _splats(stage, path: str, g: Gaussians):
     primvar.SetInterpolation(UsdGeom.Tokens.vertex)
     primvar.SetElementSize(int(sh.shape[1]))
     field.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, means.min(0))), Gf.Vec3f(*map(float, means.max(0)))]))
-    rgb = np.clip(0.5 + 0.28209479177387814 * sh[:, 0], 0.0, 1.0)
+    rgb = np.clip(0.5 + SH_C0 * sh[:, 0], 0.0, 1.0)
     field.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rgb, np.float32)))
     field.CreatePurposeAttr(UsdGeom.Tokens.render)
     return field
@@ -206,7 +207,7 @@ def usd_stage(body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z
     for geom in shapes:
         UsdPhysics.CollisionAPI.Apply(geom.GetPrim())
         UsdGeom.Imageable(geom).CreatePurposeAttr(UsdGeom.Tokens.guide)
-    root.SetCustomDataByKey("cadsplat:collision", {"kind": col.kind, "volume_error": float(col.volume_error)})
+    root.SetCustomDataByKey("cadsplat:collision", {"kind": col.kind, "volume_error": float(col.volume_error), "hull_budget": int(col.hull_budget or 0)})
     stage.GetRootLayer().customLayerData = {"generator": "cadsplat", **(layer_data or {})}
     return stage
 
