@@ -101,7 +101,9 @@ def _mesh_primitives(b: _Builder, parts: MeshParts) -> list[tuple[str, dict]]:
         used, local = np.unique(parts.faces[sel], return_inverse=True)
         mesh = trimesh.Trimesh(parts.vertices[used], local.reshape(-1, 3), process=False)
         normals = np.array(mesh.vertex_normals, np.float64)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        # A vertex touched only by degenerate triangles has no normal; glTF wants unit ones all the same.
+        normals = np.where(length > 1e-6, normals / np.maximum(length, 1e-12), np.array([0.0, 1.0, 0.0]))
         prim = {
             "attributes": {
                 "POSITION": b.add(np.asarray(mesh.vertices, np.float32), "VEC3", ARRAY_BUFFER, bounds=True),

@@ -81,9 +81,22 @@ def test_the_splat_primitive_holds_every_attribute_as_the_extension_defines_it()
     assert mesh["mode"] == 4 and accessor_array(doc, blob, mesh["indices"]).size == 36
 
 
+def with_a_sliver(parts: MeshParts) -> MeshParts:
+    """`parts` plus a zero-area triangle on vertices of its own (a CAD sliver), whose vertex normals are zero."""
+    v = np.concatenate([parts.vertices, [[0.2, 0, 0], [0.3, 0, 0], [0.4, 0, 0]]])
+    f = np.concatenate([parts.faces, [[len(parts.vertices), len(parts.vertices) + 1, len(parts.vertices) + 2]]])
+    return MeshParts(v, f, np.concatenate([parts.face_part, [0]]), parts.part_names)
+
+
+def test_every_mesh_normal_is_a_unit_vector_even_on_a_sliver():
+    doc, blob = read_glb(glb_bytes(*splats_gltf(splats(), with_a_sliver(box_parts()))))
+    normals = accessor_array(doc, blob, doc["meshes"][1]["primitives"][0]["attributes"]["NORMAL"])
+    assert np.linalg.norm(normals, axis=1) == pytest.approx(1.0, abs=1e-6)
+
+
 def test_the_validator_finds_nothing_but_the_extension_it_does_not_know(tmp_path):
     path = tmp_path / "splats.glb"
-    path.write_bytes(glb_bytes(*splats_gltf(splats(degree=3), box_parts())))
+    path.write_bytes(glb_bytes(*splats_gltf(splats(degree=3), with_a_sliver(box_parts()))))
     issues = validate(path)
     assert errors_beyond_unknown_extension_semantics(issues) == [] and issues["numWarnings"] == 0, issues["messages"]
 
