@@ -1,10 +1,14 @@
 """`cadsplat export`: files that open right in the tools engineers use.
 
 - ply: read the way Inria's 3DGS loader reads it (no --sh_degree flag: it expects degree 3).
-- glb: +Y up, the part standing as on the rig; 0 errors in the Khronos glTF validator when it is
-  installed (`make env` puts it in .venv/node when npm reaches its registry; CADSPLAT_GLTF_VALIDATOR
-  or npm's global root also count; skipped otherwise).
-- usd: pxr reads it back as a rigid body with the MJCF's mass and mesh, and collision prims.
+- glb: the splats (and the mesh with --mesh) +Y up, the part standing as it stood on the rig, for a
+  CAD model drawn Y-up and one drawn Z-up; no error in the Khronos glTF validator but the one it
+  raises for not knowing KHR_gaussian_splatting yet (when it is installed: `make env` puts it in
+  .venv/node when npm reaches its registry; CADSPLAT_GLTF_VALIDATOR or npm's global root also count).
+- usd: pxr reads it back as a rigid body with the MJCF's mass and mesh, collision prims, and the
+  twin's splats through UsdVol's schema; its upAxis is the part's up.
+- spz: stands up as the glb does.
+- no file export replaces an existing one without --overwrite, --out a file or a directory.
 - mjcf: density from the flag, rig.toml's [simulation] table or the default, said in the manifest;
   a mesh that cannot be closed is refused in one sentence.
 """
@@ -12,19 +16,20 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
-from benchmarks._common import gltf_validator
+from calibration.sim3 import Sim3
 from deploy.cli import main
 from reconstruction.mesh_io import MeshParts
 from reconstruction.twin import load_twin, read_splats_ply
+from simulation.gltf_splats import EXTENSION, accessor_array, read_glb
 from simulation.run import load_model
+from tests.simulation.test_gltf_splats import errors_beyond_unknown_extension_semantics, validate
+from tests.simulation.test_spz import read_spz
 from tests.simulation.twins import assemble, box, hammer, make_twin
 
 
@@ -50,31 +55,54 @@ def test_ply_reads_in_inrias_loader_without_flags(twin_dir, tmp_path):
     assert read_splats_ply(tmp_path / "s.ply").sh_degree == 1  # our reader drops the padding again
 
 
-VALIDATE_JS = """
-const fs = require('fs');
-require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))
-  .then(r => console.log(JSON.stringify(r.issues)))
-  .catch(e => { console.error(String(e)); process.exit(2); });
-"""
+def post_twin(root: Path, drawn_up: str) -> Path:
+    """A tall post (0.1 m) on a square foot, drawn in CAD with its height along `drawn_up` ("y" or "z"),
+    captured standing on the conveyor: the registration takes the rig's z (up) onto the CAD's up."""
+    tall = {"z": ([0.02, 0.02, 0.1], (0, 0, 0.05)), "y": ([0.02, 0.1, 0.02], (0, 0.05, 0))}[drawn_up]
+    foot = {"z": ([0.05, 0.05, 0.005], (0, 0, 0.0025)), "y": ([0.05, 0.005, 0.05], (0, 0.0025, 0))}[drawn_up]
+    parts, rgb = assemble([("post", box(*tall), (0.8, 0.3, 0.1)), ("foot", box(*foot), (0.2, 0.2, 0.2))])
+    rig_to_object = np.eye(3) if drawn_up == "z" else np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # rig z -> CAD y
+    return make_twin(root, f"post_{drawn_up}", parts, rgb, n=800, sim3_rig_to_object=Sim3(1.0, rig_to_object, np.zeros(3)))
 
 
-def test_glb_stands_upright_in_a_y_up_viewer_and_validates(twin_dir, tmp_path):
-    out = tmp_path / "hammer.glb"
-    assert main(["export", str(twin_dir), "--format", "glb", "--out", str(out)]) == 0
-    parts = load_twin(twin_dir).load_mesh_deformed()
-    # A viewer applies the node transforms: object (x, y, z) must appear at (x, z, -y), z up -> +Y up.
-    scene = trimesh.load(out, force="scene", process=False)
-    viewed = np.concatenate([trimesh.transform_points(scene.geometry[g].vertices, scene.graph[n][0]) for n, g in ((n, scene.graph[n][1]) for n in scene.graph.nodes_geometry)])
-    expected = parts.vertices[np.unique(parts.faces)] @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0.0]])
-    assert np.allclose(np.sort(viewed, 0), np.sort(expected, 0), atol=1e-7)
-    checker = gltf_validator()
-    if checker is None:
-        pytest.skip("the Khronos glTF validator (npm gltf-validator) is not installed")
-    node, mods = checker
-    res = subprocess.run([node, "-e", VALIDATE_JS, str(out)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=120)
-    assert res.returncode == 0, res.stderr
-    issues = json.loads(res.stdout)
-    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
+@pytest.fixture(scope="module")
+def rig_toml(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("rig") / "rig.toml"
+    path.write_text('rig_id = "line"\n[simulation]\nup = [0, 0, 1]\n')
+    return path
+
+
+def tallest_axis(points: np.ndarray) -> int:
+    return int(np.argmax(np.ptp(points, 0)))
+
+
+@pytest.mark.parametrize("drawn_up", ["y", "z"])
+def test_glb_and_spz_stand_the_part_up_whichever_way_its_cad_was_drawn(drawn_up, tmp_path, rig_toml):
+    twin = post_twin(tmp_path, drawn_up)
+    assert main(["export", str(twin), "--format", "glb", "--out", str(tmp_path / "p.glb"), "--rig", str(rig_toml), "--mesh"]) == 0
+    doc, blob = read_glb((tmp_path / "p.glb").read_bytes())
+    splat_prim = doc["meshes"][0]["primitives"][0]
+    assert EXTENSION in splat_prim["extensions"]
+    means = accessor_array(doc, blob, splat_prim["attributes"]["POSITION"])
+    assert tallest_axis(means) == 1 and means[:, 1].mean() > 0.02  # standing along +Y, the foot at the bottom
+    mesh_points = np.concatenate([accessor_array(doc, blob, m["primitives"][0]["attributes"]["POSITION"]) for m in doc["meshes"][1:]])
+    assert tallest_axis(mesh_points) == 1 and mesh_points[:, 1].min() == pytest.approx(0.0, abs=1e-7)
+    cadsplat = doc["nodes"][0]["extras"]["cadsplat"]
+    assert cadsplat["up"]["source"] == "rig.toml" and len(means) == cadsplat["num_splats"] == 800
+    issues = validate(tmp_path / "p.glb")
+    assert errors_beyond_unknown_extension_semantics(issues) == [] and issues["numWarnings"] == 0, issues["messages"]
+
+    assert main(["export", str(twin), "--format", "spz", "--out", str(tmp_path / "p.spz"), "--cad-up-axis", drawn_up]) == 0
+    spz = read_spz((tmp_path / "p.spz").read_bytes())
+    assert tallest_axis(spz["means"]) == 1 and spz["means"][:, 1].mean() > 0.02  # the CAD's declared axis, up in spz's RUB frame
+
+
+def test_without_any_up_the_default_is_said_and_a_y_up_cad_lies_on_its_side(tmp_path):
+    twin = post_twin(tmp_path, "y")
+    assert main(["export", str(twin), "--format", "glb", "--out", str(tmp_path / "p.glb")]) == 0
+    doc, blob = read_glb((tmp_path / "p.glb").read_bytes())
+    assert doc["nodes"][0]["extras"]["cadsplat"]["up"]["source"] == "default"
+    assert tallest_axis(accessor_array(doc, blob, doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"])) == 2
 
 
 def obj_triangles(path: Path) -> np.ndarray:
@@ -87,8 +115,8 @@ def obj_triangles(path: Path) -> np.ndarray:
     return np.asarray(verts)[np.asarray(tris)]
 
 
-def test_usd_reads_back_as_the_mjcf_body(twin_dir, tmp_path):
-    from pxr import Usd, UsdGeom, UsdPhysics
+def test_usd_reads_back_as_the_mjcf_body_with_the_twins_splats(twin_dir, tmp_path):
+    from pxr import Usd, UsdGeom, UsdPhysics, UsdVol
 
     from simulation.usd import _canonical
 
@@ -116,6 +144,49 @@ def test_usd_reads_back_as_the_mjcf_body(twin_dir, tmp_path):
     for p in collision:
         if p.IsA(UsdGeom.Mesh):
             assert UsdPhysics.MeshCollisionAPI(p).GetApproximationAttr().Get() == UsdPhysics.Tokens.convexHull
+    twin = load_twin(twin_dir)
+    field = UsdVol.ParticleField3DGaussianSplat(root.GetChild("splats"))
+    assert field and len(field.GetPositionsAttr().Get()) == twin.num_splats == len(field.GetOpacitiesAttr().Get())
+    assert field.GetRadianceSphericalHarmonicsDegreeAttr().Get() == twin.gaussians.sh_degree == 1
+    sh = np.array(field.GetRadianceSphericalHarmonicsCoefficientsAttr().Get()).reshape(twin.num_splats, 4, 3)
+    np.testing.assert_allclose(sh, twin.gaussians.sh, atol=1e-7)  # as fitted: 3DGS's basis and order, DC first
+    np.testing.assert_allclose(np.array(field.GetScalesAttr().Get()), np.exp(twin.gaussians.log_scales), rtol=1e-6)
+    assert stage.GetRootLayer().customLayerData["cadsplat:up_source"] == "default"
+
+
+def test_usd_of_a_y_up_cad_is_a_y_up_stage_in_the_object_frame_and_mujoco_stands_it_on_z(tmp_path, rig_toml):
+    from pxr import Usd, UsdGeom, UsdVol
+
+    from calibration.so3 import quat_to_matrix
+
+    twin = post_twin(tmp_path, "y")
+    assert main(["export", str(twin), "--format", "mjcf", "--out", str(tmp_path / "m"), "--rig", str(rig_toml), "--hull-budget", "8"]) == 0
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    body = manifest["bodies"][0]
+    assert manifest["up"]["source"] == "rig.toml" and body["collision"]["hulls"] <= body["collision"]["hull_budget"] == 8
+    assert quat_to_matrix(np.array(body["pose"]["quat_wxyz"])) @ [0, 1, 0] == pytest.approx([0, 0, 1])  # object +y onto MuJoCo's +z
+    model = load_model(tmp_path / "m" / "model.xml")
+    assert model.body_pos[1][2] == pytest.approx(0.0, abs=1e-6)  # the foot (object y = 0) on the floor
+    assert main(["export", str(twin), "--format", "usd", "--out", str(tmp_path / "p.usda"), "--rig", str(rig_toml)]) == 0
+    stage = Usd.Stage.Open(str(tmp_path / "p.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert np.array(stage.GetRootLayer().customLayerData["cadsplat:stage_from_object"]) == pytest.approx(np.eye(4).reshape(-1))
+    means = np.array(UsdVol.ParticleField3DGaussianSplat(stage.GetDefaultPrim().GetChild("splats")).GetPositionsAttr().Get())
+    np.testing.assert_allclose(means, load_twin(twin).gaussians.means, atol=1e-7)
+
+
+@pytest.mark.parametrize("fmt,name", [("ply", "splats.ply"), ("glb", "splats.glb"), ("spz", "splats.spz"), ("usd", "hammer.usda")])
+def test_no_file_export_replaces_an_existing_one_without_overwrite(fmt, name, twin_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / name).write_bytes(b"keep me")
+    assert main(["export", str(twin_dir), "--format", fmt, "--out", str(out)]) != 0  # --out a directory
+    assert "already exists; pass --overwrite" in capsys.readouterr().err and (out / name).read_bytes() == b"keep me"
+    assert main(["export", str(twin_dir), "--format", fmt, "--out", str(out / name)]) != 0  # --out the file
+    assert (out / name).read_bytes() == b"keep me"
+    if fmt != "usd":  # the USD export decomposes the body; the replacing itself is the same code
+        assert main(["export", str(twin_dir), "--format", fmt, "--out", str(out), "--overwrite"]) == 0
+        assert (out / name).read_bytes() != b"keep me"
 
 
 def test_mjcf_density_from_rig_toml_unless_a_flag_says_otherwise(twin_dir, tmp_path):

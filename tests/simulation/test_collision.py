@@ -21,6 +21,7 @@ from simulation.collision import (
     fit_capsule,
     fit_cylinder,
     fit_sphere,
+    hull_shares,
     surface_points,
 )
 
@@ -115,6 +116,22 @@ def test_piece_count_follows_the_volume_error():
     assert tight.hull_count >= loose.hull_count
     # The collision surface lies within a few millimetres of the torus surface (tube radius 10 mm).
     assert 0 < tight.hausdorff < 0.005
+
+
+def test_the_decomposition_keeps_to_its_hull_budget_and_reports_the_error_left():
+    mesh = trimesh.creation.torus(major_radius=0.05, minor_radius=0.01, major_sections=24, minor_sections=12)
+    budget = DecompositionOptions(hull_budget=5, threshold=0.02, rounds=4, mcts_iterations=20, resolution=500, timeout_s=600)
+    col = choose(mesh, tolerance=0.02, decomposition=budget)  # a tolerance only many pieces could meet
+    assert col.kind == "decomposition" and 1 < col.hull_count <= 5 == col.hull_budget
+    assert any("over the budget" in n or "merged to the budget" in n for n in col.notes)
+    assert col.notes[-1].startswith(f"CoACD: {col.hull_count} convex pieces, {100 * col.volume_error:+.1f}% volume error")
+
+
+def test_hull_shares_split_the_budget_by_volume_one_hull_each_at_least():
+    assert hull_shares(None, [1.0, 2.0]) == [None, None]
+    shares = hull_shares(32, [1.0, 1.0, 6.0])
+    assert shares == [4, 4, 22] and sum(shares) <= 32  # 1 each, then 29 by volume, rounded down
+    assert hull_shares(2, [1.0, 1.0, 1.0]) == [1, 1, 1]  # more parts than hulls: one each, said by the caller
 
 
 def test_each_cad_part_gets_its_own_primitive():

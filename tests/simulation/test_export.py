@@ -52,7 +52,7 @@ def test_export_colmap_round_trips_through_pycolmap(twin_dir, tmp_path):
 
 
 def test_the_export_table_names_callable_exporters_with_help():
-    assert list(FORMATS) == ["ply", "glb", "mjcf", "usd", "colmap"]
+    assert list(FORMATS) == ["ply", "glb", "spz", "mjcf", "usd", "colmap"]
     assert all(callable(fn) and help_text for fn, help_text in FORMATS.values())
     assert set(DIRECTORY_MARKERS) | set(PHYSICS_FORMATS) <= set(FORMATS)
 
