@@ -109,6 +109,7 @@ class Twin:
     pose_mode: str = "global"
     versions: dict = field(default_factory=dict)
     root: Path | None = None
+    up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source": what it was measured from}
 
     def __post_init__(self) -> None:
         g = self.gaussians
@@ -293,6 +294,7 @@ def _twin_document(twin: Twin) -> dict:
         "timings_s": twin.timings_s,
         "losses": twin.losses,
         "versions": twin.versions,
+        **({"up_object": twin.up_object} if twin.up_object is not None else {}),
     }
 
 
@@ -449,6 +451,7 @@ def _twin_from(doc: dict, ply: Gaussians, canon: dict, root: Path) -> Twin:
         pose_mode=doc.get("pose_mode", "global"),
         versions=doc.get("versions", {}),
         root=root,
+        up_object=doc.get("up_object"),
     )
 
 

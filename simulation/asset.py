@@ -389,8 +389,13 @@ def choose_density(density: float | None = None, material: str | None = None, *,
     return Density(*resolve_density(None, None), "default")
 
 
+SIMULATION_KEYS = ("density", "material", "hull_budget", "up", "cad_up_axis")
+
+
 def rig_simulation_table(path: str | os.PathLike) -> dict:
-    """rig.toml's optional [simulation] table (material, density), checked; {} when it has none."""
+    """rig.toml's optional [simulation] table, checked; {} when it has none. Keys: material, density
+    (of exported twins); hull_budget (most convex hulls of a collision decomposition); up (the rig
+    frame's up, [3]); cad_up_axis (the CAD models' declared up axis, "+y", "z", ...)."""
     import tomllib
 
     try:
@@ -399,11 +404,23 @@ def rig_simulation_table(path: str | os.PathLike) -> dict:
         raise ValueError(f"{path}: no such rig config file") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{path}: not valid TOML ({e})") from None
+    from simulation.up import axis_vector, unit
+
     table = doc.get("simulation", {})
-    extra = sorted(set(table) - {"material", "density"})
+    extra = sorted(set(table) - set(SIMULATION_KEYS))
     if extra:
-        raise ValueError(f"{path}: unknown key simulation.{extra[0]} (known: density, material)")
+        raise ValueError(f"{path}: unknown key simulation.{extra[0]} (known: {', '.join(SIMULATION_KEYS)})")
     resolve_density(table.get("density"), table.get("material"))
+    budget = table.get("hull_budget")
+    if budget is not None and not (isinstance(budget, int) and not isinstance(budget, bool) and 1 <= budget <= 10000):
+        raise ValueError(f"{path}: simulation.hull_budget must be an integer from 1 to 10000, got {budget!r}")
+    try:
+        if table.get("up") is not None:
+            unit(table["up"], "simulation.up")
+        if table.get("cad_up_axis") is not None:
+            axis_vector(table["cad_up_axis"])
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     return table
 
 

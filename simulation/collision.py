@@ -6,7 +6,11 @@ Volume error is (V_collision - V_mesh) / V_mesh with V_collision the volume of t
 collision shapes (manifold3d booleans, so overlapping pieces are not counted twice). Primitives and
 the hull enclose the mesh, so for them it equals 1 - IoU with the true solid. CoACD pieces
 approximate from both sides and their error shrinks as the concavity threshold does: each run's
-error sets the next threshold until the error is within tolerance. The report also gives the
+error sets the next threshold until the error is within tolerance. A physics engine pays for every
+hull on every step, so a decomposition has a hull budget (`DecompositionOptions.hull_budget`, shared
+among the parts by volume): a run over it sends the search back up between the finest threshold
+within budget and the coarsest over it, and when no run lands within it CoACD merges its pieces
+down to it. The volume error left at the budget is reported. The report also gives the
 Hausdorff distance between the collision set's surface and the mesh's (see `hausdorff`).
 """
 
@@ -17,7 +21,7 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -25,6 +29,7 @@ import numpy as np
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule")
 DECOMPOSE_FACES = 4000  # CoACD's cost grows with the input; its pieces do not need a finer mesh
 DEFAULT_TOLERANCE = 0.10
+DEFAULT_HULL_BUDGET = 32  # Isaac Sim's convex decomposition defaults to a few dozen hulls
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 HAUSDORFF_SAMPLES = 5000  # per surface: spacing ~ sqrt(area / samples), 1.4 mm on a 0.1 m part
 
@@ -55,6 +60,7 @@ class CollisionGeometry:
     pieces: tuple[np.ndarray, ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
     hausdorff: float = float("nan")
+    hull_budget: int | None = None
 
     @property
     def primitive(self) -> Primitive | None:
@@ -74,12 +80,15 @@ class DecompositionOptions:
     run (-1: no cap); `timeout_s` caps the wall clock of all runs for one part (past it the best so
     far, or the convex hull, is used and noted). The floor is low enough for thin parts: the
     rig_scenes spatula twin (a 305 mm part, blade a few mm thick) stopped at +17.7 % with 99
-    pieces at 0.01, and reaches +8.4 % (427 pieces) at 0.005."""
+    pieces at 0.01, and reaches +8.4 % (427 pieces) at 0.005. `hull_budget` (None: no budget) is
+    the most pieces the whole body may have; runs over it move the threshold back up (see the module
+    docstring), which may take up to `rounds` runs."""
 
     threshold: float = 0.05
     min_threshold: float = 0.005
-    rounds: int = 4
+    rounds: int = 5
     max_convex_hull: int = -1
+    hull_budget: int | None = DEFAULT_HULL_BUDGET
     timeout_s: float = 300.0
     resolution: int = 1000
     mcts_iterations: int = 30
@@ -314,12 +323,18 @@ def hausdorff(mesh, shapes: list, samples: int = HAUSDORFF_SAMPLES, seed: int = 
     return max(to_shapes, to_mesh)
 
 
-def _adaptive_decomposition(vertices, faces, mesh_volume: float, tolerance: float, opts: DecompositionOptions) -> tuple[tuple[np.ndarray, ...], float, list[str]]:
-    """CoACD pieces chosen by volume error: runs at falling thresholds until the error is within
-    `tolerance`. Returns (pieces, error, notes); no pieces when no run finished in time."""
+def _adaptive_decomposition(
+    vertices, faces, mesh_volume: float, tolerance: float, opts: DecompositionOptions, budget: int | None = None,
+) -> tuple[tuple[np.ndarray, ...], float, list[str]]:
+    """CoACD pieces chosen by volume error within a hull `budget` (None: none): runs at falling
+    thresholds until the error is within `tolerance`; a run over the budget makes the next threshold
+    the geometric mean of the finest within budget and the coarsest over it (or twice this one); when
+    no run lands within budget, CoACD's own cap merges the finest run's pieces down to it.
+    Returns (pieces, error, notes) of the best run within budget; no pieces when none finished in time."""
     t_end = time.perf_counter() + opts.timeout_s
     best: tuple[tuple[np.ndarray, ...], float] = ((), np.inf)
     notes, threshold = [], opts.threshold
+    over_at, within_at = 0.0, np.inf  # the coarsest threshold over the budget, the finest within it
     for _ in range(max(opts.rounds, 1)):
         left = t_end - time.perf_counter()
         pieces = decompose(vertices, faces, opts, threshold=threshold, timeout_s=left) if left > 0 else None
@@ -327,17 +342,38 @@ def _adaptive_decomposition(vertices, faces, mesh_volume: float, tolerance: floa
             notes.append(f"CoACD at threshold {threshold:.3g} did not finish within the {opts.timeout_s:.0f} s budget")
             break
         err = union_volume((), tuple(pieces)) / mesh_volume - 1
-        notes.append(f"CoACD threshold {threshold:.3g}: {len(pieces)} pieces, {100 * err:+.1f}% volume")
-        if abs(err) < abs(best[1]):
+        over = budget is not None and len(pieces) > budget
+        notes.append(f"CoACD threshold {threshold:.3g}: {len(pieces)} pieces{' (over the budget)' if over else ''}, {100 * err:+.1f}% volume")
+        if over:
+            over_at = max(over_at, threshold)
+        else:
+            within_at = min(within_at, threshold)
+            if abs(err) < abs(best[1]):
+                best = (tuple(pieces), err)
+            if abs(err) <= tolerance or threshold <= opts.min_threshold:
+                break
+        if over_at > 0 and np.isfinite(within_at):
+            if within_at / over_at < 1.15:  # bracketed tightly: finer steps change a piece or two
+                break
+            threshold = float(np.sqrt(over_at * within_at))
+        elif over:
+            threshold = min(1.0, 2.0 * threshold)
+        else:
+            threshold = max(opts.min_threshold, threshold * float(np.clip(0.8 * tolerance / abs(err), 0.25, 0.8)))
+    if budget is not None and not best[0] and over_at > 0 and t_end > time.perf_counter():
+        cap = budget if opts.max_convex_hull < 1 else min(budget, opts.max_convex_hull)
+        pieces = decompose(vertices, faces, replace(opts, max_convex_hull=cap), threshold=over_at, timeout_s=t_end - time.perf_counter())
+        if pieces:
+            err = union_volume((), tuple(pieces)) / mesh_volume - 1
             best = (tuple(pieces), err)
-        if abs(err) <= tolerance or threshold <= opts.min_threshold:
-            break
-        threshold = max(opts.min_threshold, threshold * float(np.clip(0.8 * tolerance / abs(err), 0.25, 0.8)))
+            notes.append(f"CoACD threshold {over_at:.3g} merged to the budget: {len(pieces)} pieces, {100 * err:+.1f}% volume")
     return best[0], best[1], notes
 
 
-def _part_geometry(vertices, faces, volume: float, tolerance: float, primitives: tuple[str, ...], decomposition: DecompositionOptions | None):
-    """(primitives, pieces, error, notes) for one closed part."""
+def _part_geometry(
+    vertices, faces, volume: float, tolerance: float, primitives: tuple[str, ...], decomposition: DecompositionOptions | None, budget: int | None = None,
+):
+    """(primitives, pieces, error, notes) for one closed part, at most `budget` pieces."""
     err = lambda vol: (vol - volume) / volume  # noqa: E731
     hull = hull_vertices(vertices)
     hull_err = err(convex_volume(hull))
@@ -347,7 +383,7 @@ def _part_geometry(vertices, faces, volume: float, tolerance: float, primitives:
     if hull_err <= tolerance or decomposition is None:
         why = "within" if hull_err <= tolerance else "(decomposition disabled)"
         return (), (hull,), hull_err, [f"convex hull {why} {100 * hull_err:.1f}% of the volume"]
-    pieces, dec_err, notes = _adaptive_decomposition(vertices, faces, volume, tolerance, decomposition)
+    pieces, dec_err, notes = _adaptive_decomposition(vertices, faces, volume, tolerance, decomposition, budget)
     if not pieces or abs(dec_err) >= abs(hull_err):
         why = "no CoACD run finished" if not pieces else f"CoACD's best ({100 * dec_err:+.1f}%) was no closer"
         return (), (hull,), hull_err, notes + [f"{why}; convex hull used ({100 * hull_err:.1f}% volume error)"]
@@ -395,9 +431,11 @@ def collision_geometry(
     parts = _closed_parts(v, f, np.asarray(face_part)) if face_part is not None and len(np.unique(face_part)) > 1 else None
     if parts is None:
         parts = [(v, f, float(mesh_volume))]
+    budget = None if decomposition is None else decomposition.hull_budget
+    shares = hull_shares(budget, [pvol for _, _, pvol in parts])
     prims, pieces, notes = [], [], []
-    for pv, pf, pvol in parts:
-        pr, pc, _, n = _part_geometry(pv, pf, pvol, tolerance, primitives, decomposition)
+    for (pv, pf, pvol), share in zip(parts, shares):
+        pr, pc, _, n = _part_geometry(pv, pf, pvol, tolerance, primitives, decomposition, share)
         prims += pr
         pieces += pc
         notes += n
@@ -411,7 +449,19 @@ def collision_geometry(
     dist = float("nan")
     if measure_hausdorff:
         dist = hausdorff(trimesh.Trimesh(v, f, process=False), shape_meshes(prims, pieces))
-    return CollisionGeometry(kind, volume, volume / mesh_volume - 1, time.perf_counter() - t0, prims, pieces, tuple(notes), dist)
+    if budget is not None and len(pieces) + len(prims) > budget:
+        notes.append(f"{len(pieces) + len(prims)} shapes for {len(parts)} parts: over the hull budget of {budget}, one per part at least")
+    return CollisionGeometry(kind, volume, volume / mesh_volume - 1, time.perf_counter() - t0, prims, pieces, tuple(notes), dist, budget)
+
+
+def hull_shares(budget: int | None, volumes: list[float]) -> list[int | None]:
+    """Each part's share of a hull `budget` (None: no budget): one each, the rest by volume; they sum
+    to at most the budget whenever it is at least the number of parts."""
+    if budget is None:
+        return [None] * len(volumes)
+    spare = max(budget - len(volumes), 0)
+    total = float(sum(volumes)) or 1.0
+    return [1 + int(spare * v / total) for v in volumes]
 
 
 def surface_points(geometry: CollisionGeometry, sections: int = 32) -> np.ndarray:

@@ -182,7 +182,7 @@ def body_manifest(b: BodySpec) -> dict:
         "principal_axes": m.principal_axes,
         "repair": {**vars(a.repair), "summary": a.repair.summary()},
         "collision": {
-            "kind": c.kind, "primitives": [p.kind for p in c.primitives], "hulls": c.hull_count, "volume_m3": c.volume,
+            "kind": c.kind, "primitives": [p.kind for p in c.primitives], "hulls": c.hull_count, "hull_budget": c.hull_budget, "volume_m3": c.volume,
             "volume_error": c.volume_error, "hausdorff_m": c.hausdorff if np.isfinite(c.hausdorff) else None, "seconds": c.seconds,
             "notes": list(c.notes),
         },
@@ -190,9 +190,9 @@ def body_manifest(b: BodySpec) -> dict:
     }
 
 
-def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], options: SimOptions = SimOptions()) -> Path:
-    """Write the MJCF package (every file atomically, `manifest.json` last with their sha256 and each
-    body's mass properties and collision choice). Returns the path of `model.xml`."""
+def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], options: SimOptions = SimOptions(), extra: dict | None = None) -> Path:
+    """Write the MJCF package (every file atomically, `manifest.json` last with their sha256, each
+    body's mass properties and collision choice, and `extra`'s entries). Returns the path of `model.xml`."""
     out = Path(out_dir)
     xml, files = mjcf_document(bodies, options, model_name=out.name or "cadsplat")
     for sub in ("meshes", "textures"):
@@ -208,6 +208,7 @@ def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], optio
         "options": {"timestep": options.timestep, "gravity": list(options.gravity), "integrator": options.integrator, "cone": options.cone},
         "contact": {k: getattr(options.contact, k) for k in ("friction", "condim", "solref", "solimp", "margin")},
         "bodies": [body_manifest(b) for b in bodies],
+        **(extra or {}),
         "sha256": {rel: sha256_file(out / rel) for rel in [MODEL_XML, *files]},
     }
     atomic_write_json(out / MANIFEST_JSON, manifest)

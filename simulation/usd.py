@@ -1,15 +1,26 @@
 """USD export of a simulation body for Isaac Sim and other UsdPhysics readers (usd-core's `pxr`).
 
-Layout (metres, kilograms, Z up, the object frame unchanged):
+Layout (metres, kilograms; the stage's upAxis is the part's up, see below):
 
     /<body>                 Xform, default prim; UsdPhysics RigidBodyAPI + MassAPI (mass, centre of
                             mass, principal inertia and the rotation to its principal axes)
+      /splats               UsdVol.ParticleField3DGaussianSplat: the twin's Gaussians as fitted
+                            (positions, unit orientations, linear scales, opacities after the
+                            sigmoid, every SH coefficient of the fitted degree in 3DGS's basis and
+                            order, DC first, `elementSize` (degree + 1)^2 per splat); purpose "render"
       /visual/<part>        one UsdGeom.Mesh per CAD part, named after it (made a valid identifier;
                             the CAD name is kept in customData "cad_part"), face colours baked from
-                            the Gaussians; no collision
+                            the Gaussians; purpose "proxy" (the splats are the picture); no collision
       /collision/<shape>    the collision shapes of `collision.py`, invisible: convex pieces as Meshes
                             with CollisionAPI + MeshCollisionAPI approximation "convexHull"; primitives
                             as UsdGeom Cube / Sphere / Cylinder / Capsule with CollisionAPI
+
+Up: the stage's upAxis is Y or Z, whichever is nearer the part's up in the object frame; when up is
+not exactly that axis, the whole body (mesh, splats, collision, mass properties) is turned by the
+smallest rotation that makes it so, and the layer's customLayerData records that rotation
+(`cadsplat:stage_from_object`, 16 numbers, row-major [4, 4] acting on column vectors) and where up
+came from (`cadsplat:up_source`, `cadsplat:up_detail`, `cadsplat:up_object`). A CAD model drawn Y-up or
+Z-up keeps its object frame exactly.
 
 The mass properties are written explicitly (not left to the importer to recompute from the
 collision shapes, which would overstate the mass exactly as one convex hull does). The file is
@@ -20,14 +31,17 @@ from __future__ import annotations
 
 import os
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from calibration.fileio import fsync_dir
 from calibration.so3 import matrix_to_quat
+from reconstruction.gaussians import Gaussians
 from simulation.collision import Primitive
 from simulation.mjcf import BodySpec
+from simulation.up import Up, standing, usd_up_axis
 
 
 class UsdCheckError(ValueError):
@@ -97,14 +111,58 @@ def principal_frame(inertia: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return moments, matrix_to_quat(axes)
 
 
-def usd_stage(body: BodySpec):
-    """An in-memory Usd.Stage holding `body` (see the module docstring)."""
+def turned_body(body: BodySpec, rotation: np.ndarray) -> BodySpec:
+    """`body` turned about the object origin by rotation [3, 3]: its mesh, mass properties (centre of
+    mass R c, inertia R I R^T) and collision shapes."""
+    r = np.asarray(rotation, np.float64)
+    a, m, col = body.asset, body.asset.mass, body.collision
+    t = np.eye(4)
+    t[:3, :3] = r
+    mass = replace(m, center_of_mass=r @ m.center_of_mass, inertia=r @ m.inertia @ r.T)
+    collision = replace(
+        col, pieces=tuple(np.asarray(p) @ r.T for p in col.pieces), primitives=tuple(replace(p, transform=t @ p.transform) for p in col.primitives),
+    )
+    return replace(body, asset=replace(a, vertices=a.vertices @ r.T, mass=mass), collision=collision)
+
+
+def stage_frame(up: Up) -> tuple[str, np.ndarray]:
+    """(USD upAxis "Y" or "Z", rotation [3, 3] stage-from-object standing `up` along it)."""
+    axis = usd_up_axis(up.vector)
+    return axis, standing(up.vector, "+" + axis.lower())
+
+
+def _splats(stage, path: str, g: Gaussians):
+    """A ParticleField3DGaussianSplat prim at `path` holding `g` (see the module docstring)."""
+    from pxr import Gf, UsdGeom, UsdVol, Vt
+
+    means, quats, scales, opacity, sh = (t.numpy() for t in g.activated())
+    q = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    field = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
+    field.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(means, np.float32)))
+    field.CreateOrientationsAttr(Vt.QuatfArray([Gf.Quatf(float(w), float(x), float(y), float(z)) for w, x, y, z in q]))
+    field.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(scales, np.float32)))
+    field.CreateOpacitiesAttr(Vt.FloatArray.FromNumpy(np.ascontiguousarray(opacity, np.float32)))
+    field.CreateRadianceSphericalHarmonicsDegreeAttr(int(g.sh_degree))
+    coeffs = field.CreateRadianceSphericalHarmonicsCoefficientsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sh.reshape(-1, 3), np.float32)))
+    primvar = UsdGeom.Primvar(coeffs)
+    primvar.SetInterpolation(UsdGeom.Tokens.vertex)
+    primvar.SetElementSize(int(sh.shape[1]))
+    field.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, means.min(0))), Gf.Vec3f(*map(float, means.max(0)))]))
+    rgb = np.clip(0.5 + 0.28209479177387814 * sh[:, 0], 0.0, 1.0)
+    field.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rgb, np.float32)))
+    field.CreatePurposeAttr(UsdGeom.Tokens.render)
+    return field
+
+
+def usd_stage(body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z", layer_data: dict | None = None):
+    """An in-memory Usd.Stage holding `body` and its `splats` (see the module docstring), already in
+    the stage's frame, whose upAxis is `up_axis`; `layer_data` joins the layer's customLayerData."""
     import trimesh
     from pxr import Gf, Usd, UsdGeom, UsdPhysics, Vt
 
     a, col, m = body.asset, body.collision, body.asset.mass
     stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
     root_path = "/" + _identifier(a.name)
@@ -120,6 +178,8 @@ def usd_stage(body: BodySpec):
     mass.CreatePrincipalAxesAttr(Gf.Quatf(float(q[0]), float(q[1]), float(q[2]), float(q[3])))
     root.SetCustomDataByKey("cadsplat:volume_m3", float(m.volume))
     root.SetCustomDataByKey("cadsplat:density_source", a.density.source)
+    if splats is not None:
+        _splats(stage, f"{root_path}/splats", splats)
 
     UsdGeom.Scope.Define(stage, f"{root_path}/visual")
     names = _unique([_identifier(n) for n in a.part_names])
@@ -132,6 +192,7 @@ def usd_stage(body: BodySpec):
         colors = mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.uniform)
         colors.Set(Vt.Vec3fArray.FromNumpy(np.asarray(a.face_rgb[sel], np.float32)))
         mesh.GetPrim().SetCustomDataByKey("cad_part", str(cad_name))
+        mesh.CreatePurposeAttr(UsdGeom.Tokens.proxy if splats is not None else UsdGeom.Tokens.default_)
 
     UsdGeom.Scope.Define(stage, f"{root_path}/collision")
     shapes = []
@@ -146,19 +207,22 @@ def usd_stage(body: BodySpec):
         UsdPhysics.CollisionAPI.Apply(geom.GetPrim())
         UsdGeom.Imageable(geom).CreatePurposeAttr(UsdGeom.Tokens.guide)
     root.SetCustomDataByKey("cadsplat:collision", {"kind": col.kind, "volume_error": float(col.volume_error)})
-    stage.GetRootLayer().customLayerData = {"generator": "cadsplat"}
+    stage.GetRootLayer().customLayerData = {"generator": "cadsplat", **(layer_data or {})}
     return stage
 
 
-def check_usd(path: str | os.PathLike, body: BodySpec) -> None:
+def check_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z") -> None:
     """Read `path` back with pxr and check it holds `body`: a rigid body with the mass, centre of
-    mass and principal inertia of the asset, the asset's triangles, and one collision prim per
-    collision shape. Raises UsdCheckError naming the first mismatch."""
+    mass and principal inertia of the asset, the asset's triangles, one collision prim per
+    collision shape, the stage's up axis, and `splats` through UsdVol's ParticleField3DGaussianSplat
+    API (count, SH degree and coefficients, positions). Raises UsdCheckError naming the first mismatch."""
     from pxr import Usd, UsdGeom, UsdPhysics
 
     stage = Usd.Stage.Open(str(path))
     if stage is None:
         raise UsdCheckError(f"{path}: pxr cannot open the file just written")
+    if UsdGeom.GetStageUpAxis(stage) != up_axis or UsdGeom.GetStageMetersPerUnit(stage) != 1.0 or UsdPhysics.GetStageKilogramsPerUnit(stage) != 1.0:
+        raise UsdCheckError(f"{path}: the stage's upAxis, metersPerUnit or kilogramsPerUnit is not what was written")
     root = stage.GetDefaultPrim()
     if not (root and root.HasAPI(UsdPhysics.RigidBodyAPI) and root.HasAPI(UsdPhysics.MassAPI)):
         raise UsdCheckError(f"{path}: the default prim is not a rigid body with a mass")
@@ -183,6 +247,36 @@ def check_usd(path: str | os.PathLike, body: BodySpec) -> None:
     n_col = sum(1 for prim in Usd.PrimRange(root.GetChild("collision")) if prim.HasAPI(UsdPhysics.CollisionAPI))
     if n_col != body.collision.hull_count + len(body.collision.primitives):
         raise UsdCheckError(f"{path}: {n_col} collision prims, expected {body.collision.hull_count + len(body.collision.primitives)}")
+    if splats is not None:
+        check_splats(path, root.GetChild("splats"), splats)
+
+
+def check_splats(path, prim, splats: Gaussians) -> None:
+    """`prim` read through UsdVol.ParticleField3DGaussianSplat holds `splats`; UsdCheckError otherwise."""
+    from pxr import UsdGeom, UsdVol
+
+    if not (prim and prim.IsA(UsdVol.ParticleField3DGaussianSplat)):
+        raise UsdCheckError(f"{path}: no ParticleField3DGaussianSplat prim holds the splats")
+    field = UsdVol.ParticleField3DGaussianSplat(prim)
+    n, k = len(splats), splats.sh.shape[1]
+    pos = np.array(field.GetPositionsAttr().Get(), np.float32)
+    counts = [len(field.GetOrientationsAttr().Get()), len(field.GetScalesAttr().Get()), len(field.GetOpacitiesAttr().Get())]
+    if pos.shape != (n, 3) or counts != [n, n, n]:
+        raise UsdCheckError(f"{path}: the splat field holds {len(pos)} positions and {counts} orientations, scales, opacities; the twin has {n} splats")
+    if not np.allclose(pos, np.asarray(splats.means, np.float32), atol=1e-6):
+        raise UsdCheckError(f"{path}: the splat positions differ from the twin's")
+    coeffs = field.GetRadianceSphericalHarmonicsCoefficientsAttr()
+    sh = np.array(coeffs.Get(), np.float32)
+    if field.GetRadianceSphericalHarmonicsDegreeAttr().Get() != splats.sh_degree or UsdGeom.Primvar(coeffs).GetElementSize() != k or sh.shape != (n * k, 3):
+        raise UsdCheckError(f"{path}: the splats' SH degree or coefficient count is not the twin's (degree {splats.sh_degree}, {k} per splat)")
+    if not np.allclose(sh.reshape(n, k, 3), np.asarray(splats.sh, np.float32), atol=1e-6):
+        raise UsdCheckError(f"{path}: the splats' SH coefficients differ from the twin's")
+
+
+def _rigid(rotation: np.ndarray) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = rotation
+    return t
 
 
 def _canonical(tris: np.ndarray) -> np.ndarray:
@@ -194,18 +288,29 @@ def _canonical(tris: np.ndarray) -> np.ndarray:
     return keys[np.lexsort(keys.T[::-1])]
 
 
-def write_usd(path: str | os.PathLike, body: BodySpec) -> Path:
-    """Write `body` as a USD file (.usda text or .usd/.usdc binary) beside `path`, check it reads back
-    as the body (`check_usd`), then rename it into place. Returns `path`."""
+def write_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None = None, up: Up | None = None) -> Path:
+    """Write `body` and its `splats` (object frame) standing on `up` (default: the object frame's +z)
+    as a USD file (.usda text or .usd/.usdc binary) beside `path`, check it reads back as written
+    (`check_usd`), then rename it into place. Returns `path`."""
+    from pxr import Gf, Vt
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    up = up or Up(np.array([0.0, 0.0, 1.0]), "default", "the CAD convention +z assumed")
+    axis, rotation = stage_frame(up)
+    stage_body = turned_body(body, rotation)
+    stage_splats = None if splats is None else splats.transformed(_rigid(rotation))
+    layer_data = {
+        "cadsplat:up_source": up.source, "cadsplat:up_detail": up.detail, "cadsplat:up_object": Gf.Vec3d(*map(float, up.vector)),
+        "cadsplat:stage_from_object": Vt.DoubleArray([float(x) for x in _rigid(rotation).reshape(-1)]),  # row-major, column vectors
+    }
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
-        stage = usd_stage(body)  # held: the layer lives only as long as its stage
+        stage = usd_stage(stage_body, stage_splats, axis, layer_data)  # held: the layer lives only as long as its stage
         if not stage.GetRootLayer().Export(tmp):
             raise UsdCheckError(f"{path}: pxr could not write the file")
-        check_usd(tmp, body)
+        check_usd(tmp, stage_body, stage_splats, axis)
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)

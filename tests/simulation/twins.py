@@ -55,8 +55,12 @@ def hammer() -> tuple[MeshParts, np.ndarray]:
     ])
 
 
-def make_twin(root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray, n: int = 3000, seed: int = 0) -> Path:
-    """Save a twin of `parts` with `n` coloured splats (SH degree 1, a small view-dependent term)."""
+def make_twin(
+    root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray, n: int = 3000, seed: int = 0, sim3_rig_to_object: Sim3 | None = None,
+) -> Path:
+    """Save a twin of `parts` with `n` coloured splats (SH degree 1, a small view-dependent term), registered by
+    `sim3_rig_to_object` (default: the identity)."""
+    sim3 = sim3_rig_to_object or Sim3(1.0, np.eye(3), np.zeros(3))
     s = init_splats(parts.vertices, parts.faces, n, sh_degree=1, face_part=parts.face_part, seed=seed)
     sh = s.gaussians.sh.copy()
     sh[:, 0] = rgb_to_sh_dc(face_rgb[s.face_index])
@@ -68,7 +72,7 @@ def make_twin(root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray,
         k = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
         cams.append(TwinCamera(f"images/view_{i}.png", f"cam{i}", k, 160, 120, look_at_c2w(eye, centre)))
     twin = Twin(
-        model_id=model_id, sim3_rig_to_object_init=Sim3(1.0, np.eye(3), np.zeros(3)), sim3_rig_to_object=Sim3(1.0, np.eye(3), np.zeros(3)),
+        model_id=model_id, sim3_rig_to_object_init=sim3, sim3_rig_to_object=sim3,
         cameras=cams, preset="test", choices={}, timings_s={}, losses={},
         gaussians=Gaussians(s.means, s.gaussians.quats, s.gaussians.log_scales, np.full(n, 4.0, np.float32), sh),
         means_canonical=s.means, face_index=s.face_index, barycentrics=s.barycentrics, part_label=s.part_label,
