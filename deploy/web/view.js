@@ -3,7 +3,9 @@
 // Query: camera=N puts the view exactly at training camera N (its intrinsics and pose, OpenCV convention),
 // at w x h pixels (default the camera's own size) over a transparent background, with no panel: what the
 // browser tests compare with the engine's render. layers=splats,mesh,cad,cameras,heatmap picks the layers
-// shown first (default splats). When everything asked for is drawn, window.cadsplatReady is true.
+// shown first (default splats). splats=FILE draws another splat file of the twin's folder (an export: .spz, .ply),
+// with frame=16 numbers (row-major [4, 4]) taking its coordinates to the object frame (an export stood +Y up).
+// When everything asked for is drawn, window.cadsplatReady is true.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
@@ -182,8 +184,13 @@ async function main() {
   // Layers: each loads when first shown; a missing file greys its toggle out.
   const layers = {
     splats: async () => {
-      const mesh = new SplatMesh({ url: "/twin/splats.ply", extSplats: true });
+      const mesh = new SplatMesh({ url: splatsUrl, extSplats: true });
       await mesh.initialized;
+      if (params.has("frame")) {
+        const m = params.get("frame").split(",").map(Number);
+        if (m.length !== 16 || m.some((x) => !Number.isFinite(x))) throw new Error("frame= needs 16 numbers, a row-major [4, 4]");
+        mesh.applyMatrix4(new THREE.Matrix4().set(...m));
+      }
       return mesh;
     },
     mesh: async () => greyMesh(await loadGlb("/twin/mesh_deformed.glb")),
@@ -194,7 +201,8 @@ async function main() {
     },
     heatmap: async () => heatMap(await loadGlb("/inspection/deviation.glb")),
   };
-  const sources = { splats: "/twin/splats.ply", mesh: "/twin/mesh_deformed.glb", cad: "/twin/mesh_cad.glb", heatmap: "/inspection/deviation.glb" };
+  const splatsUrl = `/twin/${params.get("splats") ?? "splats.ply"}`;
+  const sources = { splats: splatsUrl, mesh: "/twin/mesh_deformed.glb", cad: "/twin/mesh_cad.glb", heatmap: "/inspection/deviation.glb" };
   const loaded = {};
   const show = async (name, on) => {
     if (on && !loaded[name]) {

@@ -274,3 +274,22 @@ def test_the_heat_map_shows_the_inspection_colours_and_verdict(tmp_path, chromiu
     blue = (want[..., 2] > 0.6) & (want[..., 0] < 0.3) & hit
     assert blue.sum() > 20
     assert np.abs(rgb[blue] - want[blue]).mean() < 0.05
+
+
+@needs_vendor
+@needs_chromium
+def test_the_spz_export_read_by_spark_is_the_engine_render(tmp_path, chromium):
+    """The .spz export (Niantic's layout, +Y up) through Spark's own .spz loader, turned back into the object frame."""
+    from simulation.export import export_spz, gltf_frame
+
+    twin = make_twin(tmp_path / "twin")
+    export_spz(twin.root, twin.root / "splats.spz")
+    _, gltf_from_object = gltf_frame(twin)
+    frame = ",".join(f"{x:.17g}" for x in np.linalg.inv(gltf_from_object).ravel())
+    cam = twin.cameras[0].camera
+    with Serving(ViewServer(ViewRoots(twin.root))) as server:
+        shot, _ = chromium.screenshot(server.url(f"camera=0&splats=splats.spz&frame={frame}"), cam.width, cam.height)
+    rgb, alpha = over_white(shot)
+    want, want_alpha = (x[0].numpy() for x in render(twin.gaussians, cam.viewmat[None], cam.K[None], cam.width, cam.height))
+    assert iou(want_alpha > 0.5, alpha > 0.5) >= 0.95
+    assert psnr_over(rgb, want, (want_alpha > 0.5) | (alpha > 0.5)) >= 25.0
