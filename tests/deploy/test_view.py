@@ -293,3 +293,11 @@ def test_the_spz_export_read_by_spark_is_the_engine_render(tmp_path, chromium):
     want, want_alpha = (x[0].numpy() for x in render(twin.gaussians, cam.viewmat[None], cam.K[None], cam.width, cam.height))
     assert iou(want_alpha > 0.5, alpha > 0.5) >= 0.95
     assert psnr_over(rgb, want, (want_alpha > 0.5) | (alpha > 0.5)) >= 25.0
+
+
+def test_the_kiosk_names_the_command_that_opens_the_last_twin():
+    from deploy.kiosk import render_work
+    from deploy.kiosk_state import ApplianceState, Verdict
+
+    screen = render_work(ApplianceState(last_twin=Verdict("cap-1", "m", 0.9, 0.95, "Good", "ok", "/w/jobs/cap-1/twin/renders/cam00.png")))
+    assert "view: cadsplat view /w/jobs/cap-1/twin" in screen
