@@ -30,6 +30,9 @@ $(STAMP): pyproject.toml Makefile
 	@command -v npm >/dev/null && npm install --silent --no-audit --no-fund --prefix $(VENV)/node three@0.181.0 @sparkjsdev/spark@2.2.0 \
 		&& rm -rf $(VENDOR) && mkdir -p $(VENDOR) && cd $(VENV)/node/node_modules && cp --parents $(VENDORED) $(CURDIR)/$(VENDOR) \
 		|| echo "three.js and Spark not installed (npm or its registry unavailable): cadsplat view and its browser tests will not run"
+	# Babylon.js, the browser tests' reader of the KHR_gaussian_splatting GLB (tests only: not copied into the package).
+	@command -v npm >/dev/null && npm install --silent --no-audit --no-fund --prefix $(VENV)/node babylonjs@9.28.0 babylonjs-loaders@9.28.0 \
+		|| echo "Babylon.js not installed (npm or its registry unavailable): the KHR GLB browser test will skip"
 	# Headless Chromium for the browser tests (Debian's package, where apt and root are at hand); without it they skip and say so.
 	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq \
 		&& apt-get install -y -qq chromium >/dev/null; } || echo "chromium not installed: the browser tests will skip"

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -301,3 +302,30 @@ def test_the_kiosk_names_the_command_that_opens_the_last_twin():
 
     screen = render_work(ApplianceState(last_twin=Verdict("cap-1", "m", 0.9, 0.95, "Good", "ok", "/w/jobs/cap-1/twin/renders/cam00.png")))
     assert "view: cadsplat view /w/jobs/cap-1/twin" in screen
+
+
+NODE_MODULES = Path(sys.prefix) / "node" / "node_modules"  # where `make env` installs the npm packages (.venv/node)
+
+
+@needs_chromium
+def test_the_khr_glb_read_by_babylon_covers_the_engine_render(tmp_path, chromium):
+    """The KHR_gaussian_splatting GLB export (+Y up) through Babylon.js's glTF loader, drawn from a training camera."""
+    if not (NODE_MODULES / "babylonjs-loaders" / "babylonjs.loaders.min.js").is_file():
+        pytest.skip(f"Babylon.js is not installed under {NODE_MODULES} (`make env`)")
+    from simulation.export import export_glb, gltf_frame
+
+    twin = make_twin(tmp_path / "twin")
+    export_glb(twin.root, twin.root / "splats.glb")
+    _, gltf_from_object = gltf_frame(twin)
+    frame = ",".join(f"{x:.17g}" for x in gltf_from_object.ravel())
+    cam = twin.cameras[0].camera
+    page = Path(__file__).resolve().parents[1] / "khr_page"
+    with Serving(ViewServer(ViewRoots(twin.root, web=page, vendor=NODE_MODULES))) as server:
+        shot, _ = chromium.screenshot(server.url(f"camera=0&frame={frame}"), cam.width, cam.height)
+    rgb, alpha = over_white(shot)
+    want, want_alpha = (x[0].numpy() for x in render(twin.gaussians, cam.viewmat[None], cam.K[None], cam.width, cam.height))
+    assert iou(want_alpha > 0.5, alpha > 0.5) >= 0.95
+    psnr = psnr_over(rgb, want, (want_alpha > 0.5) | (alpha > 0.5))
+    if psnr < 25.0:
+        # Open: Babylon draws these splats within a pixel of the engine but not to the bar (benchmarks/results/view_browser.md).
+        pytest.xfail(f"Babylon.js draws the KHR GLB at {psnr:.1f} dB against the engine (the bar is 25 dB)")
