@@ -24,9 +24,13 @@ async function main() {
   const mul = (r, c) => [0, 1, 2, 3].reduce((s, k) => s + t(r, k) * c2w(k, c), 0);
   const col = (c) => new BABYLON.Vector3(mul(0, c), mul(1, c), mul(2, c));
   const eye = col(3), forward = col(2), down = col(1);
-  const camera = new BABYLON.FreeCamera("training", eye, scene);
-  camera.upVector = down.scale(-1);
-  camera.setTarget(eye.add(forward));
+  // The orientation as a quaternion (Babylon's camera looks down its local -z in a right-handed scene), not a target:
+  // a camera aimed by setTarget keeps only yaw and pitch, and misses the roll by a fraction of a degree (half a pixel).
+  const camera = new BABYLON.TargetCamera("training", eye, scene);
+  const up = down.scale(-1);
+  camera.updateUpVectorFromRotation = true;
+  const back = forward.scale(-1);
+  camera.rotationQuaternion = BABYLON.Quaternion.RotationQuaternionFromAxis(BABYLON.Vector3.Cross(up, back), up, back);
   const [fx, cx, fy, cy] = [cam.K[0][0], cam.K[0][2], cam.K[1][1], cam.K[1][2]];
   const reach = Math.hypot(eye.x, eye.y, eye.z), near = reach / 100, far = reach * 100;
   // OpenGL's projection of K, stored as Babylon stores matrices (row vectors: the transpose, row-major).
