@@ -118,7 +118,7 @@ class ViewHandler(BaseHTTPRequestHandler):
     server_version = "cadsplat-view"
     sys_version = ""
 
-    def log_message(self, format: str, *args) -> None:  # noqa: A002 - the base class's signature
+    def log_message(self, format: str, *args) -> None:
         pass
 
     def _authorised(self, query: dict[str, list[str]]) -> tuple[bool, bool]:
@@ -144,7 +144,7 @@ class ViewHandler(BaseHTTPRequestHandler):
         name = host[1:].partition("]")[0] if host.startswith("[") else host.rpartition(":")[0] or host
         return is_loopback(name)
 
-    def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+    def do_GET(self) -> None:
         url = urlsplit(self.path)
         allowed, set_cookie = self._authorised(parse_qs(url.query))
         if not allowed or not self._host_allowed():

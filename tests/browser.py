@@ -50,7 +50,7 @@ class Chromium:
 
         self._proc = subprocess.Popen([binary, *FLAGS, f"--user-data-dir={self._profile}", "--remote-debugging-pipe", "about:blank"],
                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                      preexec_fn=fds, pass_fds=(3, 4))
+                                      preexec_fn=fds, pass_fds=(3, 4))  # noqa: PLW1509 - it only calls dup2, safe after fork
         os.close(to_child_r)
         os.close(from_child_w)
         self._buffer = b""
