@@ -178,7 +178,10 @@ async function main() {
       controls.update();
     };
     select.addEventListener("change", () => { if (select.value !== "") goTo(cameras[Number(select.value)]); });
-    if (cameras.length) goTo(cameras[0]);
+    if (cameras.length) {
+      select.value = "0";
+      goTo(cameras[0]);
+    }
   }
 
   // Layers: each loads when first shown; a missing file greys its toggle out.
