@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("deploy.commands.render:render", "Render a twin from a capture's cameras or an orbit."),
     "inspect": ("deploy.commands.inspect:inspect", "Deviation from CAD: heat maps, CSV, PASS/FAIL/UNCERTAIN exit code."),
     "export": ("deploy.commands.export:export", "Export a twin as ply, glb, mjcf or colmap."),
+    "view": ("deploy.commands.view:view", "The twin in a browser: a local read-only page (splats, meshes, cameras, heat map)."),
     "simulate": ("deploy.commands.simulate:simulate", "MuJoCo run of exported twins, rendered."),
     "rig": ("deploy.commands.rig:rig", "Camera drivers, triggers and captures from rig.toml."),
     "store": ("deploy.commands.store:store", "Verify every digest of a capture store."),

@@ -7,6 +7,8 @@ failed job, a acknowledge the alarm, b take empty-rig frames (rig empty), q quit
 
 from __future__ import annotations
 
+from pathlib import PurePath
+
 from rich.text import Text
 from textual.app import App, ComposeResult
 from textual.binding import Binding
@@ -64,7 +66,8 @@ def render_work(s: ApplianceState) -> str:
         if t.inspection:
             lines.append(f"     PART {t.inspection}")
         if t.preview_path:
-            lines.append(f"     preview: {t.preview_path}")
+            # The preview is TWIN/renders/<view>.png: the operator gets the twin, in the browser, rather than one picture of it.
+            lines.append(f"     view: cadsplat view {PurePath(t.preview_path).parents[1]}")
     else:
         lines.append("LAST TWIN none yet")
     return "\n".join(lines)

@@ -97,6 +97,8 @@ def history(work: Path, part: str | None) -> None:
         for r in rows:
             when = time.strftime("%Y-%m-%d %H:%M", time.localtime(r["finished"])) if r["finished"] else ""
             click.echo(f"  {when}  {r['capture_id']:<28} {r['line']}")
+    if found:
+        click.echo(f"open one in the browser: cadsplat view --work {work} CAPTURE_ID")
     if failed:
         click.echo(f"no twin: {len(failed)} failed job(s) (`cadsplat service retry JOB_ID` after fixing the cause)")
         for j in failed:
