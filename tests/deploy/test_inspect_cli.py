@@ -2,6 +2,7 @@
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -56,7 +57,7 @@ def test_pass_writes_the_whole_report(tmp_path, capsys):
     twin = make_twin(tmp_path, "good", two_parts())
     out = tmp_path / "report"
     assert main(["inspect", str(twin), "--out", str(out), "--turntable", "2"]) == 0
-    assert capsys.readouterr().out.strip() == "PASS max 0.0 mm (tolerance 1 mm)"
+    assert re.fullmatch(r"PASS max 0\.0 \+-0\.\d\d mm \(tolerance 1 mm\)", capsys.readouterr().out.strip())
     doc = json.loads((out / "inspection.json").read_text())
     assert doc["verdict"]["status"] == "PASS" and sorted(p["name"] for p in doc["parts"]) == ["ball", "peg"]
     for name, digest in doc["sha256"].items():
@@ -64,6 +65,16 @@ def test_pass_writes_the_whole_report(tmp_path, capsys):
     assert {"views/c00.png", "turntable/orbit_000.png", "legend.png", "deviation.ply", "deviation.glb"} <= set(doc["sha256"])
     rows = list(csv.DictReader((out / "parts" / "ball.csv").open()))
     assert len(rows) == 642 and {r["status"] for r in rows} <= {"ok", "unseen"}
+    # Every seen vertex carries its uncertainty, in the CSV, the PLY and the JSON; unseen ones none.
+    seen = [r for r in rows if r["status"] == "ok"]
+    assert seen and all(0 < float(r["uncertainty_mm"]) < 1.0 and float(r["pixel_mm"]) > 0 for r in seen)
+    assert all(r["uncertainty_mm"] == "" for r in rows if r["status"] == "unseen")
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(out / "deviation.ply"))["vertex"]
+    assert np.isfinite(ply["uncertainty_mm"]).sum() >= len(seen)
+    assert 0 < doc["surface"]["uncertainty_median_mm"] < 1.0 and doc["verdict"]["uncertainty_mm"] > 0
+    assert doc["verdict"]["straddling"] == [] and doc["surface"]["uncertain_pct"] == 0.0
     # Inspecting again replaces the report; a directory that is not a report is never replaced.
     assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0"]) == 0
     assert "turntable/orbit_000.png" not in json.loads((out / "inspection.json").read_text())["sha256"]
@@ -74,14 +85,29 @@ def test_pass_writes_the_whole_report(tmp_path, capsys):
 
 def test_a_dent_fails_at_its_place_and_passes_a_looser_tolerance(tmp_path, capsys):
     centre = np.array([0.0, -0.04, 0.0])  # on the ball's side, seen by the ring
-    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.002, 0.012))
+    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.004, 0.015))
     assert main(["inspect", str(twin), "--tolerance", "1.5", "--turntable", "0"]) == 1
     line = capsys.readouterr().out.strip()
-    assert line.startswith("FAIL part 'ball' -2.0 mm at (")
+    assert re.match(r"FAIL part 'ball' -4\.0 \+-\d\.\d\d mm at \(", line) and "% of the surface out of tolerance" in line
     doc = json.loads((twin / "inspection" / "inspection.json").read_text())
     at = np.array(doc["verdict"]["at_mm"])
     assert np.linalg.norm(at - centre * 1000) < 3.0
-    assert main(["inspect", str(twin), "--tolerance", "2.5", "--turntable", "0"]) == 0
+    assert main(["inspect", str(twin), "--tolerance", "6", "--turntable", "0"]) == 0
+
+
+def test_a_dent_within_its_uncertainty_of_the_tolerance_is_uncertain_and_named(tmp_path, capsys):
+    centre = np.array([0.0, -0.04, 0.0])
+    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.004, 0.015))
+    assert main(["inspect", str(twin), "--tolerance", "3.9", "--turntable", "0"]) == 4
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("UNCERTAIN ") and "lie within their uncertainty of the 3.9 mm tolerance: vertex " in line
+    doc = json.loads((twin / "inspection" / "inspection.json").read_text())
+    named = doc["verdict"]["straddling"]
+    assert doc["verdict"]["reason"] == "near tolerance" and named and named[0]["part"] == "ball"
+    assert np.linalg.norm(np.array(named[0]["at_mm"]) - centre * 1000) < 3.0
+    assert all(abs(abs(v["deviation_mm"]) - 3.9) <= v["uncertainty_mm"] for v in named)
+    rows = list(csv.DictReader((twin / "inspection" / "parts" / "ball.csv").open()))
+    assert {int(r["vertex"]) for r in rows if r["status"] == "uncertain"} == {v["vertex"] for v in named}
 
 
 def test_unseen_surface_makes_the_verdict_uncertain_never_a_pass(tmp_path, capsys):
