@@ -51,9 +51,9 @@ MM_PER_M = 1000.0
 MAX_ANGLE_DEG = 75.0  # beyond this the camera looks along the surface: it cannot place it
 EXIT_CODES = {"PASS": 0, "FAIL": 1, "UNCERTAIN": 3}
 EXIT_NEAR_TOLERANCE = 4  # UNCERTAIN with the surface covered: a vertex's uncertainty straddles the tolerance
-# One view's 1-sigma placement of a surface point across its line of sight, in pixels: the masks' binarisation,
-# the splats' rim and the trained poses together. A single value for every part, set so that about 95 % of the
-# rig scenes' true errors fall inside the k = 2 uncertainty (benchmarks/results/inspect_truth.md).
+# One view's 1-sigma placement of a surface point across its line of sight, in pixels: half a pixel, the outline
+# of a binary mask. One value for every part; how many true errors fall inside the k = 2 uncertainty it gives
+# on the rig scenes is in benchmarks/results/inspect_truth.md.
 SIGMA_PX = 0.5
 COVERAGE_K = 2.0  # the uncertainty written is the expanded one, k = 2 (GUM): about 95 % coverage
 MIN_SIN = float(np.sin(np.radians(10.0)))  # a view looking straight down the normal still places the point by its texture
@@ -283,14 +283,16 @@ def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, s
 def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarray, valid: np.ndarray,
                        k: int = RESIDUAL_NEIGHBOURS) -> np.ndarray:
     """RMS residual [P] of a plane fit (value = a + b u + c w over the tangent plane) of `values` [P] on each valid
-    point's k nearest valid neighbours (points [P, 3], unit normals [P, 3], valid [P] bool); NaN where not valid.
+    point's k nearest valid neighbours on its own side of the surface (points [P, 3], unit normals [P, 3], valid [P]
+    bool); NaN where not valid or too few neighbours face its way.
 
-    The fit's three parameters are taken out of the degrees of freedom, so a map that is a plane is 0 and a noisy
-    one gives its noise.
+    Neighbours whose normal turns more than 60 deg from the point's are left out: across a thin part's edge they lie
+    on the other wall, whose deviation is another. The fit's three parameters are taken out of the degrees of
+    freedom, so a map that is a plane is 0 and a noisy one gives its noise.
     """
     out = np.full(len(points), np.nan)
     idx = np.flatnonzero(valid)
-    k = min(k, idx.size)
+    k = min(2 * k, idx.size)
     if k < 4:
         return out
     from scipy.spatial import cKDTree
@@ -298,6 +300,7 @@ def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarr
     p = np.asarray(points, np.float64)[idx]
     _, nb = cKDTree(p).query(p, k=k)
     n = np.asarray(normals, np.float64)[idx]
+    weight = (np.einsum("nd,nkd->nk", n, n[nb]) >= 0.5).astype(np.float64)
     helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.cross(n, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
@@ -305,9 +308,11 @@ def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarr
     rel = p[nb] - p[:, None, :]  # [n, k, 3]
     design = np.stack([np.ones(rel.shape[:2]), np.einsum("nkd,nd->nk", rel, t1), np.einsum("nkd,nd->nk", rel, t2)], -1)
     y = np.asarray(values, np.float64)[idx][nb]
-    coef = np.einsum("nij,nj->ni", np.linalg.pinv(design), y)
-    resid = y - np.einsum("nkj,nj->nk", design, coef)
-    out[idx] = np.sqrt((resid ** 2).sum(1) / (k - 3))
+    wd = design * weight[..., None]
+    coef = np.einsum("nij,nj->ni", np.linalg.pinv(wd), y * weight)
+    resid = (y - np.einsum("nkj,nj->nk", design, coef)) * weight
+    dof = weight.sum(1) - 3
+    out[idx] = np.where(dof >= 1, np.sqrt((resid ** 2).sum(1) / np.maximum(dof, 1)), np.nan)
     return out
 
 
@@ -406,6 +411,9 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
     seen = (vis.views > 0) & np.isfinite(deviation)
     sigma = projection_sigma(vis.seen, vis.cos, vis.footprint)
     residual = local_fit_residual(cad_v, normals, deviation, seen)
+    # A seen vertex without enough neighbours on its side of the surface takes the map's typical residual.
+    typical = float(np.nanmedian(residual)) if np.isfinite(residual).any() else 0.0
+    residual = np.where(seen & ~np.isfinite(residual), typical, residual)
     residual = np.where(np.isfinite(rim_residual), np.sqrt(residual ** 2 + rim_residual ** 2), residual)
     footprint = np.nanmedian(np.where(vis.seen, vis.footprint, np.nan)[:, seen], 0) if seen.any() else np.zeros(0)
     footprint_all = np.full(len(cad_v), np.nan)
