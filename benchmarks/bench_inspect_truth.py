@@ -66,7 +66,7 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
 
     gt = json.loads((data / "scenes" / scene / "gt.json").read_text())
     twin = load_twin(twin_dir)
-    row: dict = {"scene": scene, "model_id": twin.model_id, "train_s": float(twin.timings_s.get("total", float("nan"))),
+    row: dict = {"scene": scene, "model_id": twin.model_id, "preset": twin.preset, "train_s": float(twin.timings_s.get("total", float("nan"))),
                  "size": f"{twin.cameras[0].width}x{twin.cameras[0].height}"}
     if twin.model_id != scene:
         row["note"] = f"registered {twin.model_id}, not {scene}: no truth to compare the map with"
@@ -131,7 +131,7 @@ def table(rows: list[dict], name: str) -> list[str]:
 def write_markdown(rows: list[dict], data: str, twins: Path, tolerance_mm: float, machine: str, path: Path) -> str:
     maps = sorted({m for r in rows for m in r.get("maps", {})})
     text = [f"# Inspection map against the truth ({data})", "",
-            f"Twins: `{twins}` (preset cpu, trained once, read here); written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by "
+            f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by "
             f"`python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' common module offers no anchor ratio; "
             "inspection CPU seconds are process time, twin training seconds the twin's own wall record.", "",
             f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "

@@ -57,7 +57,7 @@ EXIT_NEAR_TOLERANCE = 4  # UNCERTAIN with the surface covered: a vertex's uncert
 SIGMA_PX = 0.5
 COVERAGE_K = 2.0  # the uncertainty written is the expanded one, k = 2 (GUM): about 95 % coverage
 MIN_SIN = float(np.sin(np.radians(10.0)))  # a view looking straight down the normal still places the point by its texture
-RESIDUAL_NEIGHBOURS = 12  # seen vertices the local fit residual is taken over
+RESIDUAL_NEIGHBOURS = 16  # seen vertices on the vertex's side the local fit residual is taken over (twice as many are looked at)
 NAMED_VERTICES = 5  # straddling vertices an UNCERTAIN line names (the JSON lists them all)
 _NEAR = 1e-6
 
@@ -282,18 +282,20 @@ def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, s
 
 def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarray, valid: np.ndarray,
                        k: int = RESIDUAL_NEIGHBOURS) -> np.ndarray:
-    """RMS residual [P] of a plane fit (value = a + b u + c w over the tangent plane) of `values` [P] on each valid
+    """RMS residual [P] of a quadric fit (value = a + b u + c w + d u^2 + e uw + f w^2 over the tangent plane) of
+    `values` [P] on each valid
     point's k nearest valid neighbours on its own side of the surface (points [P, 3], unit normals [P, 3], valid [P]
     bool); NaN where not valid or too few neighbours face its way.
 
     Neighbours whose normal turns more than 60 deg from the point's are left out: across a thin part's edge they lie
-    on the other wall, whose deviation is another. The fit's three parameters are taken out of the degrees of
-    freedom, so a map that is a plane is 0 and a noisy one gives its noise.
+    on the other wall, whose deviation is another. A quadric follows a smooth bump or dent (a real departure, to be
+    measured, not doubted); its six parameters are taken out of the degrees of freedom, so a smooth map gives 0
+    and a noisy one its noise.
     """
     out = np.full(len(points), np.nan)
     idx = np.flatnonzero(valid)
     k = min(2 * k, idx.size)
-    if k < 4:
+    if k < 7:
         return out
     from scipy.spatial import cKDTree
 
@@ -306,12 +308,13 @@ def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarr
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(n, t1)
     rel = p[nb] - p[:, None, :]  # [n, k, 3]
-    design = np.stack([np.ones(rel.shape[:2]), np.einsum("nkd,nd->nk", rel, t1), np.einsum("nkd,nd->nk", rel, t2)], -1)
+    u, w = np.einsum("nkd,nd->nk", rel, t1), np.einsum("nkd,nd->nk", rel, t2)
+    design = np.stack([np.ones(rel.shape[:2]), u, w, u * u, u * w, w * w], -1)
     y = np.asarray(values, np.float64)[idx][nb]
     wd = design * weight[..., None]
     coef = np.einsum("nij,nj->ni", np.linalg.pinv(wd), y * weight)
     resid = (y - np.einsum("nkj,nj->nk", design, coef)) * weight
-    dof = weight.sum(1) - 3
+    dof = weight.sum(1) - 6
     out[idx] = np.where(dof >= 1, np.sqrt((resid ** 2).sum(1) / np.maximum(dof, 1)), np.nan)
     return out
 

@@ -41,12 +41,13 @@ def make_twin(root, name, deformed: MeshParts | None, elevations=(-35.0, 35.0)):
     parts = two_parts()
     s = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, face_part=parts.face_part, seed=0)
     cams = []
-    k = np.array([[150.0, 0, 80], [0, 150.0, 60], [0, 0, 1]])
+    # 640x480 at 0.4 m: a pixel is about 0.6 mm at the ball, fine enough for a 1 mm tolerance beyond the uncertainty.
+    k = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
     centre = np.array([0.02, 0.0, 0.0])
     for el in np.radians(elevations):
         for i, az in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False)):
             eye = centre + 0.4 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-            cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 160, 120, look_at_c2w(eye, centre)))
+            cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 640, 480, look_at_c2w(eye, centre)))
     twin = Twin(model_id="ball_and_peg", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=cams,
                 preset="test", choices={}, timings_s={}, losses={}, gaussians=s.gaussians, means_canonical=s.means, face_index=s.face_index,
                 barycentrics=s.barycentrics, part_label=s.part_label, part_names=parts.part_names)
@@ -145,10 +146,10 @@ def test_the_job_record_and_the_history_carry_the_verdict_per_part_id(tmp_path, 
     from deploy.steps import PipelineConfig, inspect_step, inspection_history
 
     work = tmp_path / "jobs" / "cap-0001"
-    make_twin(work, "twin", dented(two_parts(), np.array([0.0, -0.04, 0.0]), 0.002, 0.012))
+    make_twin(work, "twin", dented(two_parts(), np.array([0.0, -0.04, 0.0]), 0.004, 0.015))
     record = inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=1.0))
     assert record["status"] == "FAIL" and record["exit_code"] == 1 and record["part"] == "ball"
-    assert record["line"].startswith("FAIL part 'ball' -2.0 mm at (") and (work / "inspection" / "inspection.json").exists()
+    assert record["line"].startswith("FAIL part 'ball' -4.0 +-") and (work / "inspection" / "inspection.json").exists()
     # A second call (a resumed job) reads the report instead of redoing it.
     assert inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=5.0)) == record
 
