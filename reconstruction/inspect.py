@@ -16,9 +16,9 @@ surface that no camera even has in view (inside its image and within the angle, 
 underside above which all cameras stand) is reported apart: that share is the rig's coverage, which
 another capture of the same part would not change; the rest was hidden by the part itself.
 
-Uncertainty. Each seen vertex carries an expanded (k = 2, about 95 %) uncertainty of its deviation, from two
-sources: where the views place it (`projection_sigma`: a move along the normal shows in a view only across the
-line of sight, by sin(angle) / pixel footprint pixels per millimetre, and the views' information adds up), and
+Uncertainty. Each seen vertex carries an expanded (k = 2) uncertainty of its deviation, from two sources: where
+the views place it (`projection_sigma`: a move along the normal shows in a view only across the line of sight,
+by sin(angle) / pixel footprint pixels per millimetre; the best view decides), and
 how far the map departs from a smooth surface around it (`local_fit_residual`).
 
 Verdict. FAIL when a seen vertex departs from the tolerance by more than its uncertainty (the worst is named
@@ -272,11 +272,13 @@ def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, s
 
     seen [C, V] bool, cos [C, V] (normal against the direction to the camera), footprint [C, V] (a pixel's size at the
     point). A move d along the normal shifts the point's image in view c by d sin(angle_c) / footprint_c pixels (its
-    part along the line of sight does not show); each view places the image to `sigma_px`, and the views'
-    information adds. sin is floored at `MIN_SIN`: a view along the normal still places a textured point.
+    part along the line of sight does not show); each view places the image to `sigma_px`. The point is as sure as
+    its best view makes it: the views' information is not summed, since one fit (one deformation field, one set of
+    poses) explains them all and their errors are not independent. sin is floored at `MIN_SIN`: a view along the
+    normal still places a textured point.
     """
     sin = np.maximum(np.sqrt(np.clip(1.0 - np.asarray(cos) ** 2, 0.0, 1.0)), MIN_SIN)
-    info = np.where(seen, (sin / np.maximum(footprint, 1e-300)) ** 2, 0.0).sum(0)
+    info = np.where(seen, (sin / np.maximum(footprint, 1e-300)) ** 2, 0.0).max(0, initial=0.0)
     return np.where(info > 0, sigma_px / np.sqrt(np.maximum(info, 1e-300)), np.nan)
 
 

@@ -226,9 +226,10 @@ def test_projection_sigma_from_angles_pixel_size_and_views():
     fp = np.array([[0.001, 0.001]])
     # Looking across the surface a view places it to sigma_px pixels; along the normal only through MIN_SIN.
     np.testing.assert_allclose(projection_sigma(np.array([[True, True]]), np.array([[0.0, 1.0]]), fp, 0.5), [0.0005, 0.0005 / MIN_SIN])
-    # Twice the pixel size, twice the uncertainty; two like views, 1/sqrt(2) of it; an unseen point has none.
-    two = projection_sigma(np.array([[True], [True]]), np.zeros((2, 1)), np.full((2, 1), 0.002), 0.5)
-    np.testing.assert_allclose(two, [0.001 / np.sqrt(2)])
+    # Twice the pixel size, twice the uncertainty; the best view decides (one fit explains them all: no 1/sqrt(n)
+    # from views that share its errors); an unseen point has none.
+    two = projection_sigma(np.array([[True], [True], [False]]), np.array([[0.0], [0.8], [0.0]]), np.array([[0.002], [0.001], [0.0001]]), 0.5)
+    np.testing.assert_allclose(two, [0.5 * 0.001 / 0.6])
     assert np.isnan(projection_sigma(np.array([[False]]), np.zeros((1, 1)), fp[:, :1], 0.5))[0]
 
 
