@@ -1,4 +1,4 @@
-"""`cadsplat inspect TWIN [--tolerance MM] [--out DIR]`: where the twin departs from its CAD model.
+"""`cadsplat inspect TWIN [--tolerance MM] [--out DIR] [--capture CAPTURE]`: where the twin departs from its CAD model.
 
 Prints one line on stdout, the verdict, and exits with a code a PLC can act on:
 
@@ -13,7 +13,9 @@ Prints one line on stdout, the verdict, and exits with a code a PLC can act on:
                   of the tolerance (named: vertex, part, mm +- uncertainty, where; a finer measurement decides)
 
 Every seen vertex carries the expanded (k = 2) uncertainty of its deviation, from the views that see it (their
-angles and pixel size at the vertex) and the map's local fit residual (`reconstruction.inspect`).
+angles and pixel size at the vertex) and the map's local fit residual (`reconstruction.inspect`). With --capture
+the capture's masks, at the camera's own resolution, refine the map at the part's outlines
+(`reconstruction.inspect_silhouette`; measured in benchmarks/results/inspect_truth*.md).
 
 Unseen shares name the part no camera has in view at all (the rig's coverage, which no recapture changes):
 `UNCERTAIN 26 % of the surface unseen (25 % in no camera's view); ...`.
@@ -45,6 +47,7 @@ import numpy as np
 from reconstruction.inspect import MAX_ANGLE_DEG
 
 if TYPE_CHECKING:
+    from calibration.capture import Capture
     from reconstruction.twin import Twin
 
 DEFAULT_TOLERANCE_MM = 1.0
@@ -138,13 +141,17 @@ def _legend_png(range_mm: float, tolerance_mm: float) -> bytes:
 
 
 def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_unseen_pct: float, turntable: int = 24,
-                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True) -> dict:
-    """Load the twin at `twin_dir` and `write_inspection` of it under `out_dir`; returns the inspection document."""
+                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True, capture_dir: Path | None = None) -> dict:
+    """Load the twin at `twin_dir` (and the masks of the capture at `capture_dir`, when given) and `write_inspection`
+    of it under `out_dir`; returns the inspection document."""
+    from calibration.capture import read_capture
     from reconstruction.twin import load_twin
 
     _check_settings(tolerance_mm, max_unseen_pct, Path(out_dir))
-    return write_inspection(load_twin(twin_dir), out_dir, tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=turntable,
-                            max_angle_deg=max_angle_deg, renders=renders, twin_label=str(twin_dir))
+    twin = load_twin(twin_dir)
+    masks = None if capture_dir is None else capture_masks_for(twin, read_capture(capture_dir))
+    return write_inspection(twin, out_dir, tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=turntable,
+                            max_angle_deg=max_angle_deg, renders=renders, twin_label=str(twin_dir), masks=masks)
 
 
 def _check_settings(tolerance_mm: float, max_unseen_pct: float, out: Path) -> None:
@@ -156,9 +163,26 @@ def _check_settings(tolerance_mm: float, max_unseen_pct: float, out: Path) -> No
         raise ValueError(f"{out} exists and is not an earlier inspection; choose another --out")
 
 
+def capture_masks_for(twin: Twin, capture: Capture) -> list[np.ndarray]:
+    """The capture's masks [H, W] bool at its own resolution, one per twin camera (matched by image path). Raises
+    ValueError naming the first twin view the capture does not hold, or a capture without masks."""
+    by_path = {f.file_path: i for i, f in enumerate(capture.frames)}
+    out = []
+    for cam in twin.cameras:
+        if cam.file_path not in by_path:
+            raise ValueError(f"{capture.root} holds no view {cam.file_path}: give the capture the twin was made from")
+        mask = capture.mask(by_path[cam.file_path])
+        if mask is None:
+            raise ValueError(f"{capture.root} has no mask for {cam.file_path}: refining the map needs the capture's masks")
+        out.append(np.asarray(mask, bool))
+    return out
+
+
 def write_inspection(twin: Twin, out_dir: Path, *, tolerance_mm: float, max_unseen_pct: float, turntable: int = 24,
-                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True, twin_label: str | None = None) -> dict:
-    """Inspect the loaded `twin` and write everything under `out_dir` (built beside it, renamed into place).
+                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True, twin_label: str | None = None,
+                     masks: list[np.ndarray] | None = None) -> dict:
+    """Inspect the loaded `twin` and write everything under `out_dir` (built beside it, renamed into place); with
+    `masks` (one [H, W] bool per twin camera, the capture's own resolution) the map is refined at the outlines.
 
     Returns the inspection document (what inspection.json holds; `twin_label` names the twin there, default its
     root). Raises TwinError/ValueError with one sentence when the twin cannot be inspected or `out_dir` is something
@@ -172,7 +196,7 @@ def write_inspection(twin: Twin, out_dir: Path, *, tolerance_mm: float, max_unse
     _check_settings(tolerance_mm, max_unseen_pct, out)
     cad = twin.load_mesh_cad()
     cams = [c.camera for c in twin.cameras]
-    insp = inspect_twin(twin, cad=cad, max_angle_deg=max_angle_deg)
+    insp = inspect_twin(twin, masks, cad=cad, max_angle_deg=max_angle_deg)
     result = verdict(insp, tolerance_mm, max_unseen_pct)
     range_mm = 2.0 * tolerance_mm
     rgb = (deviation_colors(insp.deviation_mm, insp.seen, range_mm) * 255 + 0.5).astype(np.uint8)
@@ -197,6 +221,7 @@ def write_inspection(twin: Twin, out_dir: Path, *, tolerance_mm: float, max_unse
         "model_id": twin.model_id,
         "verdict": result.to_dict(),
         "settings": {"tolerance_mm": tolerance_mm, "max_unseen_pct": max_unseen_pct, "max_angle_deg": max_angle_deg,
+                     "refined_by_masks": masks is not None,
                      "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
                                   "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
                      "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
@@ -243,10 +268,13 @@ def write_inspection(twin: Twin, out_dir: Path, *, tolerance_mm: float, max_unse
 @click.option("--turntable", default=24, show_default=True, type=click.IntRange(0, 360), help="Turntable heat-map views (0: none).")
 @click.option("--max-angle", "max_angle_deg", default=MAX_ANGLE_DEG, show_default=True, type=click.FloatRange(1.0, 89.0),
               help="A camera sees a surface point only when the surface normal is within this angle of its line of sight.")
-def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir: Path | None, turntable: int, max_angle_deg: float) -> None:
+@click.option("--capture", "capture_dir", default=None, type=click.Path(path_type=Path),
+              help="The capture the twin was made from: its masks, at the camera's own resolution, refine the map at the part's outlines.")
+def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir: Path | None, turntable: int, max_angle_deg: float,
+            capture_dir: Path | None) -> None:
     out = out_dir if out_dir is not None else twin_dir / "inspection"
     doc = inspect_twin_dir(twin_dir, out, tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=turntable,
-                           max_angle_deg=max_angle_deg)
+                           max_angle_deg=max_angle_deg, capture_dir=capture_dir)
     for p in doc["parts"]:
         worst = "unseen" if p["worst_mm"] is None else f"worst {p['worst_mm']:+.2f} mm, p95 |dev| {p['p95_abs_mm']:.2f} mm"
         seen = "" if p["views_median"] is None else f", seen by {p['views_median']:.0f} views (median) at {p['best_angle_median_deg']:.0f} deg"

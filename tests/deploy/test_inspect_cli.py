@@ -225,3 +225,36 @@ def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
     out = write_obj_positions(text, moved)
     assert "vn " not in out and f"f {f[0, 0] + 1}/{f[0, 0] + 1} " in out and "vt 0.5 0.5" in out and "mtllib textured.mtl" in out
     np.testing.assert_allclose(read_obj_positions(out)[0], moved, atol=1e-7)
+
+
+def test_the_capture_masks_refine_the_map_and_a_capture_without_the_twins_views_is_refused(tmp_path, capsys):
+    import cv2
+
+    from reconstruction.inspect import rasterize_mesh
+
+    twin = make_twin(tmp_path, "good", two_parts())
+    # The capture the twin was made from: masks of the part as it is, at the cameras' own resolution.
+    capture = tmp_path / "capture"
+    (capture / "masks").mkdir(parents=True)
+    (capture / "images").mkdir()
+    frames = []
+    from reconstruction.twin import load_twin
+
+    parts = two_parts()
+    for cam in load_twin(twin).cameras:
+        mask = rasterize_mesh(parts.vertices, parts.faces, cam.camera)[1] >= 0
+        name = cam.file_path.split("/")[-1]
+        cv2.imwrite(str(capture / "masks" / name), (255 * mask).astype(np.uint8))
+        cv2.imwrite(str(capture / "images" / name), np.full((cam.height, cam.width, 3), 128, np.uint8))
+        gl = cam.c2w_object_opencv @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append({"file_path": cam.file_path, "mask_path": f"masks/{name}", "transform_matrix": gl.tolist(), "camera_id": cam.camera_id,
+                       "fl_x": cam.K[0, 0], "fl_y": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2], "w": cam.width, "h": cam.height})
+    (capture / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames, "cadsplat": {"units": "m"}}))
+    out = tmp_path / "report"
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--tolerance", "2", "--capture", str(capture)]) == 0
+    doc = json.loads((out / "inspection.json").read_text())
+    assert doc["settings"]["refined_by_masks"] and doc["verdict"]["max_abs_mm"] < 0.3
+    frames.pop()
+    (capture / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames, "cadsplat": {"units": "m"}}))
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--capture", str(capture)]) == 2
+    assert "holds no view images/c11.png" in capsys.readouterr().err
