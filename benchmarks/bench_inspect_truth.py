@@ -41,7 +41,7 @@ def map_scores(reported_mm: np.ndarray, uncertainty_mm: np.ndarray, footprint_mm
     ok = seen & np.isfinite(truth_mm)
     err = np.abs(reported_mm - truth_mm)[ok]
     err_px = err / footprint_mm[ok]
-    out, straddle = tolerance_calls(reported_mm[ok], uncertainty_mm[ok], tolerance_mm)
+    _, straddle = tolerance_calls(reported_mm[ok], uncertainty_mm[ok], tolerance_mm)
     certain = ~straddle
     agree = (np.abs(reported_mm[ok]) > tolerance_mm) == (np.abs(truth_mm[ok]) > tolerance_mm)
     seen_area = area_mm2[seen].sum()
@@ -131,16 +131,16 @@ def table(rows: list[dict], name: str) -> list[str]:
 def write_markdown(rows: list[dict], data: str, twins: Path, tolerance_mm: float, machine: str, path: Path) -> str:
     maps = sorted({m for r in rows for m in r.get("maps", {})})
     text = [f"# Inspection map against the truth ({data})", "",
-            f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by "
-            f"`python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' common module offers no anchor ratio; "
-            "inspection CPU seconds are process time, twin training seconds the twin's own wall record.", "",
-            f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "
+            (f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written "
+             f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' "
+             "common module offers no anchor ratio; inspection CPU seconds are process time, twin training seconds the twin's own wall record."), "",
+            (f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "
             "along the CAD normal), in mm and in pixels at the object (over the vertex's pixel footprint, the median over the views "
             f"that see it; `pixel mm` is its median). At the {tolerance_mm:g} mm tolerance: the in/out call against the truth's on all "
             "vertices and on those the verdict calls certain (uncertainty not straddling the tolerance); uncertain %: the seen area "
             "whose uncertainty straddles it. Coverage: the share of vertices whose true error lies inside their k = 2 uncertainty "
             "U (nominal 95 %). Verdict at the tolerance with 25 % unseen allowed (these CAD variants are deformed by 3-5 % of "
-            "their size: the truth is FAIL everywhere).", ""]
+            "their size: the truth is FAIL everywhere)."), ""]
     for name in maps:
         text += [f"## map `{name}`", "", *table(rows, name), ""]
     out = "\n".join(text)
