@@ -198,14 +198,15 @@ def test_rig_toml_turns_inspection_on():
 
 @pytest.mark.slow
 def test_a_synthetic_dent_fails_at_its_place_and_the_undented_part_passes(tmp_path):
-    """Issue 18's acceptance, as benchmarks/results/dent_cpu.md measures it: a 2 mm dent read at -1.6 mm FAILs at a
-    1.5 mm tolerance, the undented part PASSes (max 1.1 mm, 24.6 % unseen against the 25 % default)."""
+    """Issue 18's acceptance, as benchmarks/results/dent_cpu.md measures it, under issue 60's verdict: a 2 mm dent read
+    at about -1.6 mm is never passed at a 1.5 mm tolerance (FAIL, or UNCERTAIN naming it when its uncertainty reaches
+    the tolerance); the undented part, read at about 1 mm +-0.7, is never failed (PASS, or UNCERTAIN near the tolerance)."""
     from benchmarks.bench_dent import run
     from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
 
     res = run(tmp_path, preset="cpu", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
-    assert res["nominal"]["status"] == "PASS", res["nominal"]["line"]
-    assert res["dented"]["status"] == "FAIL" and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
+    assert res["nominal"]["exit_code"] in (0, 4), res["nominal"]["line"]
+    assert res["dented"]["exit_code"] in (1, 4) and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
 
 
 def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
