@@ -16,16 +16,25 @@ surface that no camera even has in view (inside its image and within the angle, 
 underside above which all cameras stand) is reported apart: that share is the rig's coverage, which
 another capture of the same part would not change; the rest was hidden by the part itself.
 
-Verdict. FAIL when a seen vertex departs by more than the tolerance (the worst one is named with its
-part and position), else UNCERTAIN when more than `max_unseen_pct` of the surface area is unseen, else
-PASS. Exit codes for a PLC: PASS 0, FAIL 1, UNCERTAIN 3 (2 stays "could not inspect", as for every
-cadsplat command).
+Uncertainty. Each seen vertex carries an expanded (k = 2) uncertainty of its deviation, from two sources: where
+the views place it (`projection_sigma`: a move along the normal shows in a view only across the line of sight,
+by sin(angle) / pixel footprint pixels per millimetre; the best view decides), and
+how far the map departs from a smooth surface around it (`local_fit_residual`).
+
+Verdict. FAIL when a seen vertex departs from the tolerance by more than its uncertainty (the worst is named
+with its part and position); else UNCERTAIN when more than `max_unseen_pct` of the surface area is unseen;
+else UNCERTAIN when a seen vertex's uncertainty straddles the tolerance (those vertices are named); else PASS:
+every seen vertex lies inside the tolerance by more than its uncertainty. Exit codes for a PLC: PASS 0,
+FAIL 1, UNCERTAIN 3 (too much unseen: another capture can help), 4 (UNCERTAIN: the surface is covered but some
+vertex lies within its uncertainty of the tolerance: a finer measurement decides); 2 stays "could not
+inspect", as for every cadsplat command.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -34,9 +43,22 @@ import trimesh
 from calibration.camera import Camera, project_points
 from reconstruction.splats import face_areas_normals
 
+if TYPE_CHECKING:
+    from reconstruction.mesh_io import MeshParts
+    from reconstruction.twin import Twin
+
 MM_PER_M = 1000.0
 MAX_ANGLE_DEG = 75.0  # beyond this the camera looks along the surface: it cannot place it
 EXIT_CODES = {"PASS": 0, "FAIL": 1, "UNCERTAIN": 3}
+EXIT_NEAR_TOLERANCE = 4  # UNCERTAIN with the surface covered: a vertex's uncertainty straddles the tolerance
+# One view's 1-sigma placement of a surface point across its line of sight, in pixels: half a pixel, the outline
+# of a binary mask. One value for every part; how many true errors fall inside the k = 2 uncertainty it gives
+# on the rig scenes is in benchmarks/results/inspect_truth.md.
+SIGMA_PX = 0.5
+COVERAGE_K = 2.0  # the uncertainty written is the expanded one, k = 2 (GUM): about 95 % coverage
+MIN_SIN = float(np.sin(np.radians(10.0)))  # a view looking straight down the normal still places the point by its texture
+RESIDUAL_NEIGHBOURS = 16  # seen vertices on the vertex's side the local fit residual is taken over (twice as many are looked at)
+NAMED_VERTICES = 5  # straddling vertices an UNCERTAIN line names (the JSON lists them all)
 _NEAR = 1e-6
 
 
@@ -199,6 +221,8 @@ class Visibility:
     views: np.ndarray
     best_angle_deg: np.ndarray
     in_view: np.ndarray  # [V] cameras that have the vertex in their image within the angle, occluded or not
+    cos: np.ndarray  # [C, V] cosine between the normal and the direction to each camera
+    footprint: np.ndarray  # [C, V] a pixel's size at the point in each camera (units of the points per pixel)
 
 
 def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
@@ -215,6 +239,8 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
     seen = np.zeros((len(cameras), len(p)), bool)
     in_view = np.zeros(len(p), np.int64)
     cos_best = np.full(len(p), -1.0)
+    cos_all = np.zeros((len(cameras), len(p)))
+    footprint_all = np.zeros((len(cameras), len(p)))
     for i, cam in enumerate(cameras):
         depth, _, _ = rasterize_mesh(vertices, faces, cam)
         uv, z = project_points(p, cam.K, cam.viewmat, near=_NEAR)
@@ -227,6 +253,7 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
         # A pixel centre is up to 0.71 px from the point: the point's own surface may lie that far times
         # tan(angle) nearer; one more pixel's worth covers the neighbouring faces' kinks.
         footprint = np.abs(z) / cam.K[0, 0]
+        cos_all[i], footprint_all[i] = cos, np.abs(z) / (0.5 * (cam.K[0, 0] + cam.K[1, 1]))
         tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, cos_min)
         unoccluded = zbuf >= z - footprint * (1.0 + 2.0 * tan)
         facing = inside & (cos >= cos_min)
@@ -235,7 +262,68 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
         cos_best = np.where(seen[i], np.maximum(cos_best, cos), cos_best)
     views = seen.sum(0)
     best = np.where(views > 0, np.degrees(np.arccos(np.clip(cos_best, -1.0, 1.0))), np.nan)
-    return Visibility(seen, views, best, in_view)
+    return Visibility(seen, views, best, in_view, cos_all, footprint_all)
+
+
+# ---------------------------------------------------------------------------------------- uncertainty
+
+def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, sigma_px: float = SIGMA_PX) -> np.ndarray:
+    """1-sigma [V] of each point's place along its normal from the views that see it (units of `footprint`); NaN unseen.
+
+    seen [C, V] bool, cos [C, V] (normal against the direction to the camera), footprint [C, V] (a pixel's size at the
+    point). A move d along the normal shifts the point's image in view c by d sin(angle_c) / footprint_c pixels (its
+    part along the line of sight does not show); each view places the image to `sigma_px`. The point is as sure as
+    its best view makes it: the views' information is not summed, since one fit (one deformation field, one set of
+    poses) explains them all and their errors are not independent. sin is floored at `MIN_SIN`: a view along the
+    normal still places a textured point.
+    """
+    sin = np.maximum(np.sqrt(np.clip(1.0 - np.asarray(cos) ** 2, 0.0, 1.0)), MIN_SIN)
+    info = np.where(seen, (sin / np.maximum(footprint, 1e-300)) ** 2, 0.0).max(0, initial=0.0)
+    return np.where(info > 0, sigma_px / np.sqrt(np.maximum(info, 1e-300)), np.nan)
+
+
+def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarray, valid: np.ndarray,
+                       k: int = RESIDUAL_NEIGHBOURS) -> np.ndarray:
+    """RMS residual [P] of a quadric fit (value = a + b u + c w + d u^2 + e uw + f w^2 over the tangent plane) of
+    `values` [P] on each valid
+    point's k nearest valid neighbours on its own side of the surface (points [P, 3], unit normals [P, 3], valid [P]
+    bool); NaN where not valid or too few neighbours face its way.
+
+    Neighbours whose normal turns more than 60 deg from the point's are left out: across a thin part's edge they lie
+    on the other wall, whose deviation is another. A quadric follows a smooth bump or dent (a real departure, to be
+    measured, not doubted); its six parameters are taken out of the degrees of freedom, so a smooth map gives 0
+    and a noisy one its noise.
+    """
+    out = np.full(len(points), np.nan)
+    idx = np.flatnonzero(valid)
+    k = min(2 * k, idx.size)
+    if k < 7:
+        return out
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)[idx]
+    _, nb = cKDTree(p).query(p, k=k)
+    n = np.asarray(normals, np.float64)[idx]
+    weight = (np.einsum("nd,nkd->nk", n, n[nb]) >= 0.5).astype(np.float64)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    rel = p[nb] - p[:, None, :]  # [n, k, 3]
+    u, w = np.einsum("nkd,nd->nk", rel, t1), np.einsum("nkd,nd->nk", rel, t2)
+    design = np.stack([np.ones(rel.shape[:2]), u, w, u * u, u * w, w * w], -1)
+    y = np.asarray(values, np.float64)[idx][nb]
+    wd = design * weight[..., None]
+    coef = np.einsum("nij,nj->ni", np.linalg.pinv(wd), y * weight)
+    resid = (y - np.einsum("nkj,nj->nk", design, coef)) * weight
+    dof = weight.sum(1) - 6
+    out[idx] = np.where(dof >= 1, np.sqrt((resid ** 2).sum(1) / np.maximum(dof, 1)), np.nan)
+    return out
+
+
+def expanded_uncertainty(sigma_projection: np.ndarray, residual: np.ndarray, k: float = COVERAGE_K) -> np.ndarray:
+    """k times the root sum of squares of the two 1-sigma sources [V] (NaN where either is)."""
+    return k * np.sqrt(np.asarray(sigma_projection) ** 2 + np.asarray(residual) ** 2)
 
 
 # ---------------------------------------------------------------------------------------- inspection
@@ -247,7 +335,9 @@ class Inspection:
     vertices_mm [V, 3] (CAD positions), deviation_mm [V] (signed, along the outward CAD normal; NaN where
     the twin's surface could not be found along it), views [V], best_angle_deg [V] (NaN unseen),
     area_mm2 [V], part [V] (index into part_names); in_view [V] (cameras that have the vertex in view,
-    occluded or not; None when not known).
+    occluded or not; None when not known). uncertainty_mm [V]: the deviation's expanded (k = 2) uncertainty,
+    NaN unseen (None: the map is taken as exact); footprint_mm [V]: a pixel's size at the vertex, median over the
+    views that see it; residual_mm [V]: the local fit residual that entered the uncertainty.
     """
 
     vertices_mm: np.ndarray
@@ -258,6 +348,9 @@ class Inspection:
     part: np.ndarray
     part_names: list[str]
     in_view: np.ndarray | None = None
+    uncertainty_mm: np.ndarray | None = None
+    footprint_mm: np.ndarray | None = None
+    residual_mm: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -282,14 +375,18 @@ class Inspection:
 
 def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: np.ndarray, part_names: Sequence[str],
                    deformed_vertices: np.ndarray, deformed_faces: np.ndarray, cameras: Sequence[Camera], *,
-                   mm_per_unit: float = MM_PER_M, max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
+                   masks: Sequence[np.ndarray] | None = None, mm_per_unit: float = MM_PER_M,
+                   max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
     """Deviation of the deformed surface from the CAD and its visibility from `cameras` (object frame).
 
     The CAD mesh (`cad_vertices` [V, 3], `cad_faces` [F, 3], `face_part` [F]) and the deformed mesh are in the
     same units (`mm_per_unit` converts them; the twin format is in metres). When the deformed mesh is the CAD
     mesh with moved vertices (same faces) its move is projected on the CAD normal; otherwise the CAD normal
     line is cast onto the deformed surface (up to a tenth of the CAD's bounding diagonal).
-    Visibility is judged on the deformed surface, the one the cameras photographed.
+    Visibility is judged on the deformed surface, the one the cameras photographed. With `masks` (one [H, W] bool
+    per camera, at the camera's own resolution or any other), the map is corrected where the masks' outlines place
+    the surface more finely (`inspect_silhouette.silhouette_correction`), and the outlines' residual enters the
+    uncertainty.
     """
     cad_v = np.asarray(cad_vertices, np.float64)
     normals = vertex_normals(cad_v, cad_faces)
@@ -304,6 +401,28 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
         # Each CAD vertex where its normal line meets the deformed surface (the CAD place where it missed).
         on_twin = cad_v + np.nan_to_num(deviation)[:, None] * normals
         vis = point_visibility(on_twin, normals, deformed_vertices, deformed_faces, cameras, max_angle_deg=max_angle_deg)
+    rim_residual = np.full(len(cad_v), np.nan)
+    if masks is not None:
+        from scipy.spatial import cKDTree
+
+        from reconstruction.inspect_silhouette import silhouette_correction
+
+        dv = np.asarray(deformed_vertices, np.float64)
+        correction, rim_residual, _ = silhouette_correction(dv, deformed_faces, vertex_normals(dv, deformed_faces), cameras, masks)
+        if not same:
+            nearest = cKDTree(dv).query(on_twin)[1]
+            correction, rim_residual = correction[nearest], rim_residual[nearest]
+        deviation = deviation + correction
+    seen = (vis.views > 0) & np.isfinite(deviation)
+    sigma = projection_sigma(vis.seen, vis.cos, vis.footprint)
+    residual = local_fit_residual(cad_v, normals, deviation, seen)
+    # A seen vertex without enough neighbours on its side of the surface takes the map's typical residual.
+    typical = float(np.nanmedian(residual)) if np.isfinite(residual).any() else 0.0
+    residual = np.where(seen & ~np.isfinite(residual), typical, residual)
+    residual = np.where(np.isfinite(rim_residual), np.sqrt(residual ** 2 + rim_residual ** 2), residual)
+    footprint = np.nanmedian(np.where(vis.seen, vis.footprint, np.nan)[:, seen], 0) if seen.any() else np.zeros(0)
+    footprint_all = np.full(len(cad_v), np.nan)
+    footprint_all[seen] = footprint
     return Inspection(
         vertices_mm=cad_v * mm_per_unit,
         deviation_mm=deviation * mm_per_unit,
@@ -313,7 +432,21 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
         part=vertex_parts(len(cad_v), cad_faces, face_part),
         part_names=list(part_names),
         in_view=vis.in_view,
+        uncertainty_mm=np.where(seen, expanded_uncertainty(sigma, residual), np.nan) * mm_per_unit,
+        footprint_mm=footprint_all * mm_per_unit,
+        residual_mm=residual * mm_per_unit,
     )
+
+
+def inspect_twin(twin: Twin, masks: Sequence[np.ndarray] | None = None, *, cad: MeshParts | None = None,
+                 deformed: MeshParts | None = None, max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
+    """`inspect_meshes` on a loaded twin: its CAD and deformed meshes (metres; `cad`, `deformed` when already read
+    from it) from its trained cameras, refined by the capture's `masks` (one [H, W] bool per twin camera, in
+    `twin.cameras` order, at the capture's resolution) when given."""
+    cad = twin.load_mesh_cad() if cad is None else cad
+    deformed = twin.load_mesh_deformed() if deformed is None else deformed
+    return inspect_meshes(cad.vertices, cad.faces, cad.face_part, cad.part_names, deformed.vertices, deformed.faces,
+                          [c.camera for c in twin.cameras], masks=masks, max_angle_deg=max_angle_deg)
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -368,9 +501,32 @@ def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
 
 
 @dataclass(frozen=True)
+class NamedVertex:
+    """A vertex a verdict names: its index on the CAD mesh, part, signed deviation and uncertainty (mm), position (mm)."""
+
+    vertex: int
+    part: str | None
+    deviation_mm: float
+    uncertainty_mm: float
+    at_mm: tuple[float, float, float]
+
+    def to_dict(self) -> dict:
+        return {"vertex": self.vertex, "part": self.part, "deviation_mm": self.deviation_mm, "uncertainty_mm": self.uncertainty_mm,
+                "at_mm": list(self.at_mm)}
+
+    def text(self) -> str:
+        x, y, z = self.at_mm
+        return (f"vertex {self.vertex} of part '{self.part}' {self.deviation_mm:+.2f} +-{self.uncertainty_mm:.2f} mm "
+                f"at ({x:.1f}, {y:.1f}, {z:.1f}) mm")
+
+
+@dataclass(frozen=True)
 class Verdict:
-    """The one-line verdict and its exit code (`EXIT_CODES`); `part`, `deviation_mm`, `at_mm` name the worst
-    seen vertex, `max_abs_mm` its magnitude (None when nothing was seen)."""
+    """The one-line verdict and its exit code (`EXIT_CODES`, `EXIT_NEAR_TOLERANCE`); `part`, `deviation_mm`, `at_mm`
+    name the worst seen vertex, `max_abs_mm` its magnitude and `uncertainty_mm` its uncertainty (None when nothing
+    was seen). `reason`: why (None for PASS; "out of tolerance"; "unseen"; "near tolerance"). `straddling`: every
+    seen vertex whose uncertainty straddles the tolerance, largest |deviation| first; `straddling_pct` their
+    share of the surface area; `out_pct` the share certainly out of tolerance."""
 
     status: str
     line: str
@@ -383,10 +539,19 @@ class Verdict:
     deviation_mm: float | None
     at_mm: tuple[float, float, float] | None
     out_of_view_pct: float | None = None
+    reason: str | None = None
+    uncertainty_mm: float | None = None
+    straddling: tuple[NamedVertex, ...] = ()
+    straddling_pct: float = 0.0
+    out_pct: float = 0.0
 
     def to_dict(self) -> dict:
-        """JSON-ready: positions as lists."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
+        """JSON-ready: positions as lists, named vertices as objects."""
+        out = {}
+        for k in self.__dataclass_fields__:
+            v = getattr(self, k)
+            out[k] = [x.to_dict() for x in v] if k == "straddling" else list(v) if isinstance(v, tuple) else v
+        return out
 
 
 def _beside(value: float, limit: float, digits: int = 0) -> str:
@@ -396,9 +561,25 @@ def _beside(value: float, limit: float, digits: int = 0) -> str:
     return f"{value:.{digits + 1}f}" if text == f"{limit:.{digits}f}" and value != limit else text
 
 
+def tolerance_calls(deviation_mm: np.ndarray, uncertainty_mm: np.ndarray, tolerance_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(certainly out [V], straddling [V]) bool for deviations [V] with their uncertainties [V] (0 where NaN):
+    out when |d| exceeds the tolerance by more than u; straddling when neither out nor inside it by more than u."""
+    d = np.abs(np.asarray(deviation_mm, np.float64))
+    u = np.nan_to_num(np.asarray(uncertainty_mm, np.float64))
+    out = d - u > tolerance_mm
+    return out, ~out & (d + u >= tolerance_mm)
+
+
+def _named(insp: Inspection, i: int, u: np.ndarray) -> NamedVertex:
+    return NamedVertex(int(i), insp.part_names[insp.part[i]] if insp.part[i] >= 0 else None, float(insp.deviation_mm[i]), float(u[i]),
+                       tuple(float(x) for x in insp.vertices_mm[i]))
+
+
 def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
-    """FAIL if a seen vertex departs by more than `tolerance_mm`; else UNCERTAIN if more than `max_unseen_pct`
-    of the area is unseen; else PASS. A twin nobody saw any of is UNCERTAIN, whatever `max_unseen_pct` says."""
+    """FAIL if a seen vertex departs from `tolerance_mm` by more than its uncertainty (the worst of those is named);
+    else UNCERTAIN if more than `max_unseen_pct` of the area is unseen (exit 3); else UNCERTAIN if a seen vertex's
+    uncertainty straddles the tolerance (exit 4, the largest named); else PASS. A twin nobody saw any of is UNCERTAIN,
+    whatever `max_unseen_pct` says. An inspection without uncertainties is taken as exact."""
     if not tolerance_mm > 0:
         raise ValueError(f"the tolerance must be a positive number of millimetres, got {tolerance_mm}")
     unseen = insp.unseen_pct()
@@ -407,25 +588,43 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     # another capture could help.
     why = "" if out_of_view is None or unseen < 0.5 else f" ({out_of_view:.0f} % in no camera's view)"
     seen = insp.seen
-    worst = part = at = None
+    u = np.zeros(len(seen)) if insp.uncertainty_mm is None else np.where(seen, np.nan_to_num(insp.uncertainty_mm), 0.0)
+    out, straddle = tolerance_calls(np.where(seen, insp.deviation_mm, 0.0), u, tolerance_mm)
+    out &= seen
+    straddle &= seen
+    area = max(float(insp.area_mm2.sum()), 1e-300)
+    straddling = tuple(_named(insp, i, u) for i in np.flatnonzero(straddle)[np.argsort(-np.abs(insp.deviation_mm[straddle]), kind="stable")])
+    worst = part = at = unc = None
     if seen.any():
-        d = np.where(seen, np.abs(insp.deviation_mm), -np.inf)
-        i = int(np.argmax(d))
-        worst, at = float(insp.deviation_mm[i]), tuple(float(x) for x in insp.vertices_mm[i])
+        # The worst vertex: among those certainly out when any is, else among all seen.
+        pool = out if out.any() else seen
+        i = int(np.argmax(np.where(pool, np.abs(insp.deviation_mm), -np.inf)))
+        worst, at, unc = float(insp.deviation_mm[i]), tuple(float(x) for x in insp.vertices_mm[i]), float(u[i])
         part = insp.part_names[insp.part[i]] if insp.part[i] >= 0 else None
+    pm = "" if insp.uncertainty_mm is None or unc is None else f" +-{unc:.2f}"
     tol = f"{tolerance_mm:g} mm"
-    if worst is not None and abs(worst) > tolerance_mm:
-        status = "FAIL"
-        line = f"FAIL part '{part}' {'+' if worst > 0 else '-'}{_beside(abs(worst), tolerance_mm, 1)} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
+    out_pct = 100.0 * float(insp.area_mm2[out].sum()) / area
+    straddling_pct = 100.0 * float(insp.area_mm2[straddle].sum()) / area
+    if out.any():
+        status, reason, code = "FAIL", "out of tolerance", EXIT_CODES["FAIL"]
+        line = f"FAIL part '{part}' {'+' if worst > 0 else '-'}{_beside(abs(worst), tolerance_mm, 1)}{pm} mm at ({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm"
+        if insp.uncertainty_mm is not None:
+            line += f"; {_beside(out_pct, 0.0, 0)} % of the surface out of tolerance beyond its uncertainty"
     elif worst is None or unseen > max_unseen_pct:
-        status = "UNCERTAIN"
-        seen_part = "" if worst is None else f"; seen surface within tolerance, max {_beside(abs(worst), tolerance_mm, 1)} mm (tolerance {tol})"
+        status, reason, code = "UNCERTAIN", "unseen", EXIT_CODES["UNCERTAIN"]
+        seen_part = "" if worst is None else f"; seen surface within tolerance, max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})"
         line = f"UNCERTAIN {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}{seen_part}"
+    elif straddling:
+        status, reason, code = "UNCERTAIN", "near tolerance", EXIT_NEAR_TOLERANCE
+        named = "; ".join(v.text() for v in straddling[:NAMED_VERTICES])
+        more = f"; and {len(straddling) - NAMED_VERTICES} more" if len(straddling) > NAMED_VERTICES else ""
+        line = (f"UNCERTAIN {len(straddling)} seen vertices ({_beside(straddling_pct, 0.0, 1)} % of the surface) lie within their "
+                f"uncertainty of the {tol} tolerance: {named}{more}")
     else:
-        status = "PASS"
-        line = f"PASS max {_beside(abs(worst), tolerance_mm, 1)} mm (tolerance {tol})" + (f", {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
-    return Verdict(status, line, EXIT_CODES[status], float(tolerance_mm), float(max_unseen_pct), unseen,
-                   None if worst is None else abs(worst), part, worst, at, out_of_view)
+        status, reason, code = "PASS", None, EXIT_CODES["PASS"]
+        line = f"PASS max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})" + (f", {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
+    return Verdict(status, line, code, float(tolerance_mm), float(max_unseen_pct), unseen, None if worst is None else abs(worst), part, worst, at,
+                   out_of_view, reason, unc if insp.uncertainty_mm is not None else None, straddling, straddling_pct, out_pct)
 
 
 # ---------------------------------------------------------------------------------------- pictures

@@ -1,11 +1,21 @@
-"""`cadsplat inspect TWIN [--tolerance MM] [--out DIR]`: where the twin departs from its CAD model.
+"""`cadsplat inspect TWIN [--tolerance MM] [--out DIR] [--capture CAPTURE]`: where the twin departs from its CAD model.
 
 Prints one line on stdout, the verdict, and exits with a code a PLC can act on:
 
-    0  PASS       every seen vertex within the tolerance, at most --max-unseen % of the surface unseen
-    1  FAIL       a seen vertex departs by more than the tolerance (the worst is named: part, mm, where)
+    0  PASS       every seen vertex inside the tolerance by more than its uncertainty, at most --max-unseen % of
+                  the surface unseen
+    1  FAIL       a seen vertex departs by more than the tolerance plus its uncertainty (the worst is named: part,
+                  mm +- uncertainty, where)
     2  error      the twin could not be inspected (missing meshes, bad arguments); one sentence on stderr
-    3  UNCERTAIN  nothing seen is out of tolerance, but more than --max-unseen % of the surface was unseen
+    3  UNCERTAIN  nothing seen is certainly out of tolerance, but more than --max-unseen % of the surface was unseen
+                  (another capture, more views, can decide)
+    4  UNCERTAIN  the surface is covered, nothing is certainly out, but some seen vertex lies within its uncertainty
+                  of the tolerance (named: vertex, part, mm +- uncertainty, where; a finer measurement decides)
+
+Every seen vertex carries the expanded (k = 2) uncertainty of its deviation, from the views that see it (their
+angles and pixel size at the vertex) and the map's local fit residual (`reconstruction.inspect`). With --capture
+the capture's masks, at the camera's own resolution, refine the map at the part's outlines
+(`reconstruction.inspect_silhouette`; measured in benchmarks/results/inspect_truth*.md).
 
 Unseen shares name the part no camera has in view at all (the rig's coverage, which no recapture changes):
 `UNCERTAIN 26 % of the surface unseen (25 % in no camera's view); ...`.
@@ -13,8 +23,10 @@ Unseen shares name the part no camera has in view at all (the rig's coverage, wh
 DIR (default TWIN/inspection) is replaced as a whole, atomically:
 
     inspection.json       verdict, settings, per-part summary, sha256 of every file below
-    parts/<part>.csv      one row per CAD vertex: position and deviation (mm), views, best angle, status, cameras in view
-    deviation.ply         the CAD mesh (metres) with vertex colours, deviation_mm, views per vertex
+    parts/<part>.csv      one row per CAD vertex: position and deviation (mm), its uncertainty (mm, k = 2), status
+                          (ok / out / uncertain / unseen), views, best angle, pixel size at the vertex (mm), local
+                          fit residual (mm), area, cameras in view
+    deviation.ply         the CAD mesh (metres) with vertex colours, deviation_mm, uncertainty_mm, views per vertex
     deviation.glb         the same colours, one node per part
     views/<view>.png      heat map from every training viewpoint; turntable/orbit_NNN.png; legend.png
 """
@@ -27,11 +39,16 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from reconstruction.inspect import MAX_ANGLE_DEG
+
+if TYPE_CHECKING:
+    from calibration.capture import Capture
+    from reconstruction.twin import Twin
 
 DEFAULT_TOLERANCE_MM = 1.0
 DEFAULT_MAX_UNSEEN_PCT = 25.0
@@ -50,17 +67,25 @@ def _safe_name(name: str, taken: set[str]) -> str:
 
 
 def _part_csv(insp, rows: np.ndarray, tolerance_mm: float) -> bytes:
+    from reconstruction.inspect import tolerance_calls
+
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["vertex", "x_mm", "y_mm", "z_mm", "deviation_mm", "status", "views", "best_angle_deg", "area_mm2", "in_view"])
+    w.writerow(["vertex", "x_mm", "y_mm", "z_mm", "deviation_mm", "uncertainty_mm", "status", "views", "best_angle_deg", "pixel_mm",
+                "fit_residual_mm", "area_mm2", "in_view"])
     seen = insp.seen
+    out, straddle = tolerance_calls(np.nan_to_num(insp.deviation_mm), insp.uncertainty_mm, tolerance_mm)
+
+    def num(x: float, fmt: str) -> str:
+        return fmt.format(x) if np.isfinite(x) else ""
+
     for i in rows:
-        status = "unseen" if not seen[i] else ("out" if abs(insp.deviation_mm[i]) > tolerance_mm else "ok")
-        dev = f"{insp.deviation_mm[i]:.4f}" if np.isfinite(insp.deviation_mm[i]) else ""
-        ang = f"{insp.best_angle_deg[i]:.1f}" if np.isfinite(insp.best_angle_deg[i]) else ""
+        status = "unseen" if not seen[i] else "out" if out[i] else "uncertain" if straddle[i] else "ok"
         x, y, z = insp.vertices_mm[i]
-        w.writerow([int(i), f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", dev, status, int(insp.views[i]), ang, f"{insp.area_mm2[i]:.4f}",
-                    int(insp.in_view[i])])
+        w.writerow([int(i), f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", num(insp.deviation_mm[i], "{:.4f}"),
+                    num(insp.uncertainty_mm[i], "{:.4f}") if seen[i] else "", status, int(insp.views[i]),
+                    num(insp.best_angle_deg[i], "{:.1f}"), num(insp.footprint_mm[i], "{:.4f}"), num(insp.residual_mm[i], "{:.4f}"),
+                    f"{insp.area_mm2[i]:.4f}", int(insp.in_view[i])])
     return buf.getvalue().encode()
 
 
@@ -68,10 +93,11 @@ def _ply_bytes(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray, insp) -
     from plyfile import PlyData, PlyElement
 
     vert = np.empty(len(vertices), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                                          ("deviation_mm", "f4"), ("views", "u1")])
+                                          ("deviation_mm", "f4"), ("uncertainty_mm", "f4"), ("views", "u1")])
     vert["x"], vert["y"], vert["z"] = np.asarray(vertices, np.float32).T
     vert["red"], vert["green"], vert["blue"] = rgb.T
     vert["deviation_mm"] = np.where(insp.seen, insp.deviation_mm, np.nan)
+    vert["uncertainty_mm"] = np.where(insp.seen, insp.uncertainty_mm, np.nan)
     vert["views"] = np.minimum(insp.views, 255)
     face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
     face["vertex_indices"] = faces
@@ -115,29 +141,62 @@ def _legend_png(range_mm: float, tolerance_mm: float) -> bytes:
 
 
 def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_unseen_pct: float, turntable: int = 24,
-                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True) -> dict:
-    """Inspect the twin at `twin_dir` and write everything under `out_dir` (built beside it, renamed into place).
-
-    Returns the inspection document (what inspection.json holds). Raises TwinError/ValueError with one
-    sentence when the twin cannot be inspected or `out_dir` is something else than an earlier inspection.
-    """
-    from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir, sha256_bytes
-    from deploy.commands.render import orbit_cameras
-    from reconstruction.inspect import deviation_colors, inspect_meshes, part_reports, render_colored_mesh, verdict
+                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True, capture_dir: Path | None = None) -> dict:
+    """Load the twin at `twin_dir` (and the masks of the capture at `capture_dir`, when given) and `write_inspection`
+    of it under `out_dir`; returns the inspection document."""
+    from calibration.capture import read_capture
     from reconstruction.twin import load_twin
 
+    _check_settings(tolerance_mm, max_unseen_pct, Path(out_dir))
+    twin = load_twin(twin_dir)
+    masks = None if capture_dir is None else capture_masks_for(twin, read_capture(capture_dir))
+    return write_inspection(twin, out_dir, tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=turntable,
+                            max_angle_deg=max_angle_deg, renders=renders, twin_label=str(twin_dir), masks=masks)
+
+
+def _check_settings(tolerance_mm: float, max_unseen_pct: float, out: Path) -> None:
     if not tolerance_mm > 0:
         raise ValueError(f"the tolerance must be a positive number of millimetres, got {tolerance_mm}")
     if not 0 <= max_unseen_pct <= 100:
         raise ValueError(f"the unseen share allowed must be a percentage in [0, 100], got {max_unseen_pct}")
-    out = Path(out_dir)
     if out.exists() and not (out / INSPECTION_JSON).exists():
         raise ValueError(f"{out} exists and is not an earlier inspection; choose another --out")
-    twin = load_twin(twin_dir)
-    cad, deformed = twin.load_mesh_cad(), twin.load_mesh_deformed()
+
+
+def capture_masks_for(twin: Twin, capture: Capture) -> list[np.ndarray]:
+    """The capture's masks [H, W] bool at its own resolution, one per twin camera (matched by image path). Raises
+    ValueError naming the first twin view the capture does not hold, or a capture without masks."""
+    by_path = {f.file_path: i for i, f in enumerate(capture.frames)}
+    out = []
+    for cam in twin.cameras:
+        if cam.file_path not in by_path:
+            raise ValueError(f"{capture.root} holds no view {cam.file_path}: give the capture the twin was made from")
+        mask = capture.mask(by_path[cam.file_path])
+        if mask is None:
+            raise ValueError(f"{capture.root} has no mask for {cam.file_path}: refining the map needs the capture's masks")
+        out.append(np.asarray(mask, bool))
+    return out
+
+
+def write_inspection(twin: Twin, out_dir: Path, *, tolerance_mm: float, max_unseen_pct: float, turntable: int = 24,
+                     max_angle_deg: float = MAX_ANGLE_DEG, renders: bool = True, twin_label: str | None = None,
+                     masks: list[np.ndarray] | None = None) -> dict:
+    """Inspect the loaded `twin` and write everything under `out_dir` (built beside it, renamed into place); with
+    `masks` (one [H, W] bool per twin camera, the capture's own resolution) the map is refined at the outlines.
+
+    Returns the inspection document (what inspection.json holds; `twin_label` names the twin there, default its
+    root). Raises TwinError/ValueError with one sentence when the twin cannot be inspected or `out_dir` is something
+    else than an earlier inspection.
+    """
+    from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir, sha256_bytes
+    from deploy.commands.render import orbit_cameras
+    from reconstruction.inspect import deviation_colors, inspect_twin, part_reports, render_colored_mesh, verdict
+
+    out = Path(out_dir)
+    _check_settings(tolerance_mm, max_unseen_pct, out)
+    cad = twin.load_mesh_cad()
     cams = [c.camera for c in twin.cameras]
-    insp = inspect_meshes(cad.vertices, cad.faces, cad.face_part, cad.part_names, deformed.vertices, deformed.faces, cams,
-                          max_angle_deg=max_angle_deg)
+    insp = inspect_twin(twin, masks, cad=cad, max_angle_deg=max_angle_deg)
     result = verdict(insp, tolerance_mm, max_unseen_pct)
     range_mm = 2.0 * tolerance_mm
     rgb = (deviation_colors(insp.deviation_mm, insp.seen, range_mm) * 255 + 0.5).astype(np.uint8)
@@ -158,17 +217,22 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
         files["legend.png"] = _legend_png(range_mm, tolerance_mm)
     doc = {
         "format": "cadsplat-inspection/1",
-        "twin": str(twin_dir),
+        "twin": twin_label if twin_label is not None else str(twin.root),
         "model_id": twin.model_id,
         "verdict": result.to_dict(),
         "settings": {"tolerance_mm": tolerance_mm, "max_unseen_pct": max_unseen_pct, "max_angle_deg": max_angle_deg,
+                     "refined_by_masks": masks is not None,
                      "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
                                   "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
                      "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
                      "in_view": "as seen, occluded or not: unseen surface in no camera's view is the rig's coverage",
+                     "uncertainty": "expanded (k = 2) uncertainty of the deviation, mm: the views that see the vertex (a move along "
+                                    "the normal shows by sin(angle) / pixel size per view, their information adds) and the map's "
+                                    "local fit residual; PASS needs every seen vertex inside the tolerance by more than it",
                      "colour_range_mm": [-range_mm, range_mm]},
         "surface": {"vertices": int(len(insp.views)), "area_mm2": float(insp.area_mm2.sum()), "unseen_pct": result.unseen_pct,
-                    "out_of_view_pct": result.out_of_view_pct,
+                    "out_of_view_pct": result.out_of_view_pct, "uncertain_pct": result.straddling_pct, "out_pct": result.out_pct,
+                    "uncertainty_median_mm": float(np.median(insp.uncertainty_mm[insp.seen])) if insp.seen.any() else None,
                     "views_per_vertex": {str(k): int(n) for k, n in enumerate(np.bincount(insp.views, minlength=len(cams) + 1))}},
         "parts": [r.to_dict() for r in part_reports(insp, tolerance_mm)],
         "sha256": {name: sha256_bytes(data) for name, data in files.items()},
@@ -193,7 +257,8 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
 
 
 @click.command(help="Measure how the twin at TWIN departs from its CAD model, where, and how much of it the cameras saw. "
-                    "Prints the verdict on stdout and exits 0 PASS, 1 FAIL, 3 UNCERTAIN (2: could not inspect).")
+                    "Prints the verdict on stdout and exits 0 PASS, 1 FAIL, 3 UNCERTAIN (too much unseen), 4 UNCERTAIN (a seen vertex "
+                    "within its uncertainty of the tolerance); 2: could not inspect.")
 @click.argument("twin_dir", type=click.Path(path_type=Path))
 @click.option("--tolerance", "tolerance_mm", default=DEFAULT_TOLERANCE_MM, show_default=True,
               type=click.FloatRange(min=0.0, min_open=True), help="Allowed deviation from the CAD surface, mm (either way).")
@@ -203,10 +268,13 @@ def inspect_twin_dir(twin_dir: Path, out_dir: Path, *, tolerance_mm: float, max_
 @click.option("--turntable", default=24, show_default=True, type=click.IntRange(0, 360), help="Turntable heat-map views (0: none).")
 @click.option("--max-angle", "max_angle_deg", default=MAX_ANGLE_DEG, show_default=True, type=click.FloatRange(1.0, 89.0),
               help="A camera sees a surface point only when the surface normal is within this angle of its line of sight.")
-def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir: Path | None, turntable: int, max_angle_deg: float) -> None:
+@click.option("--capture", "capture_dir", default=None, type=click.Path(path_type=Path),
+              help="The capture the twin was made from: its masks, at the camera's own resolution, refine the map at the part's outlines.")
+def inspect(twin_dir: Path, tolerance_mm: float, max_unseen_pct: float, out_dir: Path | None, turntable: int, max_angle_deg: float,
+            capture_dir: Path | None) -> None:
     out = out_dir if out_dir is not None else twin_dir / "inspection"
     doc = inspect_twin_dir(twin_dir, out, tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=turntable,
-                           max_angle_deg=max_angle_deg)
+                           max_angle_deg=max_angle_deg, capture_dir=capture_dir)
     for p in doc["parts"]:
         worst = "unseen" if p["worst_mm"] is None else f"worst {p['worst_mm']:+.2f} mm, p95 |dev| {p['p95_abs_mm']:.2f} mm"
         seen = "" if p["views_median"] is None else f", seen by {p['views_median']:.0f} views (median) at {p['best_angle_median_deg']:.0f} deg"

@@ -2,6 +2,7 @@
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -40,12 +41,13 @@ def make_twin(root, name, deformed: MeshParts | None, elevations=(-35.0, 35.0)):
     parts = two_parts()
     s = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, face_part=parts.face_part, seed=0)
     cams = []
-    k = np.array([[150.0, 0, 80], [0, 150.0, 60], [0, 0, 1]])
+    # 640x480 at 0.4 m: a pixel is about 0.6 mm at the ball, fine enough for a 1 mm tolerance beyond the uncertainty.
+    k = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
     centre = np.array([0.02, 0.0, 0.0])
     for el in np.radians(elevations):
         for i, az in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False)):
             eye = centre + 0.4 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-            cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 160, 120, look_at_c2w(eye, centre)))
+            cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 640, 480, look_at_c2w(eye, centre)))
     twin = Twin(model_id="ball_and_peg", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=cams,
                 preset="test", choices={}, timings_s={}, losses={}, gaussians=s.gaussians, means_canonical=s.means, face_index=s.face_index,
                 barycentrics=s.barycentrics, part_label=s.part_label, part_names=parts.part_names)
@@ -55,8 +57,8 @@ def make_twin(root, name, deformed: MeshParts | None, elevations=(-35.0, 35.0)):
 def test_pass_writes_the_whole_report(tmp_path, capsys):
     twin = make_twin(tmp_path, "good", two_parts())
     out = tmp_path / "report"
-    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "2"]) == 0
-    assert capsys.readouterr().out.strip() == "PASS max 0.0 mm (tolerance 1 mm)"
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "2", "--tolerance", "2"]) == 0
+    assert re.fullmatch(r"PASS max 0\.0 \+-\d\.\d\d mm \(tolerance 2 mm\)", capsys.readouterr().out.strip())
     doc = json.loads((out / "inspection.json").read_text())
     assert doc["verdict"]["status"] == "PASS" and sorted(p["name"] for p in doc["parts"]) == ["ball", "peg"]
     for name, digest in doc["sha256"].items():
@@ -64,8 +66,18 @@ def test_pass_writes_the_whole_report(tmp_path, capsys):
     assert {"views/c00.png", "turntable/orbit_000.png", "legend.png", "deviation.ply", "deviation.glb"} <= set(doc["sha256"])
     rows = list(csv.DictReader((out / "parts" / "ball.csv").open()))
     assert len(rows) == 642 and {r["status"] for r in rows} <= {"ok", "unseen"}
+    # Every seen vertex carries its uncertainty, in the CSV, the PLY and the JSON; unseen ones none.
+    seen = [r for r in rows if r["status"] == "ok"]
+    assert seen and all(0 < float(r["uncertainty_mm"]) < 2.0 and float(r["pixel_mm"]) > 0 for r in seen)
+    assert all(r["uncertainty_mm"] == "" for r in rows if r["status"] == "unseen")
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(out / "deviation.ply"))["vertex"]
+    assert np.isfinite(ply["uncertainty_mm"]).sum() >= len(seen)
+    assert 0 < doc["surface"]["uncertainty_median_mm"] < 2.0 and doc["verdict"]["uncertainty_mm"] > 0
+    assert doc["verdict"]["straddling"] == [] and doc["surface"]["uncertain_pct"] == 0.0
     # Inspecting again replaces the report; a directory that is not a report is never replaced.
-    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0"]) == 0
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--tolerance", "2"]) == 0
     assert "turntable/orbit_000.png" not in json.loads((out / "inspection.json").read_text())["sha256"]
     (tmp_path / "precious").mkdir()
     assert main(["inspect", str(twin), "--out", str(tmp_path / "precious")]) == 2
@@ -74,14 +86,29 @@ def test_pass_writes_the_whole_report(tmp_path, capsys):
 
 def test_a_dent_fails_at_its_place_and_passes_a_looser_tolerance(tmp_path, capsys):
     centre = np.array([0.0, -0.04, 0.0])  # on the ball's side, seen by the ring
-    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.002, 0.012))
+    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.004, 0.015))
     assert main(["inspect", str(twin), "--tolerance", "1.5", "--turntable", "0"]) == 1
     line = capsys.readouterr().out.strip()
-    assert line.startswith("FAIL part 'ball' -2.0 mm at (")
+    assert re.match(r"FAIL part 'ball' -4\.0 \+-\d\.\d\d mm at \(", line) and "% of the surface out of tolerance" in line
     doc = json.loads((twin / "inspection" / "inspection.json").read_text())
     at = np.array(doc["verdict"]["at_mm"])
     assert np.linalg.norm(at - centre * 1000) < 3.0
-    assert main(["inspect", str(twin), "--tolerance", "2.5", "--turntable", "0"]) == 0
+    assert main(["inspect", str(twin), "--tolerance", "6", "--turntable", "0"]) == 0
+
+
+def test_a_dent_within_its_uncertainty_of_the_tolerance_is_uncertain_and_named(tmp_path, capsys):
+    centre = np.array([0.0, -0.04, 0.0])
+    twin = make_twin(tmp_path, "dent", dented(two_parts(), centre, 0.004, 0.015))
+    assert main(["inspect", str(twin), "--tolerance", "3.9", "--turntable", "0"]) == 4
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("UNCERTAIN ") and "lie within their uncertainty of the 3.9 mm tolerance: vertex " in line
+    doc = json.loads((twin / "inspection" / "inspection.json").read_text())
+    named = doc["verdict"]["straddling"]
+    assert doc["verdict"]["reason"] == "near tolerance" and named and named[0]["part"] == "ball"
+    assert np.linalg.norm(np.array(named[0]["at_mm"]) - centre * 1000) < 3.0
+    assert all(abs(abs(v["deviation_mm"]) - 3.9) <= v["uncertainty_mm"] for v in named)
+    rows = list(csv.DictReader((twin / "inspection" / "parts" / "ball.csv").open()))
+    assert {int(r["vertex"]) for r in rows if r["status"] == "uncertain"} == {v["vertex"] for v in named}
 
 
 def test_unseen_surface_makes_the_verdict_uncertain_never_a_pass(tmp_path, capsys):
@@ -119,10 +146,10 @@ def test_the_job_record_and_the_history_carry_the_verdict_per_part_id(tmp_path, 
     from deploy.steps import PipelineConfig, inspect_step, inspection_history
 
     work = tmp_path / "jobs" / "cap-0001"
-    make_twin(work, "twin", dented(two_parts(), np.array([0.0, -0.04, 0.0]), 0.002, 0.012))
+    make_twin(work, "twin", dented(two_parts(), np.array([0.0, -0.04, 0.0]), 0.004, 0.015))
     record = inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=1.0))
     assert record["status"] == "FAIL" and record["exit_code"] == 1 and record["part"] == "ball"
-    assert record["line"].startswith("FAIL part 'ball' -2.0 mm at (") and (work / "inspection" / "inspection.json").exists()
+    assert record["line"].startswith("FAIL part 'ball' -4.0 +-") and (work / "inspection" / "inspection.json").exists()
     # A second call (a resumed job) reads the report instead of redoing it.
     assert inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=5.0)) == record
 
@@ -171,14 +198,15 @@ def test_rig_toml_turns_inspection_on():
 
 @pytest.mark.slow
 def test_a_synthetic_dent_fails_at_its_place_and_the_undented_part_passes(tmp_path):
-    """Issue 18's acceptance, as benchmarks/results/dent_cpu.md measures it: a 2 mm dent read at -1.6 mm FAILs at a
-    1.5 mm tolerance, the undented part PASSes (max 1.1 mm, 24.6 % unseen against the 25 % default)."""
+    """Issue 18's acceptance, as benchmarks/results/dent_cpu.md measures it, under issue 60's verdict: a 2 mm dent read
+    at about -1.6 mm is never passed at a 1.5 mm tolerance (FAIL, or UNCERTAIN naming it when its uncertainty reaches
+    the tolerance); the undented part, read at about 1 mm +-0.7, is never failed (PASS, or UNCERTAIN near the tolerance)."""
     from benchmarks.bench_dent import run
     from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
 
     res = run(tmp_path, preset="cpu", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
-    assert res["nominal"]["status"] == "PASS", res["nominal"]["line"]
-    assert res["dented"]["status"] == "FAIL" and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
+    assert res["nominal"]["exit_code"] in (0, 4), res["nominal"]["line"]
+    assert res["dented"]["exit_code"] in (1, 4) and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
 
 
 def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
@@ -198,3 +226,36 @@ def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
     out = write_obj_positions(text, moved)
     assert "vn " not in out and f"f {f[0, 0] + 1}/{f[0, 0] + 1} " in out and "vt 0.5 0.5" in out and "mtllib textured.mtl" in out
     np.testing.assert_allclose(read_obj_positions(out)[0], moved, atol=1e-7)
+
+
+def test_the_capture_masks_refine_the_map_and_a_capture_without_the_twins_views_is_refused(tmp_path, capsys):
+    import cv2
+
+    from reconstruction.inspect import rasterize_mesh
+
+    twin = make_twin(tmp_path, "good", two_parts())
+    # The capture the twin was made from: masks of the part as it is, at the cameras' own resolution.
+    capture = tmp_path / "capture"
+    (capture / "masks").mkdir(parents=True)
+    (capture / "images").mkdir()
+    frames = []
+    from reconstruction.twin import load_twin
+
+    parts = two_parts()
+    for cam in load_twin(twin).cameras:
+        mask = rasterize_mesh(parts.vertices, parts.faces, cam.camera)[1] >= 0
+        name = cam.file_path.split("/")[-1]
+        cv2.imwrite(str(capture / "masks" / name), (255 * mask).astype(np.uint8))
+        cv2.imwrite(str(capture / "images" / name), np.full((cam.height, cam.width, 3), 128, np.uint8))
+        gl = cam.c2w_object_opencv @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append({"file_path": cam.file_path, "mask_path": f"masks/{name}", "transform_matrix": gl.tolist(), "camera_id": cam.camera_id,
+                       "fl_x": cam.K[0, 0], "fl_y": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2], "w": cam.width, "h": cam.height})
+    (capture / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames, "cadsplat": {"units": "m"}}))
+    out = tmp_path / "report"
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--tolerance", "2", "--capture", str(capture)]) == 0
+    doc = json.loads((out / "inspection.json").read_text())
+    assert doc["settings"]["refined_by_masks"] and doc["verdict"]["max_abs_mm"] < 0.3
+    frames.pop()
+    (capture / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames, "cadsplat": {"units": "m"}}))
+    assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--capture", str(capture)]) == 2
+    assert "holds no view images/c11.png" in capsys.readouterr().err

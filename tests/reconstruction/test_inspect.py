@@ -5,8 +5,10 @@ import pytest
 import trimesh
 
 from calibration.camera import Camera, look_at_c2w
-from reconstruction.inspect import (EXIT_CODES, Inspection, inspect_meshes, line_deviation, part_reports, point_visibility,
-                                    rasterize_mesh, surface_distance, vertex_normals, verdict)
+from reconstruction.inspect import (EXIT_CODES, EXIT_NEAR_TOLERANCE, MIN_SIN, Inspection, inspect_meshes, line_deviation,
+                                    local_fit_residual, part_reports, point_visibility, projection_sigma, rasterize_mesh,
+                                    surface_distance, tolerance_calls, vertex_normals, verdict)
+from reconstruction.inspect_silhouette import signed_distance
 
 
 def sphere(radius=0.05, subdivisions=3):
@@ -102,12 +104,13 @@ def test_visibility_counts_views_and_hides_what_is_behind_or_occluded():
     assert not vis.seen[0, top]
 
 
-def _inspection(deviation, views, part=None, names=("a",)):
+def _inspection(deviation, views, part=None, names=("a",), uncertainty=None):
     deviation = np.asarray(deviation, float)
     k = len(deviation)
     return Inspection(vertices_mm=np.arange(3 * k, dtype=float).reshape(k, 3), deviation_mm=deviation, views=np.asarray(views),
                       best_angle_deg=np.where(np.asarray(views) > 0, 10.0, np.nan), area_mm2=np.ones(k),
-                      part=np.zeros(k, np.int64) if part is None else np.asarray(part), part_names=list(names))
+                      part=np.zeros(k, np.int64) if part is None else np.asarray(part), part_names=list(names),
+                      uncertainty_mm=None if uncertainty is None else np.asarray(uncertainty, float))
 
 
 def test_unseen_surface_in_no_cameras_view_is_told_apart_from_surface_hidden_by_the_part():
@@ -167,3 +170,107 @@ def test_part_reports_keep_unseen_parts_apart():
     assert body.unseen_pct == 0.0 and body.single_view_pct == 50.0 and body.views_median == 1.5
     assert hidden.worst_mm is None and hidden.unseen_pct == 100.0 and hidden.out_of_tolerance_pct == 0.0
     assert hidden.views_median is None and hidden.single_view_pct == 0.0
+
+
+def test_pass_needs_every_seen_vertex_inside_the_tolerance_by_more_than_its_uncertainty():
+    ok = verdict(_inspection([0.2, -0.7, 0.5, 9.0], [2, 3, 1, 0], uncertainty=[0.1, 0.25, 0.3, np.nan]), 1.0, 30.0)
+    assert (ok.status, ok.exit_code, ok.straddling) == ("PASS", 0, ())
+    assert ok.line == "PASS max 0.7 +-0.25 mm (tolerance 1 mm), 25 % of the surface unseen"
+    # The same map with one vertex's uncertainty reaching the tolerance: UNCERTAIN, and that vertex is named.
+    near = verdict(_inspection([0.2, -0.7, 0.5, 9.0], [2, 3, 1, 0], part=[0, 1, 0, 1], names=("body", "jaw"),
+                               uncertainty=[0.1, 0.35, 0.3, np.nan]), 1.0, 30.0)
+    assert (near.status, near.exit_code, near.reason) == ("UNCERTAIN", EXIT_NEAR_TOLERANCE, "near tolerance")
+    assert [v.vertex for v in near.straddling] == [1] and near.straddling[0].part == "jaw"
+    assert near.line == ("UNCERTAIN 1 seen vertices (25.0 % of the surface) lie within their uncertainty of the 1 mm tolerance: "
+                         "vertex 1 of part 'jaw' -0.70 +-0.35 mm at (3.0, 4.0, 5.0) mm")
+    assert near.to_dict()["straddling"] == [{"vertex": 1, "part": "jaw", "deviation_mm": -0.7, "uncertainty_mm": 0.35, "at_mm": [3.0, 4.0, 5.0]}]
+    # Beyond the tolerance but within its uncertainty of it: not a FAIL, the vertex is named.
+    over = verdict(_inspection([1.2, 0.1], [2, 2], uncertainty=[0.3, 0.1]), 1.0, 25.0)
+    assert over.status == "UNCERTAIN" and [v.vertex for v in over.straddling] == [0]
+
+
+def test_an_uncertain_line_names_the_largest_deviations_first_and_counts_the_rest():
+    dev = [0.95, -1.05, 0.9, 1.1, 0.97, -0.99, 0.92, 0.0]
+    insp = _inspection(dev, [1] * 8, uncertainty=[0.2] * 8)
+    v = verdict(insp, 1.0, 25.0)
+    assert [x.vertex for x in v.straddling] == [3, 1, 5, 4, 0, 6, 2]
+    assert v.line.count("vertex ") == 5 and v.line.endswith("; and 2 more") and v.straddling_pct == 700 / 8
+
+
+def test_fail_needs_a_departure_beyond_the_tolerance_plus_its_uncertainty_and_names_the_worst():
+    insp = _inspection([0.2, 1.6, -3.0, 2.2, 0.1], [2, 2, 1, 3, 2], part=[0, 0, 1, 0, 0], names=("body", "jaw"),
+                       uncertainty=[0.1, 0.8, 0.5, 0.4, 0.1])
+    bad = verdict(insp, 1.0, 25.0)
+    # Vertex 1 (1.6 +-0.8) straddles; 2 and 3 are out beyond doubt; the worst of those, the jaw's -3.0, is named.
+    assert (bad.status, bad.exit_code, bad.part, bad.deviation_mm, bad.uncertainty_mm) == ("FAIL", 1, "jaw", -3.0, 0.5)
+    assert bad.line == "FAIL part 'jaw' -3.0 +-0.50 mm at (6.0, 7.0, 8.0) mm; 40 % of the surface out of tolerance beyond its uncertainty"
+    assert bad.out_pct == 40.0 and [x.vertex for x in bad.straddling] == [1]
+    # An uncertain vertex larger than every certain one is not what FAIL names: it is not known to be out.
+    worse = verdict(_inspection([5.0, 1.6], [1, 1], uncertainty=[4.5, 0.1]), 1.0, 25.0)
+    assert worse.status == "FAIL" and worse.deviation_mm == 1.6
+
+
+def test_too_much_unseen_keeps_exit_3_even_where_a_seen_vertex_straddles():
+    v = verdict(_inspection([0.9, 0.0, 0.0, 0.0], [1, 0, 0, 1], uncertainty=[0.3, np.nan, np.nan, 0.1]), 1.0, 25.0)
+    assert (v.status, v.exit_code, v.reason) == ("UNCERTAIN", 3, "unseen") and [x.vertex for x in v.straddling] == [0]
+    assert EXIT_CODES["UNCERTAIN"] == 3 and EXIT_NEAR_TOLERANCE == 4
+
+
+def test_tolerance_calls_on_the_boundaries():
+    out, straddle = tolerance_calls(np.array([1.5, -1.5, 0.5, 0.5, 1.0]), np.array([0.4, 0.5, 0.4, 0.5, np.nan]), 1.0)
+    assert out.tolist() == [True, False, False, False, False]
+    assert straddle.tolist() == [False, True, False, True, True]
+
+
+def test_projection_sigma_from_angles_pixel_size_and_views():
+    fp = np.array([[0.001, 0.001]])
+    # Looking across the surface a view places it to sigma_px pixels; along the normal only through MIN_SIN.
+    np.testing.assert_allclose(projection_sigma(np.array([[True, True]]), np.array([[0.0, 1.0]]), fp, 0.5), [0.0005, 0.0005 / MIN_SIN])
+    # Twice the pixel size, twice the uncertainty; the best view decides (one fit explains them all: no 1/sqrt(n)
+    # from views that share its errors); an unseen point has none.
+    two = projection_sigma(np.array([[True], [True], [False]]), np.array([[0.0], [0.8], [0.0]]), np.array([[0.002], [0.001], [0.0001]]), 0.5)
+    np.testing.assert_allclose(two, [0.5 * 0.001 / 0.6])
+    assert np.isnan(projection_sigma(np.array([[False]]), np.zeros((1, 1)), fp[:, :1], 0.5))[0]
+
+
+def test_local_fit_residual_is_zero_on_a_plane_and_the_noise_on_a_noisy_map():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (400, 2))
+    pts = np.column_stack([xy, np.zeros(400)])
+    up = np.tile([0.0, 0.0, 1.0], (400, 1))
+    valid = np.ones(400, bool)
+    assert np.nanmax(local_fit_residual(pts, up, 0.3 + 0.2 * xy[:, 0] - 0.1 * xy[:, 1], valid)) < 1e-9
+    noisy = local_fit_residual(pts, up, 0.01 * rng.standard_normal(400), valid, k=30)
+    assert 0.007 < np.median(noisy) < 0.013
+    valid[:10] = False
+    assert np.isnan(local_fit_residual(pts, up, np.zeros(400), valid)[:10]).all()
+
+
+def test_seen_vertices_carry_an_uncertainty_that_grows_with_the_pixel_size():
+    v, f = sphere()
+    near = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], v, f, ring(distance=0.3, elevations=(40.0,)))
+    far = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], v, f, ring(distance=0.6, elevations=(40.0,)))
+    for insp in (near, far):
+        assert np.isfinite(insp.uncertainty_mm[insp.seen]).all() and np.isnan(insp.uncertainty_mm[~insp.seen]).all()
+    both = near.seen & far.seen
+    # Twice the camera distance: the pixel at the ball is (0.6 - r) / (0.3 - r) as large, and so is the uncertainty.
+    ratio = (0.6 - 0.05) / (0.3 - 0.05)
+    np.testing.assert_allclose(np.median(far.footprint_mm[both] / near.footprint_mm[both]), ratio, rtol=0.05)
+    np.testing.assert_allclose(np.median(far.uncertainty_mm[both] / near.uncertainty_mm[both]), ratio, rtol=0.1)
+
+
+def test_masks_at_the_cameras_own_resolution_correct_the_map_to_a_fraction_of_a_pixel():
+    v, f = sphere(subdivisions=3)
+    cams = ring()  # 160x120: a pixel is about 2.4 mm at the ball
+    truth = trimesh.creation.icosphere(subdivisions=5, radius=0.0508)  # the part is 0.8 mm larger than its twin
+    masks = [rasterize_mesh(truth.vertices, truth.faces, c.scaled(320, 240))[1] >= 0 for c in cams]
+    plain = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], v, f, cams)
+    refined = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["ball"], v, f, cams, masks=masks)
+    assert np.nanmedian(np.abs(plain.deviation_mm - 0.8)) > 0.7
+    assert np.nanmedian(np.abs(refined.deviation_mm[refined.seen] - 0.8)) < 0.15
+
+
+def test_the_signed_distance_field_crosses_zero_on_the_pixel_edge():
+    mask = np.zeros((5, 8), bool)
+    mask[:, :4] = True
+    np.testing.assert_allclose(signed_distance(mask)[2], [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5])
