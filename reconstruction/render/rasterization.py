@@ -235,7 +235,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         )
         _SCRATCH.give("slot_grads", slot_grads)
         # Summed over cameras in numpy: these arrays are small, and each torch op on them woke torch's sleeping OpenMP
-        # workers (~60-300 us a call, more than the arithmetic).
+        # workers at a cost above the arithmetic's (benchmarks/results/rasterizer.md).
         if color_cams == 1 and n_cams > 1:
             v_colors = v_colors.sum(0, keepdims=True)
         v_backgrounds = None
