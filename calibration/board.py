@@ -187,7 +187,7 @@ def detect_board(spec: BoardSpec, image: np.ndarray) -> BoardDetection | None:
         board = charuco_board(spec)
         params = cv2.aruco.DetectorParameters()
         # Contour-refined marker corners seed the ChArUco corner interpolation better than the
-        # raw quad corners (on OpenCV's tutorial images: intrinsics within 0.3 % instead of 1 %).
+        # raw quad corners (benchmarks/results/calibration.md).
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
         detector = cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), params)
         corners, ids, _, _ = detector.detectBoard(gray)

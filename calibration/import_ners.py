@@ -4,10 +4,10 @@ NeRS stores PyTorch3D cameras: row-vector world-to-view `X_view = X_world @ R + 
 +X left, +Y up, +Z forward, and a field of view that spans the image's longer side around the
 image centre (NeRS's crop cameras with the full image as the crop). Masks are COCO-style
 uncompressed RLE (column-major). The MVMC cars' `camera_optimized` are NeRS's cameras after its
-joint fit of shape and cameras: the masks' visual hull re-projects onto every mask (car 7246694387:
-IoU 0.987-1.0 per view), so they are marked `pose_source: optimized` and the engine applies one global
+joint fit of shape and cameras: the masks' visual hull re-projects onto every mask
+(benchmarks/results/real_photos_cpu.md), so they are marked `pose_source: optimized` and the engine applies one global
 correction, as NeRS's "fixed optimized cameras" setting does; `camera_initial` (PoseFromShape
-estimates, hull IoU down to 0.85) stay `rough`. The NeRS "misc" objects only have rough azimuth/elevation, so their
+estimates, whose hull fits the masks worse) stay `rough`. The NeRS "misc" objects only have rough azimuth/elevation, so their
 poses are built on a sphere (PyTorch3D's look_at_view_transform, world +Y up) with each view's
 distance set from its mask size, and the capture is marked `pose_source: rough` so the engine
 corrects every camera independently.
@@ -109,7 +109,7 @@ def import_ners_misc(src: str | Path, out: str | Path, *, fov_deg: float = 60.0)
         k = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
         cam = Camera(k, w, h, np.zeros(0), look_at_c2w(eye, np.zeros(3), up))
         # The photographer did not centre the object: turn the camera so the object's centre lies on the
-        # ray through the mask's box centre (espresso: median visual-hull IoU of the masks 0.57 -> 0.84).
+        # ray through the mask's box centre (measured: benchmarks/results/real_photos_cpu.md).
         centre_uv = np.array([[0.5 * (xs.min() + xs.max() + 1), 0.5 * (ys.min() + ys.max() + 1)]])
         c2w = cam.c2w.copy()
         c2w[:3, :3] = cam.c2w[:3, :3] @ rotation_between(cam.pixel_rays_camera(centre_uv)[0], np.array([0.0, 0.0, 1.0]))

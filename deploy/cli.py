@@ -12,7 +12,7 @@ import click
 from reconstruction.parallel import configure_openmp
 
 # Before torch loads (sub-commands import it lazily): idle OpenMP threads spin only briefly, or on a small
-# machine they steal the cores the rasterizer's threads need (3-10x slower under load).
+# machine they steal the cores the rasterizer's threads need (benchmarks/results/rig_scenes.md).
 configure_openmp()
 
 # name -> (module:attribute, one-line help). The order is the order `--help` lists them in.

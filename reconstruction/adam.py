@@ -1,9 +1,9 @@
 """Adam over parameter groups: `torch.optim.Adam`'s update, without its first-call import of torch._dynamo.
 
-torch's optimizer classes wrap their methods in `torch._disable_dynamo`, whose first call imports torch._dynamo:
-1.6 s once per process on this 2-core machine in its slow state, paid by every one-shot `cadsplat reconstruct`
-before its first step. The update here is torch's own functional `torch.optim.adam.adam` (the same kernels, on
-the same per-parameter state), which imports nothing outside `torch.compile`; parameters move bit for bit as
+torch's optimizer classes wrap their methods in `torch._disable_dynamo`, whose first call imports torch._dynamo,
+once per process, paid by every one-shot `cadsplat reconstruct` before its first step
+(benchmarks/results/rig_scenes.md). The update here is torch's own functional `torch.optim.adam.adam` (the same
+kernels, on the same per-parameter state), which imports nothing outside `torch.compile`; parameters move bit for bit as
 under `torch.optim.Adam` with the same arguments. `state_dict` has torch's layout, so checkpoints written by
 either load into the other.
 """

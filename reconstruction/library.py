@@ -35,8 +35,8 @@ MESH_EXTS = (".obj", ".stl", ".ply", ".glb")
 CAD_ONLY_EXTS = (".step", ".stp")
 LIBRARY_JSON = "library.json"
 FORMAT = "cadsplat-library/1"
-# Faces kept in the mesh that registration renders thousands of times; silhouettes of a
-# 3k-face decimation differ from the full mesh by well under 1% IoU at rig resolutions.
+# Faces kept in the mesh that registration renders thousands of times; at rig resolutions a
+# decimation this fine leaves the silhouettes as the full mesh's (benchmarks/results/registration.md).
 SCORING_FACES = 3000
 # Outside this size range (largest extent, metres) a unit is probably wrong; the build says so.
 PLAUSIBLE_EXTENT_M = (0.002, 5.0)

@@ -56,7 +56,7 @@ def _silhouette_grad(lo, hi, alpha, mask, valid, w_l1, w_fill, grad) -> None:
 
 class _SilhouetteLosses(torch.autograd.Function):
     """(L_mask, L_fill) in one pass over alpha and mask, and their gradient in one more: as torch ops they took ~10
-    passes over a 10-view batch's pixels forward and backward (~3 ms of a Stage-II iteration)."""
+    passes over a 10-view batch's pixels forward and backward (benchmarks/results/profile.md)."""
 
     @staticmethod
     def forward(ctx, alpha: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor | None):
@@ -161,8 +161,8 @@ def support_windows(support: torch.Tensor, margin: int) -> tuple[torch.Tensor, i
     support [C, H, W] bool. Each view's window holds its support's bounding box grown by `margin`
     pixels (clipped to the image); all windows take the largest size so they stack into one batch.
     A view with empty support gets a window at its top-left corner. The boxes come from one pass per view that
-    stops at each row's first and last True pixel (torch's any() over rows and columns took ~2 ms per Stage-II
-    iteration).
+    stops at each row's first and last True pixel (torch's any() over rows and columns was slower:
+    benchmarks/results/profile.md).
     """
     c, h, w = support.shape
     boxes = np.empty((c, 4), np.int64)
@@ -185,7 +185,7 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     (for a render composited on the target's background: where the splats or the mask reach). Outside
     it L1 is 0 and SSIM 1, so both are summed over a window around it and divided by the whole image's
     pixel count: the same value and gradient on fewer pixels (every view takes the largest view's window;
-    rig scene clamp, 10 views: SSIM 87 -> 50 ms per iteration). The window grows by two SSIM radii: one
+    measured: benchmarks/results/profile.md). The window grows by two SSIM radii: one
     for the windows that reach the support, one for their own windows.
 
     valid [C, H, W] bool, optional: the pixels each photograph has (views of mixed sizes on one canvas);

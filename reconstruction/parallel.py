@@ -1,14 +1,14 @@
 """Parallel-for over numba kernels on plain threads, with dynamic scheduling.
 
 Why not numba's `prange`: it runs on a second OpenMP runtime beside torch's, whose workers also
-spin-wait between parallel regions, so on a 2-core machine the two pools took turns starving each
-other; parfor lowering also tripled the kernels' cold compile time. Plain threads running `nogil`
-kernels sleep when idle. Work is cut into a few parts per thread, taken in order by whichever thread
+spin-wait between parallel regions, so on a machine of few cores the two pools took turns starving
+each other; parfor lowering also lengthened the kernels' cold compile (benchmarks/results/rig_scenes.md).
+Plain threads running `nogil` kernels sleep when idle. Work is cut into a few parts per thread, taken in order by whichever thread
 is free, so a thread that loses its core for a while only delays its current part.
 
-torch's own OpenMP workers spin after each op before they sleep, for libgomp's default ~3 ms: on a 2-core
-machine that spinning took the cores these threads need (rig scene clamp, `preview`: 12.7 s, against 10.5-10.8 s
-with no spinning at all; on a busy machine 3-10x). `configure_openmp` shortens it before torch is imported.
+torch's own OpenMP workers spin after each op before they sleep, for libgomp's default ~3 ms: on a machine of
+few cores that spinning takes the cores these threads need (measured: benchmarks/results/rig_scenes.md).
+`configure_openmp` shortens it before torch is imported.
 """
 
 from __future__ import annotations
@@ -22,10 +22,8 @@ from collections.abc import Callable
 PARTS_PER_THREAD = 4
 
 # Spins (libgomp reckons ~100 per microsecond) an idle OpenMP worker makes before it sleeps. ~0.1 ms bridges the gap
-# between a training step's back-to-back torch ops, which otherwise pay a futex wake-up each. Rig scene clamp, `cpu`,
-# interleaved against no spinning (OMP_WAIT_POLICY=PASSIVE, 56.3-68.4 s): 10k spins -4.4..-14.3 s in 3 of 3 pairs,
-# 20k -0.9..-10.5 s in 10 of 10, 5k -1.1..-6.2 s. Beside a busy-looping neighbour on one of the 2 cores the spin
-# costs instead (91.8-95.1 s with none): 5k +4..+5 s, 10k +10..+20 s, 20k +14..+16 s, 50k +41..+42 s. An appliance
+# between a training step's back-to-back torch ops, which otherwise pay a futex wake-up each; beside a busy
+# neighbour the spin costs time instead (both measured: benchmarks/results/rig_scenes.md). An appliance
 # reconstructs alone; a machine shared with other work sets OMP_WAIT_POLICY=PASSIVE.
 OPENMP_SPIN_COUNT = 10_000
 
@@ -50,7 +48,7 @@ class _Team:
     """Helper threads that run one parallel-for at a time beside the calling thread.
 
     Each helper sleeps on its own lock and reports on another: a handful of C-level lock operations per call
-    (~20 us on this machine's 2 cores) where a `ThreadPoolExecutor` future cost ~50 us; the rasterizer makes 8 such
+    where a `ThreadPoolExecutor` future costs more (benchmarks/results/rasterizer.md); the rasterizer makes 8 such
     calls per training step.
     """
 

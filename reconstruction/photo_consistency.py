@@ -146,8 +146,8 @@ def _sample_backward(view_lo, view_hi, images, points, viewmats, Ks, grad, v_poi
 
 class _SampleColors(torch.autograd.Function):
     """`sample_colors` on the CPU: projection and bilinear sampling in one numba pass each way, one view per task,
-    where a dozen torch ops (batched matmuls, divisions, permutes, grid_sample and its backward) ran: forward+backward
-    6.4 -> 4.5 ms for 10 views at 320x240 and 15k points."""
+    where a dozen torch ops (batched matmuls, divisions, permutes, grid_sample and its backward) ran (measured:
+    benchmarks/results/profile.md)."""
 
     @staticmethod
     def forward(ctx, images: torch.Tensor, points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> torch.Tensor:
@@ -242,7 +242,7 @@ def _robust_spread(lo, hi, colors, weights, eps, point_loss, point_weight, grad)
 
 class _ConsistencyLoss(torch.autograd.Function):
     """`consistency_loss` in one pass with its gradient, where a dozen torch ops over [V, N, 3] and their backward
-    ran: the term (sampling included) 10-12 -> 7.5 ms forward+backward for 10 views x 15k points."""
+    ran (measured: benchmarks/results/profile.md)."""
 
     @staticmethod
     def forward(ctx, colors: torch.Tensor, weights: torch.Tensor, eps: float) -> torch.Tensor:

@@ -2,8 +2,8 @@
 loss uses the zero-padded map; `metrics.ssim` crops it to the pixels whose window lies inside the image.
 
 Autograd through SSIM's torch ops (five depthwise blurs of 1x11 and 11x1 kernels, then the map's
-elementwise graph, each op a pass over memory) cost ~40 ms forward+backward per Stage-II iteration
-of a 10-view batch at 320x240, ~35 ms of it in torch's depthwise conv2d blurring the five moments. The kernels
+elementwise graph, each op a pass over memory) was a large part of a Stage-II iteration,
+most of it in torch's depthwise conv2d blurring the five moments (benchmarks/results/profile.md). The kernels
 below take one (view, channel) plane per task, blur with tap-outer, pixel-inner loops over
 zero-padded rows (contiguous multiply-adds numba vectorises) and do the elementwise algebra in the
 same pass.
@@ -42,8 +42,7 @@ def _row_pass(line, g, row):
     w = row.shape[0]
     if g.shape[0] == 11:
         # The training window, unrolled: each output is 11 multiply-adds in registers and one store, where
-        # a pass per tap loads and stores the whole row 11 times (SSIM forward kernel 8.5 -> 5.4 ms for a 10-view
-        # Stage-II window; 3.6 ms with the five moments' rows filled in one pass).
+        # a pass per tap loads and stores the whole row 11 times (benchmarks/results/profile.md).
         g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10 = g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10]
         for x in range(w):
             row[x] = (g0 * line[x] + g1 * line[x + 1] + g2 * line[x + 2] + g3 * line[x + 3] + g4 * line[x + 4]

@@ -32,12 +32,11 @@ def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gauss
     """Vertices [V, 3] of a mesh whose splats sit on it, moved out along their normals to where the splats'
     alpha falls to 1/2: the surface the silhouettes and images were fitted to. Splats centred on a
     surface render it larger by that reach, so the fit pulls their centres (and the mesh through them)
-    inside the object by as much (rig scenes: 0.4-1.35 mm, 11-39 % of the volume).
+    inside the object by as much (measured on the rig scenes: benchmarks/results/twin_physics.md).
 
     faces [F, 3]; gaussians: the fitted splats (object frame). Every vertex moves by the splats' median
-    reach: a neighbourhood's median follows single large splats at thin edges outwards (rig scenes,
-    8 nearest splats: the toy airplane 0.72 -> 0.92 % of the diameter from the truth) and makes
-    spikes an inspection reads as defects.
+    reach: a neighbourhood's median follows single large splats at thin edges outwards and makes
+    spikes an inspection reads as defects (benchmarks/results/twin_physics.md).
     """
     return offset_along_normals(vertices, faces, float(np.median(alpha_half_reach(gaussians))))
 
@@ -69,8 +68,7 @@ def mask_overlap_offset(vertices: np.ndarray, faces: np.ndarray, cameras: Sequen
     Splats blend into one another at the rim, so their union reaches past any single splat's own alpha-1/2
     radius; the masks say by how much. Overlap, not area: where the fit left a part beside its place, a step
     that matched the areas would shrink the whole part by the excess on one side and ignore the deficit on
-    the other (rig scenes: the spatula's neck sits 1-3 px beside its mask; on the same surface, matching areas
-    took 0.49 mm off every face and its volume to -16 % of the truth's, the best overlap moved it 0.01 mm).
+    the other (measured on the rig scenes' spatula: benchmarks/results/twin_physics.md).
     """
     # A move of a few percent of the size keeps the faces and the side they face: one winding holds for every step.
     winding = closed_winding(vertices, faces)
@@ -142,10 +140,9 @@ def untangle(rest: np.ndarray, moved: np.ndarray, faces: np.ndarray, smooth_roun
 
     First the move is smoothed where the surface folds: the vertices of both faces of each new crossing and
     their neighbours take their neighbours' mean move, round after round. A fold is a move that changes faster
-    across the surface than the part is thick; the neighbours' mean keeps where the part went (rig scenes: a
-    spatula's thin neck carried 3 mm sideways by the fit, where pulling back towards the CAD undid the carry and
-    left the mesh's silhouettes at IoU 0.89-0.95 against training masks the splats fit at 0.99). Folds that
-    `smooth_rounds` leave are pulled back: their faces' vertices halve their move towards `rest` for
+    across the surface than the part is thick; the neighbours' mean keeps where the part went, where pulling back
+    towards the CAD would undo the carry (measured on the rig scenes' spatula: benchmarks/results/twin_physics.md).
+    Folds that `smooth_rounds` leave are pulled back: their faces' vertices halve their move towards `rest` for
     `pull_rounds` rounds, then go back to rest, until nothing new crosses (two faces at rest cross only as they
     did in rest, so this ends).
     Returns (vertices [V, 3], untangled [V] bool: the vertices whose move changed).

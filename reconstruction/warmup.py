@@ -2,10 +2,9 @@
 `python -m reconstruction.warmup`.
 
 The kernels are cached on disk (`cache=True`, `kernel_cache`) per argument type, so a fresh install would
-otherwise compile them in its first library build, reconstruction and inspection. The rasterizer's and the losses'
-took about a minute from nothing here; the registration's (the silhouette index's parallel matcher and the scorer),
-which this warmup once left out, added ~8 s to the first twin's registration (rig scene scissors, `preview`: 10.3 s
-against 2.5 s once compiled). Each part below runs the public functions a run calls, on a tiny scene, so that it
+otherwise compile them in its first library build, reconstruction and inspection. The registration's
+kernels (the silhouette index's parallel matcher and the scorer), which this warmup once left out, are among
+them (measured: benchmarks/results/profile.md). Each part below runs the public functions a run calls, on a tiny scene, so that it
 compiles exactly the specialisations (dtypes, layouts, read-only index arrays) a run will ask for.
 """
 

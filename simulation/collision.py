@@ -78,9 +78,8 @@ class DecompositionOptions:
     tolerance the next threshold is scaled by tolerance / error (at most `rounds` runs, not below
     `min_threshold`), so the piece count follows the error. `max_convex_hull` caps the pieces of a
     run (-1: no cap); `timeout_s` caps the wall clock of all runs for one part (past it the best so
-    far, or the convex hull, is used and noted). The floor is low enough for thin parts: the
-    rig_scenes spatula twin (a 305 mm part, blade a few mm thick) stopped at +17.7 % with 99
-    pieces at 0.01, and reaches +8.4 % (427 pieces) at 0.005. `hull_budget` (None: no budget) is
+    far, or the convex hull, is used and noted). The floor is low enough for thin parts such as a
+    spatula's blade a few mm thick (benchmarks/results/twin_physics.md). `hull_budget` (None: no budget) is
     the most pieces the whole body may have; runs over it move the threshold back up (see the module
     docstring), which may take up to `rounds` runs."""
 

@@ -1,10 +1,9 @@
 """Numba CPU kernels of the rasterizer: projection, tile binning, compositing and their VJPs.
 
 Why numba: the same forward compositing kernel ported to C++ (g++ -O3 -march=native, same data
-layout) ran within 4% of this one (8.1 vs 8.0 ms at 20k Gaussians / 256^2, 110 vs 115 ms at
-600k / 512^2, one thread), so a C++ torch extension would buy no speed for a compiler at install time
-and a build in CI; NVIDIA Warp runs CPU kernels on one thread with no SIMD (NVIDIA/warp#1309).
-numba's `cache=True` keeps the one-off compile (~20 s for all kernels) out of every later process.
+layout) ran level with this one (benchmarks/results/rasterizer.md), so a C++ torch extension would buy no speed
+for a compiler at install time and a build in CI; NVIDIA Warp runs CPU kernels on one thread with no SIMD
+(NVIDIA/warp#1309). numba's `cache=True` keeps the one-off compile of all kernels out of every later process.
 
 Every float array is float64 (callers cast), except the rendered images the compositing kernels hand
 back and their gradients, which are in the caller's dtype: a float32 pixel-space mean near x = 500 px
@@ -68,8 +67,8 @@ N_GRAD_GEOMETRY = 6
 
 # nogil: the kernels run on plain threads (see `reconstruction.parallel`); error_model numpy: no ZeroDivision checks.
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
-# Projection and compositing let multiply-adds fuse (one rounding instead of two): 6-13% faster, and
-# results move by ~1e-15 relative.
+# Projection and compositing let multiply-adds fuse (one rounding instead of two): faster
+# (benchmarks/results/rasterizer.md), and results move by ~1e-15 relative.
 _FUSED = {"contract"}
 
 
@@ -101,8 +100,8 @@ def _prefetch(typingctx, array, index):
 
 def _packs_by_table(features: str) -> bool:
     """Whether the listing packs kept lanes by AVX2 permutes, for a target with these LLVM features
-    ("+avx2,-avx512f,..."): with AVX2 and no AVX-512, where LLVM lowers the vector compress to scalar moves. On a Zen 3 (AVX2) the forward
-    compositing of the `cpu` preset's Stage-II batch took 81 -> 70 ms on one thread, Stage I's 58 -> 48 ms."""
+    ("+avx2,-avx512f,..."): with AVX2 and no AVX-512, where LLVM lowers the vector compress to scalar moves
+    (measured: benchmarks/results/rasterizer.md)."""
     flags = set(features.split(","))
     return "+avx2" in flags and "+avx512f" not in flags
 
@@ -188,7 +187,7 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
         by_table = _packs_by_table(context.codegen().magic_tuple()[2])
         if by_table:
             # The comparison's lanes become an integer mask and meet the row's bits there, instead of the bits being
-            # spread into a vector mask and gathered back (one thread, Zen 3: Stage I's forward 35.0 -> 31.6 ms).
+            # spread into a vector mask and gathered back (benchmarks/results/rasterizer.md).
             keep_bits = builder.and_(builder.bitcast(within, ir.IntType(LIST_LANES)), row_bits)
         else:
             keep = builder.and_(within, builder.bitcast(row_bits, vb))
@@ -494,7 +493,7 @@ def project_forward(
                 ty0, ty1 = _tile_of(v_lo, tile_size, shift), _tile_of(v_hi, tile_size, shift)
                 tile_counts[cg] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
                 base = c * tiles_per_cam
-                # Most splats touch one tile; the loops' unpredictable trip counts cost a third of this kernel.
+                # Most splats touch one tile, so that case skips the loops' unpredictable trip counts (benchmarks/results/rasterizer.md).
                 if tx0 == tx1 and ty0 == ty1:
                     chunk_hist[base + ty0 * tiles_x + tx0] += 1
                     continue
@@ -746,8 +745,8 @@ def _sort_tile(segment, depths, cam_base, tmp, counts) -> None:
 
     Depths are positive, so the bits order like the values. The keys arrive in index order
     (`scatter_tile_keys`), so a stable sort by the depth bits alone leaves equal depths in index order: the
-    order of sorting the whole int64 keys, in a few radix passes instead of a comparison sort (4.8 -> 0.7 ms for
-    the `cpu` preset's Stage-II batch). Runs whose float32 depths tie are then re-sorted by the float64 depths
+    order of sorting the whole int64 keys, in a few radix passes instead of a comparison sort (measured:
+    benchmarks/results/profile.md). Runs whose float32 depths tie are then re-sorted by the float64 depths
     [C * N] (the camera's start at cam_base), since float32 rounding merges depths that differ and the order of
     overlapping splats changes the image. tmp and counts are `_sort_by_depth_bits`'s scratch.
     """
@@ -898,7 +897,7 @@ def _ellipse_pixels(slot_f, slot_i, k, x0, y0, live, buf_p, buf_sigma) -> int:
     set in its row's mask live [tile rows] (bit u for column x0 + u). Rows without a live pixel in the
     rect are skipped; inside a row every rect pixel is evaluated, LIST_LANES at a time, and packed
     (`_list_lanes`): with the same trip count on every row this beats solving each row's span, whose
-    square root and unpredictable loop bounds cost more than the ~27% of rect pixels they skip.
+    square root and unpredictable loop bounds cost more than the rect pixels they skip (benchmarks/results/rasterizer.md).
     Writes the tile-local pixel index and sigma of each listed pixel to buf_p and buf_sigma (room for
     the rect and LIST_LANES more); returns how many there are.
     """
@@ -982,7 +981,7 @@ def rasterize_forward(
     first slot (room for every slot's whole pixel rect), so the backward reads them densely.
     """
     depth = slot_c.shape[1]
-    # RGB (Stage II's renders) keeps a slot's colour and its gradient in registers: ~7 % off each kernel.
+    # RGB (Stage II's renders) keeps a slot's colour and its gradient in registers (benchmarks/results/rasterizer.md).
     rgb = depth == 3
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size << _ROW_SHIFT
@@ -1000,7 +999,7 @@ def rasterize_forward(
             if tile_offsets[tile] == tile_offsets[tile + 1]:
                 # Nothing covers the tile (most of an image whose object is small): background, T = 1. Only the
                 # returned images are written; the backward skips the tile, so its float64 state would be written and
-                # never read (two thirds of a Stage-II forward's bytes on empty tiles, there ~15 % of its time).
+                # never read (benchmarks/results/rasterizer.md).
                 for py in range(y0, y1 + 1):
                     for px in range(x0, x1 + 1):
                         for d in range(depth):
@@ -1107,8 +1106,8 @@ def rasterize_backward_rgb(
 ) -> None:
     """`rasterize_backward` for three colour channels (Stage II's renders), to the bit.
 
-    A kernel of its own: with both loops in one, LLVM laid out the registers of the colourless loop worse (Stage I's
-    silhouette backward ~70 % longer on Zen 3).
+    A kernel of its own: with both loops in one, LLVM laid out the registers of the colourless loop worse
+    (benchmarks/results/rasterizer.md).
     """
     tiles_per_cam = tiles_x * ((height + tile_size - 1) // tile_size)
     n_px = tile_size << _ROW_SHIFT
@@ -1165,7 +1164,7 @@ def _composite_backward_rgb(k, slot_f, slot_c, start, count, pair_px, pair_vis, 
     the slot's j-th pair), which `_geometry_backward` reads.
 
     Two passes over a slot's pairs, this and `_geometry_backward`: in one, its 9 running sums and 12 constants did not fit
-    the 16 vector registers of x86-64 without AVX-512 and spilled on every pair (one pass: 14-20 % longer on Zen 3).
+    the 16 vector registers of x86-64 without AVX-512 and spilled on every pair (benchmarks/results/rasterizer.md).
     Indices are unsigned so that numba does not wrap negative ones."""
     opacity = slot_f[k, SF_OPACITY]
     c0, c1, c2 = slot_c[k, 0], slot_c[k, 1], slot_c[k, 2]
@@ -1223,7 +1222,7 @@ def _geometry_backward(k, slot_f, x0, y0, start, count, pair_px, pair_vis, v_alp
 
 @njit(inline="always", **_OPTS)
 def _store_geometry(slot_grads, k, sums) -> None:
-    """slot_grads[k, :6] = sums, element by element (numba's slice assignment from a tuple cost Stage I's backward 26 %)."""
+    """slot_grads[k, :6] = sums, element by element (numba's slice assignment from a tuple is slower: benchmarks/results/profile.md)."""
     slot_grads[k, 0], slot_grads[k, 1], slot_grads[k, 2] = sums[0], sums[1], sums[2]
     slot_grads[k, 3], slot_grads[k, 4], slot_grads[k, 5] = sums[3], sums[4], sums[5]
 

@@ -1,7 +1,7 @@
 """Numba kernels for spherical harmonics colours, forward and VJP, and the basis constants.
 
 Autograd through ~35 small torch ops per evaluation cost more than the whole forward+backward
-rasterization at 20k Gaussians; one fused pass per Gaussian costs about a millisecond. Every float
+rasterization; one fused pass per Gaussian costs a small part of it (benchmarks/results/rasterizer.md). Every float
 array is float64; sh is [N, K, 3]. The directions are points [P, N, 3] less origins [R, 3], with P = R or
 P = 1 (one point per Gaussian, seen from R camera centres): the rasterizer's colours then need no [R, N, 3]
 array of directions either way, and `eval_sh` passes its directions as points with zero origins.

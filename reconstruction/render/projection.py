@@ -49,8 +49,8 @@ class _Float64(torch.autograd.Function):
     """float32 -> float64 casts whose gradients come back in float32, all in numpy, as one graph node.
 
     The same roundings as `Tensor.to`, but on the calling thread: torch's copy kernel wakes its sleeping OpenMP workers
-    for a few ten thousand elements, which cost ~55 us a cast against ~10 us for the copy itself; one node for all the
-    rasterizer's inputs also saves autograd ~20 us per input each way.
+    for a few ten thousand elements, which costs more than the copy itself; one node for all the rasterizer's inputs
+    also spares autograd a node per input each way (benchmarks/results/rasterizer.md).
     """
 
     @staticmethod
@@ -119,7 +119,7 @@ class _ProjectGaussians(torch.autograd.Function):
         n_chunks = max(1, min(kernels.GAUSSIAN_CHUNKS, n))
         v_means = np.zeros((n, 3))
         # Training's quaternions are fixed and its scales learn only in Stage II: without them the covariance's
-        # gradient is not formed (Stage I's 10-view batch on the clamp: 7.2-8.0 against 8.8-11.7 ms).
+        # gradient is not formed (benchmarks/results/rig_scenes.md).
         want_cov = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
         v_quats = np.zeros((n, 4)) if want_cov else np.zeros((0, 4))
         v_scales = np.zeros((n, 3)) if want_cov else np.zeros((0, 3))

@@ -23,8 +23,8 @@ from reconstruction.render.sh import num_sh_bases, sh_colors
 # Below this many items per thread, per-splat passes run on the calling thread alone.
 _GRAIN = 4096
 # The CPU kernels' default tile edge. Per-slot work (listing, sorting, records, sums) outweighs the pixels a larger
-# tile tests in vain: the `cpu` preset's Stage-II batch (10 views at 320x240, 15k splats) lists 228k tile
-# intersections at 32 px against 327k at 16 and renders forward+backward ~9 % faster; the image is the same.
+# tile tests in vain: on the `cpu` preset's Stage-II batch 32-px tiles list fewer tile intersections and
+# render forward+backward faster than 16-px ones, the image the same (benchmarks/results/profile.md).
 CPU_TILE_SIZE = 32
 # The compositing kernels' (slot, pixel) pairs and per-slot gradients, reused from call to call.
 _SCRATCH = ScratchPool()
@@ -235,7 +235,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         )
         _SCRATCH.give("slot_grads", slot_grads)
         # Summed over cameras in numpy: these arrays are small, and each torch op on them woke torch's sleeping OpenMP
-        # workers (~60-300 us a call, more than the arithmetic).
+        # workers at a cost above the arithmetic's (benchmarks/results/rasterizer.md).
         if color_cams == 1 and n_cams > 1:
             v_colors = v_colors.sum(0, keepdims=True)
         v_backgrounds = None

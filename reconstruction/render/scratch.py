@@ -3,8 +3,8 @@
 The CPU rasterizer's forward keeps every shaded (slot, pixel) pair for its backward, with room for
 each slot's whole pixel rect: ~130 MB for the `cpu` preset's Stage-II batch (10 views at 320x240,
 15k splats). Allocations that large are fresh mmap'd pages on every call, which the compositing
-threads then fault in and zero while they work: 23 ms of forward compositing became 38-44 ms on the
-rig scene clamp. A buffer handed back when its user is done (the backward) serves the next call.
+threads then fault in and zero while they work, which slowed the forward compositing
+(benchmarks/results/rasterizer.md). A buffer handed back when its user is done (the backward) serves the next call.
 """
 
 from __future__ import annotations
