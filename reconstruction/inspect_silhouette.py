@@ -50,7 +50,7 @@ def rim_offsets(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, ca
     """(vertex indices [M], signed move along the normal [M], units of the vertices) that would bring the rendered
     outline of the mesh (`vertices` [V, 3], `faces` [F, 3], unit `normals` [V, 3]) onto the `mask` [H, W] bool at its
     rim vertices in `camera` (rescaled to the mask's size). Positive: the surface should move out."""
-    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.mesh_raster import rasterize_mesh
 
     h, w = mask.shape
     cam = camera if (camera.width, camera.height) == (w, h) else camera.scaled(w, h)

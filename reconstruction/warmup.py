@@ -20,7 +20,8 @@ import trimesh
 
 from calibration.camera import Camera, look_at_c2w
 from reconstruction.deformation import blend_anchors, farthest_point_indices
-from reconstruction.inspect import line_deviation, rasterize_mesh
+from reconstruction.inspect import line_deviation
+from reconstruction.mesh_raster import rasterize_mesh
 from reconstruction.library import build_library
 from reconstruction.losses import neighbour_graph, photometric_loss, sh_neighbour_loss, silhouette_losses
 from reconstruction.photo_consistency import consistency_loss, sample_colors

@@ -84,7 +84,7 @@ def _ball_and_cameras():
 
 
 def test_the_mask_step_finds_how_far_the_masks_reach_past_the_mesh():
-    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.mesh_raster import rasterize_mesh
     from reconstruction.surface import mask_overlap_offset
 
     v, f, cams = _ball_and_cameras()
@@ -97,7 +97,7 @@ def test_the_mask_step_finds_how_far_the_masks_reach_past_the_mesh():
 
 
 def test_a_local_excess_does_not_shrink_the_rest_of_the_surface():
-    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.mesh_raster import rasterize_mesh
     from reconstruction.surface import mask_overlap_offset
 
     v, f, cams = _ball_and_cameras()
@@ -142,7 +142,7 @@ def test_the_neighbour_mean_keeps_a_lone_vertex_and_ignores_degenerate_edges():
 
 def test_the_mask_step_takes_views_of_mixed_sizes_on_one_canvas():
     from calibration.camera import Camera
-    from reconstruction.inspect import rasterize_mesh
+    from reconstruction.mesh_raster import rasterize_mesh
     from reconstruction.surface import mask_overlap_offset
 
     v, f, cams = _ball_and_cameras()
