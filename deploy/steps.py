@@ -110,12 +110,18 @@ def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progre
     capture = decoded.capture if carried else read_capture(capture_path)
     if not (twin_dir / "twin.json").exists():
         from reconstruction.library import load_library
-        from reconstruction.pipeline import reconstruct
+        from reconstruction.pipeline import reconstruct_capture
+        from reconstruction.views import CaptureViews, capture_views
 
         reg = RegistrationResult.from_dict(json.loads((work / REGISTRATION_JSON).read_text())["registration"], capture=capture,
                                            library=load_library(cfg.library), where=str(work / REGISTRATION_JSON))
-        reconstruct(capture, cfg.library, twin_dir, registration=reg, masks=masks, images=decoded.images if carried else None,
-                    preset=cfg.preset, seed=cfg.seed, progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
+        if carried:
+            views = CaptureViews(capture, tuple(range(len(capture))), decoded.images, masks, tuple(capture.camera(i) for i in range(len(capture))),
+                                 rig_metres_per_unit(capture.meta, capture.root), "given")
+        else:
+            views = capture_views(capture, masks=masks)
+        reconstruct_capture(views, cfg.library, twin_dir, registration=reg, preset=cfg.preset, seed=cfg.seed,
+                            progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
     if carried:
         decoded.capture_path, decoded.capture, decoded.images = "", None, None
     doc = json.loads((twin_dir / "twin.json").read_text())
