@@ -23,6 +23,17 @@ from deploy.kiosk_state import Alarm, ApplianceState, CameraStatus, Progress, Ve
 REPO = Path(__file__).resolve().parents[1]
 
 
+def kiosk_pipeline_config(library_dir: str | Path, preset: str, inspection=None, registration=None):
+    """The kiosk's `PipelineConfig`: rig.toml's [inspection] (`inspection`) and [registration] (`registration`, a
+    RegistrationConfig; None: its defaults) for every capture, twins exported as ply and glb."""
+    from deploy.steps import PipelineConfig
+
+    return PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
+                          inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
+                          inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None,
+                          **({"registration": registration} if registration is not None else {}))
+
+
 class Appliance:
     """Cameras + trigger + capture store + calibration keeper + pipeline service, under `work_dir`.
 
@@ -49,9 +60,10 @@ class Appliance:
         closers=(),
         inspection=None,
         spill=None,
+        registration=None,
     ) -> None:
         from deploy.service import PipelineService
-        from deploy.steps import PipelineConfig, make_step_runner
+        from deploy.steps import make_step_runner
         from rig.acquisition import Acquisition, open_cameras
         from rig.camera import CameraSettings
 
@@ -86,9 +98,7 @@ class Appliance:
                                        calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
                                        units=self.keeper.store.load().units,
                                        backgrounds=dict(backgrounds or {}), spill=spill)
-        cfg = PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
-                             inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
-                             inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None)
+        cfg = kiosk_pipeline_config(library_dir, preset, inspection, registration)
         self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
                                        on_event=self._on_service_event)
         self._threads = [
@@ -106,13 +116,15 @@ class Appliance:
     @classmethod
     def from_config(cls, config_path: str | Path, library_dir: str | Path, work_dir: str | Path, *, preset: str = "cpu",
                     interval_s: float = 20.0) -> "Appliance":
-        """The real rig of a `rig.toml` (its cameras, trigger, store and calibration)."""
+        """The real rig of a `rig.toml` (its cameras, trigger, store, calibration, [inspection] and [registration])."""
         from calibration.keeper import Keeper
+        from deploy.steps import registration_config
         from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
         from rig.config import load_config
         from rig.store import Spill, default_spill_dir
 
         cfg = load_config(config_path)
+        registration = registration_config(Path(config_path), loaded=cfg)
         if cfg.calibration is None:
             raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
         calibration = load_rig_calibration(cfg.calibration).cameras
@@ -123,7 +135,7 @@ class Appliance:
         work.mkdir(parents=True, exist_ok=True)
         spill = Spill(cfg.storage.spill or default_spill_dir(), store.root)
         return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill)
+                   rig_id=cfg.rig_id, closers=[trigger.stop], inspection=cfg.inspection, spill=spill, registration=registration)
 
     @classmethod
     def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),

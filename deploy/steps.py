@@ -15,27 +15,55 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from calibration.capture import Capture, load_views, read_capture, rig_metres_per_unit
+from calibration.capture import Capture, read_capture
 from calibration.fileio import atomic_write_bytes, atomic_write_json
 from deploy.jobs import Job
+
+if TYPE_CHECKING:
+    from reconstruction.registration import RegistrationConfig
+    from rig.config import RigConfig
 
 Progress = Callable[[str, int, int], None]
 
 
+def _default_registration() -> RegistrationConfig:
+    from reconstruction.registration import RegistrationConfig
+
+    return RegistrationConfig()
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
+    """What the service does with every capture. `registration`: rig.toml's [registration] (the known part, the
+    scale tolerance, the photographs' tie-break), filled by whoever builds this from a rig.toml (service, kiosk)."""
+
     library: str
     preset: str = "cpu"
     export_formats: tuple[str, ...] = ("ply", "glb", "mjcf")
     seed: int = 0
     inspection_tolerance_mm: float | None = None  # set: every twin is inspected against its CAD (rig.toml [inspection])
     inspection_max_unseen_pct: float | None = None
+    registration: RegistrationConfig = field(default_factory=_default_registration)
+
+
+def registration_config(rig_toml: Path | None, *, loaded: RigConfig | None = None) -> RegistrationConfig:
+    """rig.toml's [registration] as a RegistrationConfig (its defaults without a rig.toml); `loaded`: that file as the
+    caller already parsed it. A bad file or key raises ConfigError / RegistrationError in one sentence naming it."""
+    from reconstruction.registration import RegistrationConfig
+
+    if rig_toml is None:
+        return RegistrationConfig()
+    if loaded is None:
+        from rig.config import load_config
+
+        loaded = load_config(rig_toml)
+    return RegistrationConfig.from_dict(loaded.registration, where=f"{rig_toml}: registration")
 
 
 REGISTRATION_JSON = "registration.json"
@@ -53,32 +81,28 @@ class Decoded:
 
 
 def register_step(capture_path: Path, work: Path, cfg: PipelineConfig, decoded: Decoded | None = None) -> dict:
-    """Masks and the metric-aware registration of the capture, written to work/masks.npz and
-    work/registration.json (with its provenance), which the later steps read instead of redoing them."""
+    """Masks and the metric-aware registration of the capture (`register_views` under `cfg.registration`), written to
+    work/masks.npz and work/registration.json (with its provenance and the path taken: known part or library search),
+    which the later steps read instead of redoing them."""
     out = work / REGISTRATION_JSON
     if out.exists() and (work / MASKS_NPZ).exists():
         return json.loads(out.read_text())["summary"]
     from reconstruction.library import load_library
-    from reconstruction.masks import capture_masks
-    from reconstruction.quality import check_masks, check_registration
-    from reconstruction.registration import provenance, register
+    from reconstruction.registration import register_views, registration_document
+    from reconstruction.views import capture_views
 
     capture = read_capture(capture_path)
-    images, masks, cams = load_views(capture)
-    if masks is None:
-        masks, _ = capture_masks(capture, images)
-    check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
+    views = capture_views(capture)
     library = load_library(cfg.library)
-    reg = register(masks, cams, library, seed=cfg.seed, rig_metres_per_unit=rig_metres_per_unit(capture.meta, capture.root))
-    check_registration(reg.score, reg.alternatives, masks, len(library.models), reg.model_id)
+    reg = register_views(views, library, cfg.registration, seed=cfg.seed)
     buf = io.BytesIO()
-    np.savez_compressed(buf, masks=masks)
+    np.savez_compressed(buf, masks=views.masks)
     atomic_write_bytes(work / MASKS_NPZ, buf.getvalue())
-    summary = {"model_id": reg.model_id, "score": float(reg.score), "path": str(out)}
+    summary = {"model_id": reg.model_id, "score": float(reg.score), "method": reg.method, "path": str(out)}
     # Written last: registration.json is what says the step is done.
-    atomic_write_json(out, {"summary": summary, "registration": {**reg.to_dict(), **provenance(capture, library, reg.model_id)}})
+    atomic_write_json(out, {"summary": summary, "registration": registration_document(reg, views, library, cfg.registration)})
     if decoded is not None:
-        decoded.capture_path, decoded.capture, decoded.images = str(capture_path), capture, images
+        decoded.capture_path, decoded.capture, decoded.images = str(capture_path), capture, views.images
     return summary
 
 

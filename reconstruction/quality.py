@@ -1,5 +1,6 @@
 """Gates that refuse a confident wrong twin: masks no object could give, silhouettes every library
-model fits alike, and a suspiciously perfect fit to a featureless silhouette.
+model fits alike, a suspiciously perfect fit to a featureless silhouette, and a registration that does
+not explain the silhouettes (the part outside its masks).
 
 Each gate returns one sentence per problem; `check_masks` and `check_registration` raise
 `QualityError` with the first, so registration and reconstruction stop instead of reporting an
@@ -22,13 +23,15 @@ class MaskGate:
     """A mask covering more than `max_cover` or less than `min_cover` of its image is no object's
     silhouette; models whose scores lie within `alike_spread` cannot be told apart; a score above
     `perfect_score` on silhouettes that fill more than `featureless_fill` of their bounding box is
-    a rectangle fitting a box, not evidence."""
+    a rectangle fitting a box, not evidence. A registration whose mean silhouette IoU is below `fit_floor`
+    does not explain the masks: the part lies outside them in the views whose IoU is below it."""
 
     max_cover: float = 0.9
     min_cover: float = 0.0005
     alike_spread: float = 0.02
     perfect_score: float = 0.97
     featureless_fill: float = 0.97
+    fit_floor: float = 0.5
 
 
 def mask_cover(masks: np.ndarray) -> np.ndarray:
@@ -65,9 +68,15 @@ def check_masks(masks: np.ndarray, gate: MaskGate = MaskGate(), names: list[str]
 
 
 def registration_problems(score: float, alternatives: list[tuple[str, float]], masks: np.ndarray, num_models: int,
-                          model_id: str, gate: MaskGate = MaskGate()) -> list[str]:
-    """Sentences on a registration (best `score`, the other models' best `alternatives`) that cannot be trusted."""
+                          model_id: str, gate: MaskGate = MaskGate(), *, per_view_iou: np.ndarray | None = None,
+                          names: list[str] | None = None) -> list[str]:
+    """Sentences on a registration (best `score`, the other models' best `alternatives`, its IoU in each view
+    `per_view_iou` [V] when known, views named by `names`) that cannot be trusted."""
     out = []
+    if per_view_iou is not None and score < gate.fit_floor:
+        outside = [names[i] if names else f"view {i}" for i in np.flatnonzero(np.asarray(per_view_iou) < gate.fit_floor)]
+        out.append(f"'{model_id}' fits these silhouettes with mean IoU {score:.2f}, below the floor {gate.fit_floor:.2f}: the part lies "
+                   f"outside its mask in {len(outside)} of {len(per_view_iou)} views ({', '.join(outside)})")
     others = [s for _, s in alternatives]
     if num_models >= 3 and len(others) >= 2 and score - min(others) < gate.alike_spread:
         out.append(f"every library model fits these silhouettes alike (IoU {score:.3f} for '{model_id}', "
@@ -80,7 +89,7 @@ def registration_problems(score: float, alternatives: list[tuple[str, float]], m
 
 
 def check_registration(score: float, alternatives: list[tuple[str, float]], masks: np.ndarray, num_models: int, model_id: str,
-                       gate: MaskGate = MaskGate()) -> None:
-    problems = registration_problems(score, alternatives, masks, num_models, model_id, gate)
+                       gate: MaskGate = MaskGate(), *, per_view_iou: np.ndarray | None = None, names: list[str] | None = None) -> None:
+    problems = registration_problems(score, alternatives, masks, num_models, model_id, gate, per_view_iou=per_view_iou, names=names)
     if problems:
         raise QualityError(f"registration refused: {problems[0]}")

@@ -76,17 +76,10 @@ class RigConfig:
     storage: StorageConfig = field(default_factory=StorageConfig)
     thresholds: Thresholds = field(default_factory=Thresholds)
     calibration: Path | None = None
-    registration: "RegistrationConfig" = field(default_factory=lambda: RegistrationConfig())
+    # [registration] as written: reconstruction.registration.RegistrationConfig.from_dict reads and checks it (the rig
+    # itself never registers, and rig never imports reconstruction), so its keys and defaults live in one place.
+    registration: dict = field(default_factory=dict)
     inspection: InspectionConfig | None = None
-
-
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """[registration]: `known_part` names the library model every capture holds (a line running one
-    part: no library search); `scale_tolerance` is the part's size tolerance on a metric rig."""
-
-    known_part: str = ""
-    scale_tolerance: float = 0.10
 
 
 def load_config(path: str | os.PathLike) -> RigConfig:
@@ -122,16 +115,8 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         storage=_storage(v, v.table(doc, "storage"), base),
         thresholds=_thresholds(v, v.table(doc, "thresholds")),
         calibration=(base / calibration) if calibration else None,
-        registration=_registration(v, v.table(doc, "registration")),
+        registration=dict(v.table(doc, "registration")),
         inspection=_inspection(v, v.table(doc, "inspection")) if "inspection" in doc else None,
-    )
-
-
-def _registration(v: "_Validator", d: dict) -> RegistrationConfig:
-    v.known(d, "registration", {"known_part", "scale_tolerance"})
-    return RegistrationConfig(
-        known_part=v.string(d, "registration.known_part", default=""),
-        scale_tolerance=v.number(d, "registration.scale_tolerance", default=0.10, lo=0.0, hi=0.99),
     )
 
 

@@ -25,94 +25,49 @@ import click
 @click.option("--overlays", "overlay_dir", default=None, type=click.Path(path_type=Path),
               help="Directory for the per-photo overlay PNGs (default: <out stem>_overlays beside --out).")
 @click.option("--no-overlays", is_flag=True, help="Do not write overlay PNGs.")
-@click.option("--top-k", default=50, show_default=True, type=click.IntRange(1, 10000), help="Library views kept per mask.")
-@click.option("--iou-threshold", default=0.7, show_default=True, type=click.FloatRange(0, 1), help="Minimum silhouette IoU of a kept view.")
+@click.option("--top-k", default=None, type=click.IntRange(1, 10000), help="Library views kept per mask [default: rig.toml's, else 50].")
+@click.option("--iou-threshold", default=None, type=click.FloatRange(0, 1), help="Minimum silhouette IoU of a kept view [default: rig.toml's, else 0.7].")
 @click.option("--model", "model_ids", multiple=True, help="Restrict the search to these model ids (repeatable).")
 @click.option("--known-part", default=None, help="The library model every capture holds (no library search).")
 @click.option("--prior", "prior_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="A previous reg.json of the known part: its pose is the prior, the search is yaw + position on the conveyor.")
-@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path), help="rig.toml: [registration] known_part and scale_tolerance.")
-@click.option("--scale-tolerance", default=None, type=click.FloatRange(0, 0.99), help="Part size tolerance against its CAD model on a metric rig [default: 0.10].")
+@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path), help="rig.toml: its [registration] table (known_part, scale_tolerance, prior, ...).")
+@click.option("--scale-tolerance", default=None, type=click.FloatRange(0, 0.99), help="Part size tolerance against its CAD model on a metric rig [default: rig.toml's, else 0.10].")
 @click.option("--seed", default=0, show_default=True, type=int, help="RANSAC seed.")
-def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path | None, no_overlays: bool, top_k: int, iou_threshold: float,
+def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path | None, no_overlays: bool, top_k: int | None, iou_threshold: float | None,
              model_ids: tuple[str, ...], known_part: str | None, prior_path: Path | None, rig_config: Path | None, scale_tolerance: float | None,
              seed: int) -> None:
-    import json
     import time
 
-    import numpy as np
-
-    from calibration.capture import read_capture, rig_metres_per_unit
+    from calibration.capture import read_capture
     from calibration.fileio import atomic_write_json
-    from calibration.sim3 import Sim3
     from reconstruction.library import load_library
-    from reconstruction.masks import capture_masks
-    from reconstruction.registration import SCALE_TOLERANCE, known_part_register, provenance
-    from reconstruction.quality import check_masks, check_registration
-    from reconstruction.registration import register as run
+    from reconstruction.registration import register_views, registration_document
+    from reconstruction.views import capture_views
 
     t0 = time.perf_counter()
-    if rig_config is not None:
-        from rig.config import ConfigError, load_config
-
-        try:
-            reg_cfg = load_config(rig_config).registration
-        except ConfigError as e:
-            raise click.ClickException(str(e)) from None
-        known_part = known_part or reg_cfg.known_part or None
-        scale_tolerance = reg_cfg.scale_tolerance if scale_tolerance is None else scale_tolerance
-    tolerance = SCALE_TOLERANCE if scale_tolerance is None else scale_tolerance
-    if prior_path is not None and known_part is None:
-        raise click.ClickException("--prior needs the known part (--known-part or rig.toml's [registration] known_part)")
+    cfg = registration_config(rig_config, known_part=known_part, prior_path=prior_path, scale_tolerance=scale_tolerance, top_k=top_k,
+                              iou_threshold=iou_threshold)
     capture = read_capture(capture_dir)
-    metres_per_unit = rig_metres_per_unit(capture.meta, capture.root)
     lib = load_library(lib_dir)
-    photos = [capture.image(i) for i in range(len(capture))]  # decoded once: masks, colour tie-breaks and overlays
-    masks, source = capture_masks(capture, photos)
-    check_masks(masks, names=[f"view {i} ({f.camera_id})" for i, f in enumerate(capture.frames)])
-    t_masks = time.perf_counter() - t0
-    cameras = [capture.camera(i) for i in range(len(capture))]
-    images = np.stack(photos) if len({(c.width, c.height) for c in cameras}) == 1 else None
-    if known_part is not None:
-        prior = None
-        if prior_path is not None:
-            try:
-                prior_doc = json.loads(prior_path.read_text())
-                prior = Sim3.from_dict(prior_doc["sim3_rig_to_object"])
-            except (OSError, ValueError, KeyError, TypeError) as e:
-                raise click.ClickException(f"{prior_path}: not a usable reg.json ({type(e).__name__}: {e})") from None
-            if prior_doc.get("model_id") != known_part:
-                raise click.ClickException(f"{prior_path}: registers {prior_doc.get('model_id')!r}, not the known part {known_part!r}")
-        res = known_part_register(masks, cameras, lib, known_part, prior, rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, seed=seed)
-    else:
-        res = run(masks, cameras, lib, top_k=top_k, iou_threshold=iou_threshold, seed=seed, model_ids=list(model_ids) or None,
-                  rig_metres_per_unit=metres_per_unit, scale_tolerance=tolerance, images=images)
-    check_registration(res.score, res.alternatives, masks, len(lib.models), res.model_id)
-    doc = {**res.to_dict(), **provenance(capture, lib, res.model_id)}
-    doc["timings_s"] = {"load_and_masks": round(t_masks, 4), **doc["timings_s"]}
-    doc["mask_source"] = source
-    doc["known_part"] = known_part
-    for pose, frame in zip(doc["camera_poses"], capture.frames):
-        pose["view"], pose["camera_id"] = frame.file_path, frame.camera_id
+    views = capture_views(capture)  # decoded once: masks, the colour tie-break and the overlays
+    t_views = time.perf_counter() - t0
+    res = register_views(views, lib, cfg, model_id=list(model_ids) or None, seed=seed)
+    doc = registration_document(res, views, lib, cfg)
+    doc["timings_s"] = {"load_and_masks": round(t_views, 4), **doc["timings_s"]}
+    doc["known_part"] = cfg.known_part
     if out_path.parent and not out_path.parent.exists():
         out_path.parent.mkdir(parents=True)
     if not no_overlays:
-        from calibration.fileio import atomic_write_bytes, encode_png
-
-        folder = overlay_dir or out_path.parent / f"{out_path.stem}_overlays"
-        folder.mkdir(parents=True, exist_ok=True)
-        mesh = lib.load_mesh(res.model_id)
-        doc["overlays"] = {}
-        for i, frame in enumerate(capture.frames):
-            img = overlay(photos[i], masks[i], np.asarray(mesh.vertices), np.asarray(mesh.faces), cameras[i], res.sim3_rig_to_object)
-            name = f"{Path(frame.file_path).stem}.png"
-            doc["overlays"][frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(folder / name, encode_png(img))}
+        doc["overlays"] = write_overlays(overlay_dir or out_path.parent / f"{out_path.stem}_overlays", views, lib.load_mesh(res.model_id),
+                                         res.sim3_rig_to_object)
     atomic_write_json(out_path, doc)
-    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(cameras)} views (scale {res.sim3_rig_to_object.scale:.4g}; "
-               f"{res.scale_statement()}), written to {out_path}")
+    statement = res.scale_statement()
+    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(views)} views (scale {res.sim3_rig_to_object.scale:.4g}"
+               + (f"; {statement}" if statement else "") + f"), written to {out_path}")
     for tie in res.model_ties:
         click.echo(f"warning: {tie['model_id']} ({tie['cad_size_ratio']:.3g} times the size) fits within {tie['score_gap']:.3f}; "
-                   + ("a metric calibration would tell them apart" if metres_per_unit is None else "the masks cannot tell them apart"), err=True)
+                   + ("a metric calibration would tell them apart" if views.metres_per_unit is None else "the masks cannot tell them apart"), err=True)
     if res.ambiguity and res.ambiguity["ambiguous"]:
         click.echo(
             f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {abs(res.ambiguity['score_gap']):.3f}; "
@@ -120,8 +75,68 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
         )
 
 
+def registration_config(rig_config: Path | None, *, known_part: str | None = None, prior_path: Path | None = None, scale_tolerance: float | None = None,
+                        top_k: int | None = None, iou_threshold: float | None = None):
+    """The `RegistrationConfig` of rig.toml's [registration] (when `rig_config` is given) with the command's options over it."""
+    import dataclasses
+    import json
+
+    from reconstruction.registration import RegistrationConfig, RegistrationError
+
+    from deploy.steps import registration_config as of_rig
+    from rig.config import ConfigError
+
+    try:
+        base = of_rig(rig_config)
+    except (ConfigError, RegistrationError) as e:
+        raise click.ClickException(str(e)) from None
+    known_part = known_part or base.known_part
+    if prior_path is not None and known_part is None:
+        raise click.ClickException("--prior needs the known part (--known-part or rig.toml's [registration] known_part)")
+    prior = base.prior if known_part == base.known_part else None
+    if prior_path is not None:
+        try:
+            prior_doc = json.loads(prior_path.read_text())
+            prior_model = prior_doc["model_id"]
+            prior = RegistrationConfig.from_dict({"known_part": prior_model, "prior": prior_doc["sim3_rig_to_object"]}, where=str(prior_path)).prior
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise click.ClickException(f"{prior_path}: not a usable reg.json ({type(e).__name__}: {e})") from None
+        if prior_model != known_part:
+            raise click.ClickException(f"{prior_path}: registers {prior_model!r}, not the known part {known_part!r}")
+    given = {"scale_tolerance": scale_tolerance, "top_k": top_k, "iou_threshold": iou_threshold}
+    return dataclasses.replace(base, known_part=known_part, prior=prior, **{k: v for k, v in given.items() if v is not None})
+
+
+def write_overlays(folder: Path, views, mesh, sim3) -> dict:
+    """One overlay PNG per view into `folder`, published whole (built beside it, then swapped in, so a failure leaves
+    the previous folder or none, never a half-written one); returns {view file: {"file", "sha256"}}."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from calibration.fileio import atomic_write_bytes, encode_png, publish_dir
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = folder.parent / f".{folder.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    out = {}
+    try:
+        for k, (i, camera) in enumerate(zip(views.indices, views.cameras)):
+            frame = views.capture.frames[i]
+            img = overlay(views.images[k], views.masks[k], np.asarray(mesh.vertices), np.asarray(mesh.faces), camera, sim3)
+            name = f"{Path(frame.file_path).stem}.png"
+            out[frame.file_path] = {"file": str(folder / name), "sha256": atomic_write_bytes(tmp / name, encode_png(img))}
+        publish_dir(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def overlay(image, mask, vertices, faces, camera, sim3):
-    """uint8 RGB [H, W, 3] from a float photo [H, W, 3] and its bool mask [H, W]: the photo dimmed outside
+    """uint8 RGB [h, w, 3] (the `camera`'s own size) from a float photo [H, W, 3] and its bool mask [H, W], on a canvas at
+    least the camera's size where views of mixed sizes sit top-left: the photo dimmed outside
     the registered CAD silhouette (mesh `vertices` [N, 3], `faces` [F, 3] under the rig-to-object
     `sim3`, seen by the rig `camera`), its outline in green, the observed mask's outline in magenta."""
     import cv2
@@ -130,6 +145,7 @@ def overlay(image, mask, vertices, faces, camera, sim3):
     from reconstruction.registration import boundary
     from reconstruction.silhouette import render_silhouette
 
+    image, mask = camera.crop(image), camera.crop(mask)
     cam_obj = camera.with_c2w(sim3.apply_to_c2w(camera.c2w))
     sil = render_silhouette(vertices, faces, cam_obj.K, cam_obj.viewmat, camera.width, camera.height)
     out = (np.clip(image[..., :3], 0, 1) * 255).astype(np.uint8)

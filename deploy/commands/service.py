@@ -26,10 +26,12 @@ def service() -> None:
 @click.option("--max-unseen", "max_unseen_pct", default=None, type=click.FloatRange(0.0, 100.0),
               help="With --inspect-tolerance: unseen surface share (%) above which the verdict is UNCERTAIN.")
 @click.option("--min-free-gb", default=0.25, show_default=True, type=click.FloatRange(0), help="Claim no job while WORK has less free disk than this.")
+@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="rig.toml: its [registration] table (known_part, scale_tolerance, ...) applies to every capture.")
 def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float,
-        tolerance_mm: float | None, max_unseen_pct: float | None, min_free_gb: float) -> None:
+        tolerance_mm: float | None, max_unseen_pct: float | None, min_free_gb: float, rig_config: Path | None) -> None:
     from deploy.service import PipelineService
-    from deploy.steps import PipelineConfig, make_step_runner
+    from deploy.steps import PipelineConfig, make_step_runner, registration_config
 
     def show(e) -> None:
         if e.kind == "stopped":
@@ -41,7 +43,8 @@ def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max
         detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else e.detail.get("inspection", {}).get("line", "")
         click.echo(f"{e.kind:<12} job {e.job_id} {e.capture_id} {e.step} {detail}".rstrip())
 
-    cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct)
+    cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct,
+                         registration=registration_config(rig_config))
     svc = PipelineService(store, work, make_step_runner(cfg), max_queue=max_queue, on_event=show, min_free_bytes=int(min_free_gb * 1e9))
     if svc.jobs.recovered:
         click.echo(f"resumed: {svc.jobs.recovered} interrupted step(s) will be redone; finished steps are kept")

@@ -82,3 +82,18 @@ def test_register_bad_input_is_one_sentence(world, tmp_path, capsys):
     assert main(["register", str(root / "scene" / "train"), "--library", str(tmp_path)]) != 0
     err = capsys.readouterr().err.strip()
     assert "no library.json" in err and err.count("\n") == 0
+
+
+def test_overlay_of_a_view_smaller_than_the_canvas():
+    # Views of mixed sizes share one canvas, each top-left (a 320x240 view among 640x480 ones): its overlay is its own size (issue 58).
+    from calibration.camera import Camera, look_at_c2w
+    from deploy.commands.register import overlay
+
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    cam = Camera.from_fov(np.radians(50), 32, 24, look_at_c2w(np.array([0.0, -0.5, 0.2]), np.zeros(3)))
+    canvas = np.zeros((48, 64, 3), np.float32)
+    mask = np.zeros((48, 64), bool)
+    mask[8:16, 10:22] = True
+    out = overlay(canvas, mask, np.asarray(box.vertices), np.asarray(box.faces), cam, Sim3.identity())
+    assert out.shape == (24, 32, 3) and out.dtype == np.uint8
+    assert (out == (255, 0, 255)).all(-1).any() and (out == (0, 255, 0)).all(-1).any()

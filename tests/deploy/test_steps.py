@@ -70,7 +70,7 @@ def test_a_service_job_decodes_each_image_once_and_masks_and_registers_once(tmp_
     import reconstruction.masks
     import reconstruction.registration
 
-    for module, name, calls in ((reconstruction.registration, "register", registered), (reconstruction.masks, "capture_masks", masked)):
+    for module, name, calls in ((reconstruction.registration, "register_views", registered), (reconstruction.masks, "capture_masks", masked)):
         original = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _o=original, _c=calls, **k: (_c.append(1), _o(*a, **k))[1])
     cfg = PipelineConfig(library=str(library), preset="preview", export_formats=("ply",))
@@ -118,3 +118,63 @@ def test_a_job_resumed_after_register_reads_its_masks_and_registration(tmp_path,
     # The new process decodes the photos once (for the colours) and neither the backgrounds nor any mask.
     assert sorted(p.name for p in decodes) == sorted(f"{Path(read_capture(cap).frames[i].file_path).name}" for i in range(len(VIEWS)))
     assert set(decodes.values()) == {1}
+
+
+KNOWN_PART_RIG_TOML = """rig_id = "line"
+
+[[cameras]]
+id = "a"
+driver = "pattern"
+
+[registration]
+known_part = "medium_clamp_cad"
+scale_tolerance = 0.05
+"""
+
+
+def _spy_known_part(monkeypatch) -> list[bool]:
+    """Calls of the known-part registration, each True when it was handed the photographs for the near-tie break."""
+    import reconstruction.registration.entry as entry
+
+    calls: list[bool] = []
+    original = entry.known_part_register
+    monkeypatch.setattr(entry, "known_part_register", lambda *a, **k: (calls.append(k["images"] is not None), original(*a, **k))[1])
+    return calls
+
+
+def test_a_service_job_on_a_known_part_line_registers_the_known_part(tmp_path, library, short_preview, monkeypatch):
+    from deploy.steps import registration_config
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(KNOWN_PART_RIG_TOML)
+    store = tmp_path / "store"
+    rig_capture(store / "captures" / "000001-masks", masks=True)
+    calls = _spy_known_part(monkeypatch)
+    # What `service run --rig-config rig.toml` builds.
+    cfg = PipelineConfig(library=str(library), preset="preview", export_formats=("ply",), registration=registration_config(rig))
+    svc = PipelineService(store, tmp_path / "work", make_step_runner(cfg), min_free_bytes=0)
+    assert svc.run_once()
+    (job,) = svc.jobs.jobs()
+    assert job.status == "done" and job.steps["register"]["output"]["method"] == "known_part"
+    reg = json.loads((svc.job_dir(job) / REGISTRATION_JSON).read_text())["registration"]
+    assert reg["method"] == "known_part" and reg["model_id"] == "medium_clamp_cad" and reg["config"]["known_part"] == "medium_clamp_cad"
+    # The scale tolerance reaches the band of the metric capture (1 m per rig unit), and the photographs the tie-break.
+    np.testing.assert_allclose(reg["scale"]["band"], [1 / 1.05, 1 / 0.95])
+    assert calls == [True]
+
+
+def test_a_kiosk_capture_on_a_known_part_line_registers_the_known_part(tmp_path, library, monkeypatch):
+    from deploy.appliance import kiosk_pipeline_config
+    from deploy.steps import register_step, registration_config
+    from rig.config import load_config
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(KNOWN_PART_RIG_TOML)
+    cap = rig_capture(tmp_path / "store" / "captures" / "000001-masks", masks=True)
+    calls = _spy_known_part(monkeypatch)
+    # What `Appliance.from_config(rig.toml, ...)` builds for its pipeline.
+    cfg = kiosk_pipeline_config(library, "preview", registration=registration_config(rig, loaded=load_config(rig)))
+    work = tmp_path / "work"
+    work.mkdir()
+    assert register_step(cap, work, cfg)["method"] == "known_part"
+    assert json.loads((work / REGISTRATION_JSON).read_text())["registration"]["method"] == "known_part" and calls == [True]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -107,6 +109,31 @@ def test_one_camera_takes_distance_from_mask_size(lib):
     d_true = np.linalg.norm(true_obj[:3, 3] - mesh.bounds.mean(0))
     assert np.linalg.norm(cam_obj[:3, 3] - true_obj[:3, 3]) / d_true < 0.15
     assert res.per_view_iou[0] > 0.9
+
+
+def test_one_view_on_a_metric_rig_states_no_size(lib):
+    # One view does not observe the scale: the registration takes the metric unit, which measures nothing (issue 58).
+    mesh = bracket()
+    masks, cams = scene(mesh, ring(7)[2:3], true_sim3(mesh, 1.0, seed=7))
+    res = register(masks, cams, lib, rig_metres_per_unit=1.0)
+    assert not res.scale_observable and res.part_scale_vs_cad is None and res.scale_statement() is None
+    assert res.to_dict()["scale"]["statement"] is None and res.to_dict()["scale"]["part_scale_vs_cad"] is None
+
+
+def test_two_views_leave_the_near_tie_to_the_silhouettes_without_nan():
+    # No surface point is seen by three views: the colours cannot decide, and nothing NaN may reach the JSON (issue 58).
+    from reconstruction.registration import break_tie
+
+    mesh = trimesh.creation.box([0.08, 0.08, 0.08])
+    gt = true_sim3(mesh, 1.0, seed=2)
+    masks, cams = scene(mesh, ring(6)[:2], gt)
+    images = np.random.default_rng(0).random(masks.shape + (3,))
+    turned = Sim3(gt.scale, axis_angle_to_matrix(np.array([0.0, 0.0, np.pi / 2])) @ gt.rotation, gt.translation)
+    ambiguity = {"ambiguous": True, "score_gap": 0.01}
+    pose, score = break_tie(images, cams, np.asarray(mesh.vertices), np.asarray(mesh.faces), gt, 0.9, turned, 0.89, ambiguity)
+    assert pose is gt and score == 0.9 and ambiguity["decided_by"] == "silhouettes"
+    assert ambiguity["photo_disagreement"] is None and ambiguity["alternative_photo_disagreement"] is None
+    json.dumps(ambiguity, allow_nan=False)
 
 
 def test_coincident_camera_centres_fix_scale_to_one(lib):
