@@ -30,8 +30,8 @@ from reconstruction.gaussians import Gaussians, camera_batch, render, straight_r
 from reconstruction.mesh_io import MeshParts, read_mesh_parts
 from reconstruction.pose_correction import extrinsics_error_px
 from reconstruction.presets import ConfigInputs, Preset, SceneStats, reasons, resolve_config, scene_stats
-from reconstruction.quality import check_masks, check_registration
-from reconstruction.registration import RegistrationResult, check_fits
+from reconstruction.quality import check_masks
+from reconstruction.registration import RegistrationConfig, RegistrationResult, check_fits
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.surface import mask_overlap_offset, offset_along_normals, silhouette_surface, untangle
 from reconstruction.train import CheckpointStore, ProgressFn, SplatModel, TrainResult, Views, train
@@ -269,11 +269,12 @@ class Prepared:
 
 def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: str | os.PathLike | None, *,
             indices: Sequence[int] | None = None, registration: RegistrationResult | None = None, model_id: str | None = None,
-            init: str = "cad", seed: int = 0, log: Log | None = None) -> Prepared:
-    """Read the capture (unless its views are given, decoded once before) and register it: against the library
-    (`model_id`: that model only), as `registration` gives (of every capture view), or to the generic sphere."""
+            init: str = "cad", seed: int = 0, registration_config: RegistrationConfig | None = None, log: Log | None = None) -> Prepared:
+    """Read the capture (unless its views are given, decoded once before) and register it: through `register_views`
+    under `registration_config` (rig.toml's [registration]; `model_id`: that model only), as `registration` gives
+    (of every capture view), or to the generic sphere."""
     from reconstruction.library import load_library
-    from reconstruction.registration import register
+    from reconstruction.registration import RegistrationConfig, register_views
 
     say = log or (lambda _msg: None)
     t = time.perf_counter()
@@ -297,9 +298,7 @@ def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: s
         reg = registration
         if reg is None:
             say(f"registering {len(views)} views against {len(library.models)} library models")
-            reg = register(views.masks, list(views.cameras), library, model_ids=[model_id] if model_id else None, seed=seed,
-                           rig_metres_per_unit=views.metres_per_unit)
-            check_registration(reg.score, reg.alternatives, views.masks, len(library.models), reg.model_id)
+            reg = register_views(views, library, registration_config or RegistrationConfig(), model_id=model_id, seed=seed)
         parts = model_parts(library, reg.model_id)
     timings["registration"] = time.perf_counter() - t
     say(f"registered {reg.model_id} (mean silhouette IoU {reg.score:.3f})")
@@ -334,6 +333,7 @@ def reconstruct_capture(
     init: str = "cad",
     ablations: Sequence[str] = (),
     overrides: Mapping[str, Any] | None = None,
+    registration_config: RegistrationConfig | None = None,
 ) -> Reconstruction:
     """Reconstruct the twin of a capture into `out_dir` (written atomically) and return it.
 
@@ -342,13 +342,15 @@ def reconstruct_capture(
     every capture view (e.g. `RegistrationResult.from_dict` of reg.json): both are used as given. `views`
     picks training views by capture index; `model_id` registers that library model only. `init="sphere"`
     replaces the CAD by the paper's generic sphere (section 4.4.2; the library is not read); `pose_mode`,
-    `ablations` and `overrides` are inputs of the configuration (`presets.resolve_config`).
+    `ablations` and `overrides` are inputs of the configuration (`presets.resolve_config`); `registration_config`
+    is rig.toml's [registration] (`registration.register_views`).
     """
     out = Path(out_dir)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists; choose another --out or remove it")
     check_replaceable(out, overwrite)
-    prep = prepare(capture, library_path, indices=views, registration=registration, model_id=model_id, init=init, seed=seed, log=log)
+    prep = prepare(capture, library_path, indices=views, registration=registration, model_id=model_id, init=init, seed=seed,
+                   registration_config=registration_config, log=log)
     config, inputs = configure(preset, prep.views, prep.registration, prep.parts, init=init, pose_mode=pose_mode, ablations=ablations,
                                overrides=overrides)
     return _train_and_save(prep, config, inputs, out, seed=seed, progress=progress, overwrite=overwrite)

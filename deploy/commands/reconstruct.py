@@ -79,12 +79,14 @@ def given_registration(path: Path, capture_dir: Path, lib_dir: Path):
               help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).")
 @click.option("--ablate", "ablations", multiple=True, type=click.Choice(list(ABLATION_NAMES)),
               help="Switch one ingredient off (repeatable), as the paper's ablations.")
+@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="rig.toml: its [registration] table (known_part, scale_tolerance, prior) when registering here.")
 @click.option("--like", "like_dir", default=None, type=click.Path(path_type=Path),
               help="Train again as the twin at this directory was trained: its configuration, seed, views and registration.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing twin at OUT.")
 def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, registration_path: Path | None,
-                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], like_dir: Path | None,
-                overwrite: bool) -> None:
+                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], rig_config: Path | None,
+                like_dir: Path | None, overwrite: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from reconstruction.pipeline import reconstruct_capture, retrain_like
@@ -107,6 +109,9 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
 
     if out_dir.exists() and not is_twin_dir(out_dir):
         raise click.ClickException(f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out")
+    from deploy.steps import registration_config
+
+    reg_config = registration_config(rig_config)
     capture, registration = capture_dir, None
     if registration_path is not None:
         if init != "cad":
@@ -129,7 +134,7 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
         else:
             result = reconstruct_capture(capture, lib_dir, out_dir, registration=registration, preset=preset, model_id=model_id, views=views,
                                          pose_mode=pose_mode, seed=seed, progress=progress, log=log, overwrite=overwrite, init=init,
-                                         ablations=ablations)
+                                         ablations=ablations, registration_config=reg_config)
         for t in tasks.values():
             bar.update(t, total=bar.tasks[t].completed)
     click.echo(verdict(result.twin, result.registration))
