@@ -19,7 +19,7 @@ export evaluate the field the same way (`_mlp_at`), so the mesh moves as the spl
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numba
 import numpy as np

@@ -386,7 +386,7 @@ class _Run:
 
 def _silhouette_loss(run: _Run, sel, gaussians: tuple, viewmats: torch.Tensor, pc_weights) -> tuple[torch.Tensor, dict]:
     """Stage I: L_mask on the rendered alpha (+ λ photo-consistency of the surface)."""
-    imgs, cov, valid, ks, w, h = run.mask_data
+    _, cov, valid, ks, w, h = run.mask_data
     means, quats, scales, opac, _ = gaussians
     # The silhouette renders carry no colour channel: the rasterizer composites the transmittance alone, with the same
     # alphas and gradients as a zero colour.
@@ -403,7 +403,7 @@ def _silhouette_loss(run: _Run, sel, gaussians: tuple, viewmats: torch.Tensor, p
 def _photometric_loss(run: _Run, it: int, idx: torch.Tensor, sel, gaussians: tuple, viewmats: torch.Tensor, targets) -> tuple[torch.Tensor, dict]:
     """Stage II: L_rgb on a random-background composite (dropout on the colour render) + λ_mask L_mask + λ_SH L_SH (+ λ_fill L_fill)."""
     preset = run.preset
-    imgs, cov, valid, ks, w, h = run.photo_data
+    _, cov, valid, ks, w, h = run.photo_data
     target_fg, target_bg_weight, in_mask = targets
     means, quats, scales, opac, sh = gaussians
     on_photo = None if valid is None else valid[sel]
