@@ -15,6 +15,7 @@ import io
 import os
 import pickle
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -72,7 +73,9 @@ class FileCheckpoint:
         if not self.path.exists():
             return None
         try:
-            payload = torch.load(self.path, map_location="cpu", weights_only=True)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # torch warns about a foreign pickle protocol before refusing it
+                payload = torch.load(self.path, map_location="cpu", weights_only=True)
         except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, OSError) as e:
             raise CheckpointError(f"{self.path} is not a checkpoint this engine wrote (it does not load as tensors and plain values: "
                                   f"{type(e).__name__}); it was not loaded; remove it to start training over") from None
@@ -286,7 +289,8 @@ def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: s
         views = capture if indices is None else capture.subset([capture.indices.index(i) for i in indices])
     else:
         views = capture_views(capture if isinstance(capture, Capture) else read_capture(capture), indices)
-    if registration is not None:
+    # A given registration is of every capture view, or of exactly the training views (a twin's own record, `retrain_like`).
+    if registration is not None and not (len(registration.per_view_iou) == len(views) < len(views.capture)):
         check_fits(registration, views.capture)
     check_masks([c.crop(m) for c, m in zip(views.cameras, views.masks)], names=views.names)
     library = load_library(library_path) if init == "cad" else None
