@@ -94,7 +94,7 @@ def deform(mesh: trimesh.Trimesh, amplitude: float, seed: int) -> trimesh.Trimes
 
 
 def engine_kwargs(method: str, preset: str, cuda: bool) -> dict:
-    """`pipeline.reconstruct` keyword arguments for a method (full | an ablation of `presets.ABLATIONS` |
+    """`pipeline.reconstruct_capture` keyword arguments for a method (full | an ablation of `presets.ABLATIONS` |
     sphere-init): ablations and the sphere init are engine switches; the `paper` preset runs its
     iterations / 30 on a CPU."""
     from reconstruction.presets import ABLATIONS, PAPER

@@ -104,7 +104,7 @@ def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance
     from calibration.camera import Camera
     from deploy.commands.inspect import inspect_twin_dir
     from reconstruction.library import build_library
-    from reconstruction.pipeline import reconstruct
+    from reconstruction.pipeline import reconstruct_capture
     from rig.synthetic import synth_dataset
 
     text = source.read_text()
@@ -132,7 +132,7 @@ def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance
     for name in ("nominal", "dented"):
         t = time.perf_counter()
         log(f"reconstructing the {name} part ({preset})")
-        reconstruct(work / name / "train", library, work / name / "twin", preset=preset, model_id=model_id, seed=0, overwrite=True)
+        reconstruct_capture(work / name / "train", library, work / name / "twin", preset=preset, model_id=model_id, seed=0, overwrite=True)
         timings[f"reconstruct_{name}_s"] = time.perf_counter() - t
         doc = inspect_twin_dir(work / name / "twin", work / name / "inspection", tolerance_mm=tolerance_mm,
                                max_unseen_pct=max_unseen_pct, turntable=8)

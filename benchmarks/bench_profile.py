@@ -252,7 +252,7 @@ def run(capture: Path, library: Path, preset: str, iters: int | None, work: Path
     Returns (reconstruction, marks, profiler or None)."""
     from torch.profiler import ProfilerActivity, profile
 
-    from reconstruction.pipeline import reconstruct
+    from reconstruction.pipeline import reconstruct_capture
 
     marks = IterationMarks(profiled)
     overrides = None if iters is None else {"iters_pose": iters, "iters_deform": iters, "iters_photo": iters, "plateau": False}
@@ -261,7 +261,7 @@ def run(capture: Path, library: Path, preset: str, iters: int | None, work: Path
     prof = profile(activities=[ProfilerActivity.CPU], record_shapes=False) if profiled else None
     with labels() if profiled else contextlib.nullcontext(), prof if prof is not None else contextlib.nullcontext():
         try:
-            rec = reconstruct(capture, library, out, preset=preset, overrides=overrides, progress=marks, overwrite=True)
+            rec = reconstruct_capture(capture, library, out, preset=preset, overrides=overrides, progress=marks, overwrite=True)
         finally:
             marks.close()
     return rec, marks, prof

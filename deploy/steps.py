@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -27,6 +27,8 @@ from deploy.jobs import Job
 
 if TYPE_CHECKING:
     from reconstruction.registration import RegistrationConfig
+    from reconstruction.twin import Twin
+    from reconstruction.views import CaptureViews
     from rig.config import RigConfig
 
 Progress = Callable[[str, int, int], None]
@@ -76,8 +78,8 @@ class Decoded:
     the same job takes it, so each image file is decoded once per job (a resumed job decodes once more)."""
 
     capture_path: str = ""
-    capture: Capture | None = None
-    images: np.ndarray | None = None  # [V, H, W, 3] undistorted, every view
+    views: CaptureViews | None = None  # every view, undistorted, with its masks
+    twin: Twin | None = None  # the twin the reconstruct step trained or read
 
 
 def register_step(capture_path: Path, work: Path, cfg: PipelineConfig, decoded: Decoded | None = None) -> dict:
@@ -102,53 +104,60 @@ def register_step(capture_path: Path, work: Path, cfg: PipelineConfig, decoded: 
     # Written last: registration.json is what says the step is done.
     atomic_write_json(out, {"summary": summary, "registration": registration_document(reg, views, library, cfg.registration)})
     if decoded is not None:
-        decoded.capture_path, decoded.capture, decoded.images = str(capture_path), capture, views.images
+        decoded.capture_path, decoded.views, decoded.twin = str(capture_path), views, None
     return summary
 
 
-def fit_iou(twin_dir: Path, capture: Capture, masks: np.ndarray) -> float:
-    """Mean silhouette IoU of the twin's renders of its training views against their masks ([V, H, W], one per capture view)."""
-    from PIL import Image
-
+def fit_iou(twin: Twin, capture: Capture, masks: np.ndarray, renders: dict[str, np.ndarray] | None = None) -> float:
+    """Mean silhouette IoU of the twin's renders of its training views against their masks ([V, H, W], one per capture view).
+    renders: image name -> RGBA [H, W, 4] as the reconstruction made them; otherwise drawn here, in memory."""
+    from reconstruction.gaussians import camera_batch, render
     from reconstruction.metrics import iou
-    from reconstruction.twin import load_twin
 
-    twin = load_twin(twin_dir)
     by_path = {f.file_path: i for i, f in enumerate(capture.frames)}
     scores = []
     for cam in twin.cameras:
-        render = np.asarray(Image.open(twin_dir / "renders" / f"{Path(cam.file_path).stem}.png"), np.float32) / 255.0
-        scores.append(iou(render[..., 3], masks[by_path[cam.file_path]]))
+        if renders is not None:
+            alpha = renders[Path(cam.file_path).name][..., 3]
+        else:
+            alpha = render(twin.gaussians, *camera_batch(cam.camera), background=None)[1][0, ..., 0].numpy()
+        scores.append(iou(alpha, masks[by_path[cam.file_path]]))
     return float(np.mean(scores))
 
 
 def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progress: Progress | None = None,
                      decoded: Decoded | None = None) -> dict:
-    """The twin of the capture from the register step's masks and registration (used as given) into work/twin."""
+    """The twin of the capture from the register step's masks and registration (used as given) into work/twin. The views
+    the register step decoded and the twin trained here stay in memory (`decoded`): nothing is decoded or loaded again."""
     from reconstruction.registration import RegistrationResult
+    from reconstruction.twin import load_twin
 
     twin_dir = work / "twin"
-    with np.load(work / MASKS_NPZ) as npz:
-        masks = npz["masks"]
-    carried = decoded is not None and decoded.capture_path == str(capture_path)
-    capture = decoded.capture if carried else read_capture(capture_path)
-    if not (twin_dir / "twin.json").exists():
+    carried = decoded is not None and decoded.capture_path == str(capture_path) and decoded.views is not None
+    if carried:
+        views = replace(decoded.views, mask_source="given")  # masked by the register step, handed forward
+        capture, masks = views.capture, views.masks
+    else:
+        with np.load(work / MASKS_NPZ) as npz:
+            masks = npz["masks"]
+        capture = read_capture(capture_path)
+    renders = None
+    if (twin_dir / "twin.json").exists():
+        twin = load_twin(twin_dir)
+    else:
         from reconstruction.library import load_library
-        from reconstruction.pipeline import reconstruct
+        from reconstruction.pipeline import reconstruct_capture
+        from reconstruction.views import capture_views
 
         reg = RegistrationResult.from_dict(json.loads((work / REGISTRATION_JSON).read_text())["registration"], capture=capture,
                                            library=load_library(cfg.library), where=str(work / REGISTRATION_JSON))
-        reconstruct(capture, cfg.library, twin_dir, registration=reg, masks=masks, images=decoded.images if carried else None,
-                    preset=cfg.preset, seed=cfg.seed, progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
-    if carried:
-        decoded.capture_path, decoded.capture, decoded.images = "", None, None
-    doc = json.loads((twin_dir / "twin.json").read_text())
-    summary = {
-        "twin": str(twin_dir),
-        "model_id": doc["model_id"],
-        "fit_iou": fit_iou(twin_dir, capture, masks),
-        "total_s": float(doc.get("timings_s", {}).get("total", 0.0)),
-    }
+        rec = reconstruct_capture(views if carried else capture_views(capture, masks=masks), cfg.library, twin_dir, registration=reg,
+                                  preset=cfg.preset, seed=cfg.seed, progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
+        twin, renders = rec.twin, rec.renders
+    if decoded is not None:
+        decoded.capture_path, decoded.views, decoded.twin = str(capture_path), None, twin
+    summary = {"twin": str(twin_dir), "model_id": twin.model_id, "fit_iou": fit_iou(twin, capture, masks, renders),
+               "total_s": float(twin.timings_s.get("total", 0.0))}
     if cfg.inspection_tolerance_mm is not None:
         summary["inspection"] = inspect_step(work, cfg)
     return summary

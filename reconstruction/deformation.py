@@ -11,17 +11,15 @@ anchors' offsets. The field stays smooth (it is a smooth MLP blended with smooth
 cost drops from N to M evaluations.
 
 On a CPU with native bfloat16 dot products (AVX512-BF16, AMX) the hidden layers' matrix products run in
-bfloat16 with float32 accumulation (torch autocast; weights, encoding and the linear head stay float32). They
-ran at 84 % of the FP32 peak, and bfloat16 halves them (2048 anchors, 6x128, forward+backward 11.2 -> 5.8 ms)
-at ~0.1 % relative error in the offsets (micrometres on a millimetre move). Training and
-export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did; a field rebuilt from
-its saved state keeps the precision it was trained in (`bf16` in the state), on any CPU.
+bfloat16 with float32 accumulation (torch autocast; weights, encoding and the linear head stay float32): about
+half the time, at a small relative error in the offsets (benchmarks/results/profile.md). Training and
+export evaluate the field the same way (`_mlp_at`), so the mesh moves as the splats did.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -189,8 +187,7 @@ def _scatter_rows(idx: np.ndarray, w: np.ndarray, grad: np.ndarray, out: np.ndar
 
 class _AnchorBlend(torch.autograd.Function):
     """Each splat's fixed inverse-distance blend of its k anchors' offsets. Autograd's own backward of the
-    gather `d[idx]` is an accumulating index_put that took ~1-2 ms a step (15k splats, 2048 anchors); this
-    scatter takes ~0.1 ms."""
+    gather `d[idx]` is an accumulating index_put; this scatter of the same sums is an order of magnitude cheaper."""
 
     @staticmethod
     def forward(ctx, rows: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -294,35 +291,3 @@ class DeformationField(nn.Module):
             anchors, d = self.anchors.numpy(), self._project(self._mlp_at(self.anchors)).numpy()
         idx, w = idw_weights(pts, anchors, self.config.anchor_k)
         return np.einsum("nk,nkd->nd", w, d[idx]).astype(np.float64)
-
-    def export_state(self) -> dict:
-        """Config + weights + normalisation + anchors: enough to evaluate the field anywhere."""
-        return {
-            "config": asdict(self.config),
-            "state_dict": {k: v.detach().cpu() for k, v in self.mlp.state_dict().items()},
-            "center": self.center.cpu(),
-            "radius": self.radius.cpu(),
-            "anchors": None if self.anchors is None else self.anchors.cpu(),
-            "bf16": self.bf16,
-        }
-
-
-def field_from_state(state: dict, means_canonical: np.ndarray) -> DeformationField:
-    """Rebuild a field saved by `export_state` on `means_canonical` (anchors restored exactly)."""
-    config = FieldConfig(**state["config"])
-    field = DeformationField(
-        means_canonical, FieldConfig(config.depth, config.width, config.bands, None, config.anchor_k),
-        center=state["center"].numpy(), radius=float(state["radius"]),
-    )
-    field.config = config
-    field.bf16 = bool(state.get("bf16", False))
-    field.mlp.load_state_dict(state["state_dict"])
-    if state.get("anchors") is not None:
-        anchors = state["anchors"].numpy().astype(np.float64)
-        idx, w = idw_weights(means_canonical, anchors, config.anchor_k)
-        field.anchors = torch.tensor(anchors, dtype=torch.float32)
-        field.anchor_idx = torch.from_numpy(idx)
-        field.anchor_w = torch.from_numpy(w)
-        field.points = torch.zeros(0, 3)
-    field._set_projection()
-    return field

@@ -376,17 +376,17 @@ def run_protocol(
     against the truth, modulo `symmetries` (object-frame transforms the object maps onto itself).
 
     preset, views, pose_mode, init, ablations, overrides, seed, progress, log and overwrite go to
-    `pipeline.reconstruct`; with `reuse`, a twin already in `out_dir` is scored instead of trained again.
+    `pipeline.reconstruct_capture`; with `reuse`, a twin already in `out_dir` is scored instead of trained again.
     heldout_views: how many held-out views, evenly spread (`select_views`), or their indices; all when None.
     heldout_progress is called with (0, V) when scoring starts, then with (views done, V).
     """
-    from reconstruction.pipeline import reconstruct
+    from reconstruction.pipeline import reconstruct_capture
 
     out = os.fspath(out_dir)
     t0 = time.perf_counter()
     rec = None
     if not (reuse and os.path.exists(os.path.join(out, "twin.json"))):
-        rec = reconstruct(capture, library, out, preset=preset, views=views, pose_mode=pose_mode, seed=seed, progress=progress,
+        rec = reconstruct_capture(capture, library, out, preset=preset, views=views, pose_mode=pose_mode, seed=seed, progress=progress,
                           log=log, overwrite=overwrite, init=init, ablations=ablations, overrides=overrides)
     twin = load_twin(out) if rec is None else rec.twin
     trained_s = time.perf_counter() - t0

@@ -9,7 +9,7 @@ translation measured in object radii makes one learning rate mean the same for a
 
 `per_camera`: the rig's Sim(3) delta as in `global`, then an SE(3) residual per camera, for rough
 poses or a rig whose calibration states an extrinsic uncertainty above a pixel at the object
-(`choose_pose_mode`). A residual multiplies on the camera's side (c2w @ Δ), so its rotation turns
+(`presets.choose_pose_mode`). A residual multiplies on the camera's side (c2w @ Δ), so its rotation turns
 the camera about its own centre and its translation moves it along its own axes (in units u):
 per-view pointing errors are then decoupled from the camera's distance to the object. The rig's
 part stays what a new camera of the rig gets (`delta_sim3`); the residuals are what the training
@@ -112,12 +112,6 @@ class PoseCorrection(nn.Module):
         return Sim3(s, r, p - s * r @ p + float(self.unit) * self.rig_t[0].numpy())
 
 
-# Above this per-camera error of the rig's extrinsics (in pixels), one global Sim(3) leaves every view
-# misaligned by more than a pixel, and each camera gets its own correction (noisy synthetic rig, 0.3 deg /
-# 2 mm, about 3.9 px: held-out refined fgPSNR banana 24.79 -> 28.88 dB, clamp 24.24 -> 27.16 dB).
-PER_CAMERA_ABOVE_PX = 1.0
-
-
 def extrinsics_error_px(uncertainty: dict, focal_px: np.ndarray, distance_m: np.ndarray) -> float:
     """The largest image displacement (px) that a calibration's stated extrinsic uncertainty
     ({"rotation_deg", "translation_mm"}) causes at the object: focal_px [C] and camera-to-object
@@ -126,54 +120,3 @@ def extrinsics_error_px(uncertainty: dict, focal_px: np.ndarray, distance_m: np.
     shift_m = 1e-3 * float(uncertainty.get("translation_mm") or 0.0)
     px = np.asarray(focal_px, np.float64) * (rot + shift_m / np.maximum(np.asarray(distance_m, np.float64), 1e-9))
     return float(px.max()) if px.size else 0.0
-
-
-ROUGH_POSE_SOURCES = ("rough", "approximate", "estimated", "phone")
-
-
-def rough_poses(meta: dict) -> bool:
-    """Whether a capture's provenance (`capture.meta`) marks its poses as rough (degrees off, not a calibration)."""
-    return str(meta.get("pose_source", "")).lower() in ROUGH_POSE_SOURCES
-
-
-def residual_rates(lr: dict, meta: dict, calibration_error_px: float | None) -> tuple[dict, bool]:
-    """(learning rates, whether they changed) for per-camera residuals. A preset's residuals learn at a fine rate
-    for a last pixel; rough poses, or a calibration stated to be off by more than `PER_CAMERA_ABOVE_PX`, have
-    degrees to travel: their residuals move at the rig's rate in the second Stage-I stage, carved by the
-    silhouettes, and stay in Stage II (the rates the noisy synthetic rig, 0.3 deg / 2 mm stated, was measured at)."""
-    if not (rough_poses(meta) or (calibration_error_px or 0.0) > PER_CAMERA_ABOVE_PX):
-        return lr, False
-    return {**lr, "pose_camera_deform": lr.get("pose_deform", lr["pose"]), "pose_camera_photo": 0.0}, True
-
-
-def choose_pose_mode(meta: dict, override: str | None = None, *, calibration_error_px: float | None = None) -> tuple[str, str]:
-    """(mode, why) from a capture's calibration provenance (`capture.meta`), unless overridden.
-
-    `calibration_error_px`: what the capture's stated calibration uncertainty means in pixels at the
-    object (`extrinsics_error_px`), when the capture states one."""
-    if override is not None:
-        if override not in POSE_MODES:
-            raise ValueError(f"pose mode must be one of {', '.join(POSE_MODES)}, got {override!r}")
-        return override, "set by the caller"
-    if rough_poses(meta):
-        return "per_camera", f"capture poses are marked pose_source={meta['pose_source']!r}: each view gets its own SE(3) correction"
-    calibration = meta.get("calibration_id")
-    if calibration_error_px is not None and calibration_error_px > PER_CAMERA_ABOVE_PX:
-        return "per_camera", (f"rig calibration {calibration!r} is good to {calibration_error_px:.1f} px per camera at the object; "
-                              f"one global correction cannot remove per-camera errors above {PER_CAMERA_ABOVE_PX:g} px, so each "
-                              f"view gets its own SE(3) correction")
-    if calibration:
-        good = f" (good to {calibration_error_px:.2f} px at the object)" if calibration_error_px is not None else ""
-        return "global", f"rig calibration {calibration!r}{good}: one global Sim(3) correction for all cameras"
-    # Poses of unknown provenance (no calibration named, e.g. an imported transforms.json) are not assumed exact:
-    # fine per-camera residuals take the last pixel the photographs show (rig scenes, 0.1 deg / 1 mm unstated,
-    # global -> per-camera: held-out fgPSNR 25.72 -> 26.80 dB, IoU 0.967 -> 0.974, camera ADD-S 0.95 -> 0.78 %).
-    return "per_camera", ("no calibration is named, so its accuracy is unknown: the rig's Sim(3) correction, and per camera a "
-                          "small SE(3) residual learnt from the photographs")
-
-
-def corrected_c2w_numpy(correction: PoseCorrection, c2w: np.ndarray) -> np.ndarray:
-    """Apply a trained correction to c2w [C, 4, 4] numpy poses; returns float64 [C, 4, 4]."""
-    with torch.no_grad():
-        return correction(torch.as_tensor(np.asarray(c2w, np.float64))).numpy()
-

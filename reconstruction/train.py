@@ -7,32 +7,30 @@ random-background composites + λ_mask L_mask + λ_SH L_SH, with splat dropout o
 with its own Adam learning rate. Stage II starts from SH DC colours projected from the training
 images at the Stage-I poses. Means and quaternions never learn.
 
+The stages are data (`STAGE_PLANS`: trainable groups, loss, plateau rule) over a typed `TrainState`;
+each group's rate in each stage is the configuration's table (`presets.LearningRates`), and the pose
+groups' rates decay exponentially over a stage to `preset.pose_lr_final` of their start.
 `preset.views_per_iter` views per iteration: one random view as 3DGS (the paper), or all of them
-(0), which the rasterizer renders 3.75x cheaper per view and which makes every loss a full-batch
-value. The pose learning rate decays exponentially over each stage to `preset.pose_lr_final` of
-its start; `lr["pose_<stage>"]` overrides it per stage (0 freezes the pose). Non-finite losses or gradients skip the step
-(counted, never applied). A checkpoint written every `checkpoint_every` iterations and at each
-stage end lets an interrupted run resume where it stopped.
+(0), which the rasterizer renders cheaper per view and which makes every loss a full-batch value.
+Non-finite losses or gradients skip the step (counted, never applied). A checkpoint saved every
+`checkpoint_every` iterations and at each stage end (to a `CheckpointStore` the caller provides)
+lets an interrupted run resume where it stopped; it holds only tensors and plain values.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import math
-import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import NamedTuple
+from dataclasses import asdict, dataclass, field
+from typing import NamedTuple, Protocol
 
 import cv2
 import numpy as np
 import torch
 from torch import nn
 
-from calibration.fileio import atomic_write_bytes
 from reconstruction.adam import Adam
 from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
 from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, mask_l1, neighbour_graph, photometric_loss,
@@ -44,7 +42,6 @@ from reconstruction.gaussians import Gaussians, render
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, point_visibility, project_colors, rgb_to_sh_dc, surface_neighbours
 
-STAGES = ("pose", "deform", "photo")
 ProgressFn = Callable[[str, int, int, float], None]
 
 
@@ -174,17 +171,18 @@ class SplatModel(nn.Module):
         corrected = self.pose(c2w_init[index], index)
         return viewmats_from_c2w(corrected).to(torch.float32)
 
-    def param_groups(self, lr: dict) -> list[dict]:
+    def param_groups(self) -> list[dict]:
+        """The parameter groups, named as the rows of `presets.LearningRates` (their rates are set per stage)."""
         camera = self.pose.camera_parameters()
         return [
-            {"name": "pose", "params": self.pose.rig_parameters(), "lr": lr["pose"]},
-            *([{"name": "pose_camera", "params": camera, "lr": lr.get("pose_camera", lr["pose"])}] if camera else []),
-            {"name": "deformation", "params": list(self.field.parameters()), "lr": lr["deformation"]},
-            {"name": "displacement", "params": [self.displacement], "lr": lr.get("displacement", 0.0)},
-            {"name": "scales", "params": [self.log_scales], "lr": lr["scales"]},
-            {"name": "opacities", "params": [self.opacity_logits], "lr": lr["opacities"]},
-            {"name": "sh0", "params": [self.sh0], "lr": lr["sh0"]},
-            {"name": "shN", "params": [self.shN], "lr": lr["shN"]},
+            {"name": "pose", "params": self.pose.rig_parameters(), "lr": 0.0},
+            *([{"name": "pose_camera", "params": camera, "lr": 0.0}] if camera else []),
+            {"name": "deformation", "params": list(self.field.parameters()), "lr": 0.0},
+            {"name": "displacement", "params": [self.displacement], "lr": 0.0},
+            {"name": "scales", "params": [self.log_scales], "lr": 0.0},
+            {"name": "opacities", "params": [self.opacity_logits], "lr": 0.0},
+            {"name": "sh0", "params": [self.sh0], "lr": 0.0},
+            {"name": "shN", "params": [self.shN], "lr": 0.0},
         ]
 
     @torch.no_grad()
@@ -195,11 +193,31 @@ class SplatModel(nn.Module):
         self.opacity_logits.clamp_(-12.0, 12.0)
 
 
-TRAINABLE = {
-    "pose": ("pose", "pose_camera"),
-    "deform": ("pose", "pose_camera", "deformation", "displacement"),
-    "photo": ("pose", "pose_camera", "deformation", "displacement", "scales", "opacities", "sh0", "shN"),
-}
+@dataclass(frozen=True)
+class StagePlan:
+    """One training stage as data: which parameter groups learn, what the loss is, when it stops.
+
+    photometric: False, Stage I (silhouettes at `preset.mask_scale`, plus photo-consistency when the preset weighs
+        it); True, Stage II (random-background composites at `preset.image_scale`, mask, SH smoothness, fill).
+    splats_fixed: only the pose learns, so the splats are evaluated once for the whole stage.
+    The displacement smoothness joins the loss wherever the splats' normal moves learn. The stage's cap is
+    `preset.iters_<name>`; it stops early when `preset.plateau` and its window's loss gain falls under
+    `preset.plateau_rel_tol[stage]` (in Stage II only once dropout is over: the final fit uses every splat).
+    """
+
+    name: str
+    trainable: tuple[str, ...]
+    photometric: bool
+    splats_fixed: bool = False
+
+
+STAGE_PLANS = (
+    StagePlan("pose", ("pose", "pose_camera"), photometric=False, splats_fixed=True),
+    StagePlan("deform", ("pose", "pose_camera", "deformation", "displacement"), photometric=False),
+    StagePlan("photo", ("pose", "pose_camera", "deformation", "displacement", "scales", "opacities", "sh0", "shN"), photometric=True),
+)
+DECAYING_GROUPS = ("pose", "pose_camera")  # their rate decays over a stage to `preset.pose_lr_final` of its start
+REPORT_WINDOW = 20  # iterations averaged into a stage's reported `total_last_window`
 
 
 class Plateau:
@@ -222,6 +240,29 @@ class Plateau:
 
 
 @dataclass
+class TrainState:
+    """Where a run stands: the stage and iteration it is at, and what the finished stages reported.
+    Only plain values, so a checkpoint holds it without pickled objects."""
+
+    stage: int = 0  # index into STAGE_PLANS
+    it: int = 0  # iterations done in that stage
+    iterations: dict[str, int] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    losses: dict[str, dict] = field(default_factory=dict)
+    skipped: int = 0
+    plateau: list[float] = field(default_factory=list)
+    history: dict[str, list[float]] = field(default_factory=dict)
+    stage2_start: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(doc: dict) -> TrainState:
+        return TrainState(**doc)
+
+
+@dataclass
 class TrainResult:
     model: SplatModel
     losses: dict
@@ -232,44 +273,35 @@ class TrainResult:
     stage2_start: dict = field(default_factory=dict)  # which state Stage II started from, and why
 
 
-def _set_trainable(model: SplatModel, stage: str, pose_scale: bool = True) -> None:
-    on = TRAINABLE[stage]
-    for group in model.param_groups({k: 0.0 for k in ("pose", "deformation", "scales", "opacities", "sh0", "shN")}):
+class CheckpointStore(Protocol):
+    """Where a run keeps its checkpoint: `load` returns what `save` stored last (None when nothing is there)."""
+
+    def load(self) -> dict | None: ...
+
+    def save(self, payload: dict) -> None: ...
+
+
+def _set_trainable(model: SplatModel, plan: StagePlan, pose_scale: bool = True) -> None:
+    for group in model.param_groups():
         for p in group["params"]:
-            p.requires_grad_(group["name"] in on)
+            p.requires_grad_(group["name"] in plan.trainable)
     # The rig's scale learns only when the preset says so; per-camera residuals are SE(3).
-    model.pose.rig_log_scale.requires_grad_("pose" in on and pose_scale)
-
-
-def pose_stage_lr(lr: dict, group: str, stage: str) -> float:
-    """Learning rate of pose group `group` ("pose": the rig's Sim(3); "pose_camera": per-camera
-    residuals) at the start of `stage`: `lr[group_stage]`, else `lr[group]`; the camera group falls
-    back to the rig's rates."""
-    if group == "pose_camera":
-        return lr.get(f"pose_camera_{stage}", lr.get("pose_camera", pose_stage_lr(lr, "pose", stage)))
-    return lr.get(f"pose_{stage}", lr["pose"])
+    model.pose.rig_log_scale.requires_grad_("pose" in plan.trainable and pose_scale)
 
 
 def _grads_finite(params) -> bool:
     """Whether every gradient is finite, from one float64 sum per gradient: a sum is finite exactly when all its
-    elements are (inf - inf is nan; float32 values cannot overflow a float64 sum). 0.2 instead of 1.2 ms for the
-    `cpu` preset's 20 parameters, where a per-element test allocated a mask per gradient."""
+    elements are (inf - inf is nan; float32 values cannot overflow a float64 sum), without a mask per gradient."""
     sums = [p.grad.sum(dtype=torch.float64) for p in params if p.grad is not None]
     return not sums or bool(torch.isfinite(torch.stack(sums)).all())
 
 
-def _save_checkpoint(path: Path, payload: dict) -> None:
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views, pose_mode: str) -> dict:
+def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views) -> dict:
     # The splats' digest, not only their count: a checkpoint's per-splat rows fit only the splats they were trained
     # on, in their order (an engine that lays them out otherwise, or another draw, must start over).
     layout = hashlib.sha256(np.ascontiguousarray(splats.means, np.float32).tobytes()).hexdigest()
     return {"preset": preset.to_dict(), "num_splats": len(splats), "splats": layout, "views": int(len(views.images)),
-            "pose_mode": pose_mode, "c2w": np.round(views.c2w, 9).tolist()}
+            "c2w": np.round(views.c2w, 9).tolist()}
 
 
 @torch.no_grad()
@@ -306,10 +338,11 @@ def _stage2_objective(model: SplatModel, splats: CanonicalSplats, views: Views, 
 
 def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data,
                          preset: Preset) -> dict:
-    """Stage II starts from the Stage-I pose and field, or from the registration (identity correction and
-    field) when that explains the training photographs better: silhouettes of a CAD model that is not
-    the photographed object can pull the pose off the texture (banana: started at the true pose, the
-    mask loss moved it 0.26 -> 0.88 deg). Returns both objective values and the choice."""
+    """Stage II starts from the Stage-I pose and field, or from the registration's pose and an identity field when
+    that explains the training photographs better: silhouettes of a CAD model that is not the photographed object
+    can pull the pose off the texture. Starting from the registration resets the pose correction, zeroes the
+    field's head and drops their Adam state; each splat's own normal moves (and their Adam state), its scales,
+    opacities and colours stay as Stage I left them. Returns both objective values and the choice."""
     trained = _stage2_objective(model, splats, views, c2w_init, data, preset)
     kept = {k: v.clone() for k, v in model.state_dict().items()}
     model.pose.reset_()
@@ -327,166 +360,220 @@ def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views:
     return {"start": start, "objective_stage1": trained, "objective_registration": registered}
 
 
+@dataclass
+class _Run:
+    """What every stage of one run shares."""
+
+    model: SplatModel
+    opt: Adam
+    splats: CanonicalSplats
+    views: Views
+    preset: Preset
+    c2w_init: torch.Tensor
+    mask_data: ViewBatch
+    photo_data: ViewBatch
+    sh_graph: tuple
+    rng: np.random.Generator
+    gen: torch.Generator
+    batch: int
+    pc_images: torch.Tensor | None = None
+    pc_ks: torch.Tensor | None = None
+
+    @property
+    def num_views(self) -> int:
+        return len(self.views.images)
+
+
+def _silhouette_loss(run: _Run, sel, gaussians: tuple, viewmats: torch.Tensor, pc_weights) -> tuple[torch.Tensor, dict]:
+    """Stage I: L_mask on the rendered alpha (+ λ photo-consistency of the surface)."""
+    _, cov, valid, ks, w, h = run.mask_data
+    means, quats, scales, opac, _ = gaussians
+    # The silhouette renders carry no colour channel: the rasterizer composites the transmittance alone, with the same
+    # alphas and gradients as a zero colour.
+    _, alpha, _ = rasterize(means, quats, scales, opac, torch.zeros(len(means), 0), viewmats, ks[sel], w, h, eps2d=run.preset.eps2d)
+    l_mask = mask_l1(alpha, cov[sel], None if valid is None else valid[sel])
+    loss, last = l_mask, {"mask": l_mask}
+    if pc_weights is not None:
+        l_pc = consistency_loss(sample_colors(run.pc_images[sel], means, viewmats, run.pc_ks[sel]), pc_weights[sel])
+        loss = loss + run.preset.lambda_consistency * l_pc
+        last["consistency"] = l_pc
+    return loss, last
+
+
+def _photometric_loss(run: _Run, it: int, idx: torch.Tensor, sel, gaussians: tuple, viewmats: torch.Tensor, targets) -> tuple[torch.Tensor, dict]:
+    """Stage II: L_rgb on a random-background composite (dropout on the colour render) + λ_mask L_mask + λ_SH L_SH (+ λ_fill L_fill)."""
+    preset = run.preset
+    _, cov, valid, ks, w, h = run.photo_data
+    target_fg, target_bg_weight, in_mask = targets
+    means, quats, scales, opac, sh = gaussians
+    on_photo = None if valid is None else valid[sel]
+    bg = torch.rand(len(idx), 3, generator=run.gen)
+    p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
+    active = dropout_active(len(means), p, run.gen)
+    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[sel], w, h,
+                              sh_degree=run.model.sh_degree, backgrounds=bg, active=active, eps2d=preset.eps2d)
+    if active is not None:
+        # The silhouette is supervised on every splat: dropout regularises appearance only.
+        _, alpha, _ = rasterize(means, quats, scales, opac, torch.zeros(len(means), 0), viewmats, ks[sel], w, h, eps2d=preset.eps2d)
+    # Render and target are both the background wherever no splat reaches and the mask is 0.
+    support = (alpha.detach()[..., 0] > 0) | in_mask[sel]
+    target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])
+    l_rgb = photometric_loss(rgb, target, preset.lambda_dssim, support=support, valid=on_photo)
+    l_mask, l_fill = silhouette_losses(alpha, cov[sel], on_photo)
+    l_sh = sh_neighbour_loss(sh, run.sh_graph)
+    loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
+    last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
+    if preset.lambda_fill:
+        loss = loss + preset.lambda_fill * l_fill
+        last["fill"] = l_fill
+    return loss, last
+
+
+def _step(run: _Run, plan: StagePlan, loss: torch.Tensor, trainable: list, state: TrainState) -> float:
+    """One optimizer step on `loss`; a non-finite loss or gradient skips it (counted). Returns the loss value."""
+    opt, model = run.opt, run.model
+    opt.zero_grad(set_to_none=True)
+    value = float(loss.detach())
+    if math.isfinite(value):
+        loss.backward()
+    if math.isfinite(value) and _grads_finite(trainable):
+        opt.step()
+        if plan.photometric and run.preset.shn_decay:
+            with torch.no_grad():
+                model.shN.mul_(1.0 - run.preset.lr.shN.at(plan.name) * run.preset.shn_decay)
+        model.clamp_()
+    else:
+        state.skipped += 1
+    return value
+
+
+def _stage_setup(run: _Run, plan: StagePlan, state: TrainState) -> dict:
+    """What a stage computes once before its iterations: the groups' rates, the consistency weights, the Stage II
+    start and targets, the fixed splats of a pose-only stage."""
+    preset, model = run.preset, run.model
+    _set_trainable(model, plan, preset.pose_scale)
+    decaying = []
+    for group in run.opt.param_groups:
+        group["lr"] = preset.lr.at(group["name"], plan.name)
+        if group["name"] in DECAYING_GROUPS:
+            decaying.append((group, group["lr"]))
+    setup: dict = {"decaying": decaying, "pc_weights": None, "targets": None, "fixed": None}
+    if not plan.photometric and preset.lambda_consistency > 0:
+        setup["pc_weights"] = _consistency_weights(model, run.splats, run.views, run.c2w_init)
+    if plan.photometric:
+        if state.it == 0:
+            state.stage2_start = _choose_stage2_start(model, run.opt, run.splats, run.views, run.c2w_init, run.photo_data, preset)
+        cov = run.photo_data.coverage
+        setup["targets"] = (*composite_parts(run.photo_data.images, cov), cov > 0)
+    if plan.splats_fixed:
+        with torch.no_grad():
+            setup["fixed"] = model.gaussians().activated()
+    return setup
+
+
+def _run_stage(run: _Run, si: int, state: TrainState, save: Callable[[], None], progress: ProgressFn | None) -> None:
+    """Stage `si` of `STAGE_PLANS` from `state.it` to its cap or its plateau."""
+    plan, preset, model = STAGE_PLANS[si], run.preset, run.model
+    setup = _stage_setup(run, plan, state)
+    cap = getattr(preset, f"iters_{plan.name}")
+    plateau = Plateau(window=max(preset.plateau_window[0], cap // preset.plateau_window[1]), rel_tol=preset.plateau_rel_tol[si])
+    plateau.history = list(state.plateau)
+    hist = state.history.setdefault(plan.name, [])
+    t0 = time.perf_counter() - state.timings.get(plan.name, 0.0)
+    trainable = [p for g in run.opt.param_groups for p in g["params"]]
+    last: dict = {}
+    it = state.it
+    while it < cap:
+        for group, lr0 in setup["decaying"]:
+            group["lr"] = lr0 * preset.pose_lr_final ** (it / max(cap, 1))
+        v = run.num_views
+        idx = torch.arange(v) if run.batch == v else torch.from_numpy(run.rng.choice(v, run.batch, replace=False))
+        # Every view in the batch: the stacks themselves, not an indexed copy of each per iteration.
+        sel = slice(None) if run.batch == v else idx
+        gaussians = setup["fixed"] if plan.splats_fixed else model.gaussians().activated()
+        viewmats = model.viewmats(run.c2w_init, idx)
+        if plan.photometric:
+            loss, last = _photometric_loss(run, it, idx, sel, gaussians, viewmats, setup["targets"])
+        else:
+            loss, last = _silhouette_loss(run, sel, gaussians, viewmats, setup["pc_weights"])
+        if preset.lambda_displacement and "displacement" in plan.trainable:
+            l_disp = neighbour_smoothness(model.normal_moves(), run.sh_graph)
+            loss = loss + preset.lambda_displacement * l_disp
+            last["displacement"] = l_disp
+        value = _step(run, plan, loss, trainable, state)
+        it += 1
+        hist.append(value)
+        state.it = it
+        done = (preset.plateau and math.isfinite(value) and (not plan.photometric or it >= preset.dropout_anneal)
+                and plateau.update(value))
+        state.plateau = plateau.history
+        state.timings[plan.name] = time.perf_counter() - t0
+        if preset.checkpoint_every and it % preset.checkpoint_every == 0:
+            save()
+        if progress is not None:
+            progress(plan.name, it, cap, value)
+        if done:
+            break
+    state.timings[plan.name] = time.perf_counter() - t0
+    state.iterations[plan.name] = it
+    state.losses[plan.name] = {k: float(val.detach()) for k, val in last.items()}
+    # A stage that ran no iteration (an ablation) has no loss to report: null, not NaN (twin.json is strict JSON).
+    state.losses[plan.name]["total_last_window"] = float(np.mean(hist[-REPORT_WINDOW:])) if hist else None
+
+
+def _start(views: Views, splats: CanonicalSplats, preset: Preset, seed: int) -> _Run:
+    v = len(views.images)
+    model = SplatModel(splats, preset, v, preset.pose_mode, seed)
+    # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups that are frozen in a
+    # stage have no gradient and are skipped. The fused step runs one kernel over every parameter (the same update
+    # to rounding); `adam.Adam` is torch's update without torch.optim's class.
+    opt = Adam(model.param_groups(), eps=preset.adam_eps, fused=True)
+    run = _Run(model, opt, splats, views, preset, torch.tensor(views.c2w, dtype=torch.float64), views.resized(preset.mask_scale),
+               views.resized(preset.image_scale), neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours)),
+               np.random.default_rng(seed), torch.Generator().manual_seed(seed), v if preset.views_per_iter <= 0 else min(v, preset.views_per_iter))
+    if preset.lambda_consistency > 0:
+        run.pc_images = blurred(torch.tensor(views.images, dtype=torch.float32), preset.consistency_blur_px)
+        run.pc_ks = torch.tensor(views.Ks, dtype=torch.float32)
+    return run
+
+
 def train(
     views: Views,
     splats: CanonicalSplats,
     preset: Preset,
     *,
-    pose_mode: str = "global",
     seed: int = 0,
     progress: ProgressFn | None = None,
-    checkpoint: str | os.PathLike | None = None,
+    checkpoint: CheckpointStore | None = None,
     on_stage_end: Callable[[str, SplatModel], None] | None = None,
 ) -> TrainResult:
-    """Run Stage I (pose, then pose + deformation) and Stage II (photometric) on `views`.
+    """Run the stages of `STAGE_PLANS` (Stage I: pose, then pose + deformation; Stage II: photometric) on `views`,
+    in `preset.pose_mode`.
 
-    progress(stage, iteration, cap, loss) is called after every iteration. With `checkpoint`, the
-    run resumes from that file when it matches this run (same preset, splats, views), and writes it
-    as it goes; the caller deletes it once the twin is saved.
+    progress(stage, iteration, cap, loss) is called after every iteration. With `checkpoint`, the run resumes
+    from what it holds when that matches this run (same configuration, splats, views), and saves to it as it
+    goes; the caller removes it once the twin is saved.
     """
-    v = len(views.images)
-    model = SplatModel(splats, preset, v, pose_mode, seed)
-    # Adam's per-parameter state is created lazily, so one optimizer serves all stages: groups
-    # that are frozen in a stage have no gradient and are skipped by Adam. The fused step (one kernel over
-    # every parameter, the same update to rounding) takes 1.0 instead of 2.6 ms on the `cpu` preset's model.
-    # torch's update without torch.optim's class, whose first call imports torch._dynamo (1.6 s, see `adam`).
-    opt = Adam(model.param_groups(preset.lr), eps=1e-15, fused=True)
-    sh_graph = neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours))
-    c2w_init = torch.tensor(views.c2w, dtype=torch.float64)
-    mask_data = views.resized(preset.mask_scale)
-    if preset.lambda_consistency > 0:
-        pc_images = blurred(torch.tensor(views.images, dtype=torch.float32), preset.consistency_blur_px)
-        pc_ks = torch.tensor(views.Ks, dtype=torch.float32)
-    photo_data = views.resized(preset.image_scale)
-    rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(seed)
-    caps = {"pose": preset.iters_pose, "deform": preset.iters_deform, "photo": preset.iters_photo}
-    state = {"stage": 0, "it": 0, "iterations": {}, "timings": {}, "losses": {}, "skipped": 0, "plateau": [], "history": {}}
-    fp = _fingerprint(preset, splats, views, pose_mode)
-    ckpt = Path(checkpoint) if checkpoint is not None else None
-    if ckpt is not None and ckpt.exists():
-        saved = torch.load(ckpt, weights_only=False)
-        if saved.get("fingerprint") == fp:
-            model.load_state_dict(saved["model"])
-            opt.load_state_dict(saved["optimizer"])
-            rng.bit_generator.state = saved["rng"]
-            gen.set_state(saved["torch_rng"])
-            state = saved["state"]
+    run = _start(views, splats, preset, seed)
+    state = TrainState()
+    fp = _fingerprint(preset, splats, views)
+    saved = checkpoint.load() if checkpoint is not None else None
+    if saved is not None and saved.get("fingerprint") == fp:
+        run.model.load_state_dict(saved["model"])
+        run.opt.load_state_dict(saved["optimizer"])
+        run.rng.bit_generator.state = saved["rng"]
+        run.gen.set_state(saved["torch_rng"])
+        state = TrainState.from_dict(saved["state"])
 
     def save() -> None:
-        if ckpt is not None:
-            _save_checkpoint(ckpt, {"fingerprint": fp, "model": model.state_dict(), "optimizer": opt.state_dict(),
-                                    "rng": rng.bit_generator.state, "torch_rng": gen.get_state(), "state": state})
+        if checkpoint is not None:
+            checkpoint.save({"fingerprint": fp, "model": run.model.state_dict(), "optimizer": run.opt.state_dict(),
+                             "rng": run.rng.bit_generator.state, "torch_rng": run.gen.get_state(), "state": state.to_dict()})
 
-    n = len(splats)
-    # The silhouette renders carry no colour channel: the rasterizer composites the transmittance alone, with the same
-    # alphas and gradients as a zero colour (Stage I's 10-view batch on the clamp: 91 against 109 ms a step).
-    no_colour = torch.zeros(n, 0)
-    batch = v if preset.views_per_iter <= 0 else min(v, preset.views_per_iter)
-    trainable = [p for g in opt.param_groups for p in g["params"]]
-    for si in range(state["stage"], len(STAGES)):
-        stage = STAGES[si]
-        _set_trainable(model, stage, preset.pose_scale)
-        pose_groups = [(g, pose_stage_lr(preset.lr, g["name"], stage)) for g in opt.param_groups if g["name"].startswith("pose")]
-        cap = caps[stage]
-        plateau = Plateau(window=max(20, cap // 12) if batch == 1 else max(10, cap // 15),
-                          rel_tol=0.01 if stage != "photo" else 0.003)
-        plateau.history = list(state["plateau"])
-        hist = state["history"].setdefault(stage, [])
-        t0 = time.perf_counter() - state["timings"].get(stage, 0.0)
-        imgs, cov, valid, ks, w, h = mask_data if stage != "photo" else photo_data
-        use_consistency = stage != "photo" and preset.lambda_consistency > 0
-        if use_consistency:
-            pc_weights = _consistency_weights(model, splats, views, c2w_init)
-        if stage == "photo" and state["it"] == 0:
-            state["stage2_start"] = _choose_stage2_start(model, opt, splats, views, c2w_init, photo_data, preset)
-        if stage == "photo":
-            target_fg, target_bg_weight = composite_parts(imgs, cov)
-            in_mask = cov > 0
-        # Only the pose learns in the first stage: the splats (field, moves, activations) are the same every iteration.
-        if stage == "pose":
-            with torch.no_grad():
-                fixed_splats = model.gaussians().activated()
-        last: dict = {}
-        it = state["it"]
-        while it < cap:
-            # The pose settles as its rate decays 10x over the stage (as 3DGS decays its position rate).
-            for group, lr0 in pose_groups:
-                group["lr"] = lr0 * preset.pose_lr_final ** (it / max(cap, 1))
-            idx = torch.arange(v) if batch == v else torch.from_numpy(rng.choice(v, batch, replace=False))
-            # Every view in the batch: the stacks themselves, not an indexed copy of each per iteration.
-            sel = slice(None) if batch == v else idx
-            means, quats, scales, opac, sh = fixed_splats if stage == "pose" else model.gaussians().activated()
-            viewmats = model.viewmats(c2w_init, idx)
-            on_photo = None if valid is None else valid[sel]
-            if stage != "photo":
-                _, alpha, _ = rasterize(means, quats, scales, opac, no_colour, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
-                l_mask = mask_l1(alpha, cov[sel], on_photo)
-                loss = l_mask
-                last = {"mask": l_mask}
-                if use_consistency:
-                    l_pc = consistency_loss(sample_colors(pc_images[sel], means, viewmats, pc_ks[sel]), pc_weights[sel])
-                    loss = loss + preset.lambda_consistency * l_pc
-                    last["consistency"] = l_pc
-            else:
-                bg = torch.rand(len(idx), 3, generator=gen)
-                p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
-                active = dropout_active(n, p, gen)
-                rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[sel], w, h,
-                                          sh_degree=model.sh_degree, backgrounds=bg, active=active, eps2d=preset.eps2d)
-                if active is not None:
-                    # The silhouette is supervised on every splat: dropout regularises appearance only.
-                    _, alpha, _ = rasterize(means, quats, scales, opac, no_colour, viewmats, ks[sel], w, h, eps2d=preset.eps2d)
-                # Render and target are both the background wherever no splat reaches and the mask is 0.
-                support = (alpha.detach()[..., 0] > 0) | in_mask[sel]
-                target = torch.addcmul(target_fg[sel], bg[:, None, None, :], target_bg_weight[sel])
-                l_rgb = photometric_loss(rgb, target, preset.lambda_dssim, support=support,
-                                         valid=on_photo)
-                l_mask, l_fill = silhouette_losses(alpha, cov[sel], on_photo)
-                l_sh = sh_neighbour_loss(sh, sh_graph)
-                loss = l_rgb + preset.lambda_mask * l_mask + preset.lambda_sh * l_sh
-                last = {"rgb": l_rgb, "mask": l_mask, "sh": l_sh, "dropout": torch.tensor(p)}
-                if preset.lambda_fill:
-                    loss = loss + preset.lambda_fill * l_fill
-                    last["fill"] = l_fill
-            if preset.lambda_displacement and stage != "pose":
-                l_disp = neighbour_smoothness(model.normal_moves(), sh_graph)
-                loss = loss + preset.lambda_displacement * l_disp
-                last["displacement"] = l_disp
-            opt.zero_grad(set_to_none=True)
-            value = float(loss.detach())
-            if math.isfinite(value):
-                loss.backward()
-            if math.isfinite(value) and _grads_finite(trainable):
-                opt.step()
-                if stage == "photo" and preset.shn_decay:
-                    with torch.no_grad():
-                        model.shN.mul_(1.0 - preset.lr["shN"] * preset.shn_decay)
-                model.clamp_()
-            else:
-                state["skipped"] += 1
-            it += 1
-            hist.append(value)
-            state["it"] = it
-            # In Stage II the plateau test starts once dropout is over: the final fit uses every splat.
-            done = (preset.plateau and math.isfinite(value) and (stage != "photo" or it >= preset.dropout_anneal)
-                    and plateau.update(value))
-            state["plateau"] = plateau.history
-            state["timings"][stage] = time.perf_counter() - t0
-            if preset.checkpoint_every and it % preset.checkpoint_every == 0:
-                save()
-            if progress is not None:
-                progress(stage, it, cap, value)
-            if done:
-                break
-        state["timings"][stage] = time.perf_counter() - t0
-        state["iterations"][stage] = it
-        state["losses"][stage] = {k: float(val.detach()) for k, val in last.items()}
-        # A stage that ran no iteration (an ablation) has no loss to report: null, not NaN (twin.json is strict JSON).
-        state["losses"][stage]["total_last_window"] = float(np.mean(hist[-20:])) if hist else None
-        state["stage"], state["it"], state["plateau"] = si + 1, 0, []
+    for si in range(state.stage, len(STAGE_PLANS)):
+        _run_stage(run, si, state, save, progress)
+        state.stage, state.it, state.plateau = si + 1, 0, []
         save()
         if on_stage_end is not None:
-            on_stage_end(stage, model)
-    return TrainResult(model, state["losses"], state["timings"], state["iterations"], state["skipped"], state["history"],
-                       state.get("stage2_start", {}))
+            on_stage_end(STAGE_PLANS[si].name, run.model)
+    return TrainResult(run.model, state.losses, state.timings, state.iterations, state.skipped, state.history, state.stage2_start)

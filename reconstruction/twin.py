@@ -2,13 +2,14 @@
 
 ```
 twin.json               model id, Sim(3) init + refined, per-camera camera-to-object poses, preset,
-                        choices (what the run chose and why), timings_s, losses, versions
+                        config (the whole resolved configuration), training (seed, views, what the
+                        configuration was resolved from), choices (why, and what the run found),
+                        timings_s, losses, versions
 splats.ply              Inria 3DGS layout, deformed means, object frame (opens in 3DGS viewers);
                         SH padded with zeros to degree 3, the degree fitted in a `sh_degree` comment,
                         the screen-space dilation fitted (`eps2d`, also in twin.json) in an `eps2d` one
 
 splats_canonical.npz    canonical means, face index, barycentrics, part label, part names
-deformation.pt          the deformation field's config + weights (torch state dict)
 mesh_cad.glb            the retrieved CAD mesh (object frame, metres), one node per part, under a
                         root node that turns the z-up object frame into glTF's +Y up
 mesh_deformed.glb       the CAD vertices moved by the field, same layout
@@ -41,7 +42,6 @@ from reconstruction.mesh_io import MeshParts, parts_glb_bytes, read_mesh_parts
 TWIN_JSON = "twin.json"
 SPLATS_PLY = "splats.ply"
 CANONICAL_NPZ = "splats_canonical.npz"
-DEFORMATION_PT = "deformation.pt"
 MESH_CAD_GLB = "mesh_cad.glb"
 MESH_DEFORMED_GLB = "mesh_deformed.glb"
 MANIFEST_JSON = "manifest.json"
@@ -108,6 +108,8 @@ class Twin:
     part_names: list[str]
     pose_mode: str = "global"
     versions: dict = field(default_factory=dict)
+    config: dict = field(default_factory=dict)  # the whole resolved configuration (`presets.Preset.to_dict`)
+    training: dict = field(default_factory=dict)  # seed, training views (capture indices), what the configuration was resolved from
     root: Path | None = None
     up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source": what it was measured from}
 
@@ -145,10 +147,6 @@ class Twin:
     @property
     def mesh_cad_path(self) -> Path | None:
         return None if self.root is None else self.root / MESH_CAD_GLB
-
-    @property
-    def deformation_path(self) -> Path | None:
-        return None if self.root is None else self.root / DEFORMATION_PT
 
     def load_mesh_cad(self) -> MeshParts:
         return read_mesh_parts(self._need(MESH_CAD_GLB))
@@ -290,6 +288,8 @@ def _twin_document(twin: Twin) -> dict:
         "eps2d": twin.gaussians.eps2d,
         "part_names": list(twin.part_names),
         "preset": twin.preset,
+        "config": twin.config,
+        "training": twin.training,
         "choices": twin.choices,
         "timings_s": twin.timings_s,
         "losses": twin.losses,
@@ -309,7 +309,6 @@ def save_twin(
     twin: Twin,
     out_dir: str | os.PathLike,
     *,
-    deformation_state: dict | None = None,
     mesh_cad: MeshParts | None = None,
     mesh_deformed: MeshParts | None = None,
     renders: dict[str, np.ndarray] | None = None,
@@ -317,7 +316,6 @@ def save_twin(
 ) -> Path:
     """Write `twin` as a directory, atomically (built beside `out_dir`, then renamed into place).
 
-    deformation_state: what `DeformationField.export_state()` returns (saved with torch.save).
     renders: image name -> RGBA float [H, W, 4]. An existing `out_dir` is replaced only with `overwrite`.
     Returns `out_dir`; `twin.root` points there afterwards.
     """
@@ -337,12 +335,6 @@ def save_twin(
             part_label=twin.part_label, part_names=np.array(twin.part_names, dtype=str),
         )
         digests[CANONICAL_NPZ] = atomic_write_bytes(tmp / CANONICAL_NPZ, buf.getvalue())
-        if deformation_state is not None:
-            import torch
-
-            buf = io.BytesIO()
-            torch.save(deformation_state, buf)
-            digests[DEFORMATION_PT] = atomic_write_bytes(tmp / DEFORMATION_PT, buf.getvalue())
         if mesh_cad is not None:
             digests[MESH_CAD_GLB] = atomic_write_bytes(tmp / MESH_CAD_GLB, parts_glb_bytes(mesh_cad))
         if mesh_deformed is not None:
@@ -450,6 +442,8 @@ def _twin_from(doc: dict, ply: Gaussians, canon: dict, root: Path) -> Twin:
         part_names=[str(s) for s in canon["part_names"]],
         pose_mode=doc.get("pose_mode", "global"),
         versions=doc.get("versions", {}),
+        config=doc.get("config", {}),
+        training=doc.get("training", {}),
         root=root,
         up_object=doc.get("up_object"),
     )

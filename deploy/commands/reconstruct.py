@@ -1,6 +1,7 @@
 """`cadsplat reconstruct CAPTURE --library LIB --out TWIN`: capture -> registered, trained twin.
 
 `--registration reg.json` (from `cadsplat register` of the same capture and library) skips registering.
+`--like TWIN` trains a twin again from its own record (configuration, seed, views, registration).
 """
 
 from __future__ import annotations
@@ -78,14 +79,28 @@ def given_registration(path: Path, capture_dir: Path, lib_dir: Path):
               help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).")
 @click.option("--ablate", "ablations", multiple=True, type=click.Choice(list(ABLATION_NAMES)),
               help="Switch one ingredient off (repeatable), as the paper's ablations.")
+@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="rig.toml: its [registration] table (known_part, scale_tolerance, prior) when registering here.")
+@click.option("--like", "like_dir", default=None, type=click.Path(path_type=Path),
+              help="Train again as the twin at this directory was trained: its configuration, seed, views and registration.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing twin at OUT.")
 def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, registration_path: Path | None,
-                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], overwrite: bool) -> None:
+                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], rig_config: Path | None,
+                like_dir: Path | None, overwrite: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from reconstruction.pipeline import reconstruct as run
+    from reconstruction.pipeline import reconstruct_capture, retrain_like
 
     views = parse_views(views_text)
+    like = None
+    if like_dir is not None:
+        from reconstruction.twin import load_twin
+
+        if registration_path is not None or views is not None or model_id is not None or ablations or pose_mode is not None:
+            raise click.UsageError("--like takes the configuration, views and registration from the twin's record; "
+                                   "give it with CAPTURE, --library, --out and --overwrite only")
+        like = load_twin(like_dir)
+        init = "sphere" if like.model_id == "sphere" else "cad"
     if init == "cad" and lib_dir is None:
         raise click.UsageError("--library is required (or --init sphere to reconstruct without a CAD model)")
     if out_dir.exists() and not overwrite:
@@ -94,6 +109,9 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
 
     if out_dir.exists() and not is_twin_dir(out_dir):
         raise click.ClickException(f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out")
+    from deploy.steps import registration_config
+
+    reg_config = registration_config(rig_config)
     capture, registration = capture_dir, None
     if registration_path is not None:
         if init != "cad":
@@ -110,9 +128,13 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
                 tasks[stage] = bar.add_task(STAGE_TITLES.get(stage, stage), total=cap, loss=float("nan"))
             bar.update(tasks[stage], completed=it, loss=loss)
 
-        result = run(capture, lib_dir, out_dir, registration=registration, preset=preset, model_id=model_id, views=views, pose_mode=pose_mode,
-                     seed=seed, progress=progress, log=lambda m: bar.console.print(m), overwrite=overwrite, init=init,
-                     ablations=ablations)
+        log = lambda m: bar.console.print(m)  # noqa: E731
+        if like is not None:
+            result = retrain_like(like, capture, lib_dir, out_dir, progress=progress, log=log, overwrite=overwrite)
+        else:
+            result = reconstruct_capture(capture, lib_dir, out_dir, registration=registration, preset=preset, model_id=model_id, views=views,
+                                         pose_mode=pose_mode, seed=seed, progress=progress, log=log, overwrite=overwrite, init=init,
+                                         ablations=ablations, registration_config=reg_config)
         for t in tasks.values():
             bar.update(t, total=bar.tasks[t].completed)
     click.echo(verdict(result.twin, result.registration))

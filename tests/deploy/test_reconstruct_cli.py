@@ -30,11 +30,10 @@ def short_preview():
     original = presets.resolve_preset
 
     def resolve(name, stats):
-        p, c = original(name, stats)
-        return replace(p, iters_pose=30, iters_deform=20, iters_photo=40, dropout_anneal=20), c
+        return replace(original(name, stats), iters_pose=30, iters_deform=20, iters_photo=40, dropout_anneal=20)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr("reconstruction.pipeline.resolve_preset", resolve)
+    mp.setattr("reconstruction.presets.resolve_preset", resolve)
     yield
     mp.undo()
 
@@ -54,7 +53,7 @@ def test_reconstruct_render_export(tmp_path, library, short_preview, capsys):
     assert {"num_splats", "sh_degree", "pose_mode", "sh_init", "iterations"} <= set(doc["choices"])
     assert all(np.isfinite(v) for v in doc["timings_s"].values())
     assert len(list((twin_dir / "renders").glob("*.png"))) == 5
-    assert (twin_dir / "mesh_deformed.glb").exists() and (twin_dir / "deformation.pt").exists()
+    assert (twin_dir / "mesh_deformed.glb").exists() and doc["config"]["name"] == "preview" and doc["training"]["views"] == [0, 2, 4, 6, 8]
     assert not any(p.name.endswith(".checkpoint.pt") for p in tmp_path.iterdir())
 
     # Render held-out cameras: RGBA with alpha = rendered alpha, named after the capture's images.
@@ -112,9 +111,9 @@ def before_after(tmp_path_factory, library):
     """Held-out metrics of the preview twin and of the same splats before training (colours projected at
     the registered poses, field at identity, no pose correction)."""
     from reconstruction.evaluation import evaluate_twin, select_views
-    from reconstruction.pipeline import reconstruct
+    from reconstruction.pipeline import reconstruct_capture
 
-    rec = reconstruct(SAMPLE / "train", library, tmp_path_factory.mktemp("e2e") / "twin", preset="preview")
+    rec = reconstruct_capture(SAMPLE / "train", library, tmp_path_factory.mktemp("e2e") / "twin", preset="preview")
     twin, s0 = rec.twin, rec.splats
     init = replace(twin, gaussians=s0.gaussians, sim3_rig_to_object=twin.sim3_rig_to_object_init)
     held = read_capture(SAMPLE / "heldout")
@@ -257,3 +256,52 @@ def test_photos_of_mixed_sizes_train_together(tmp_path, library, short_preview, 
     assert rendered.shape == (320, 240, 4)
     drawn, truth = rendered[..., 3] > 127, frames[2].mask
     assert (drawn & truth).sum() / (drawn | truth).sum() > 0.8
+
+
+def test_like_trains_a_twin_again_from_its_own_record(tmp_path, library, short_preview, capsys):
+    """`--like TWIN` takes the recorded configuration, seed, views and registration: the same twin again."""
+    first = tmp_path / "first"
+    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(first), "--preset", "preview",
+                 "--views", "1,4,7", "--seed", "3"]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    again = tmp_path / "again"
+    rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(again), "--like", str(first)])
+    assert rc == 0, capsys.readouterr().err
+    a, b = load_twin(first), load_twin(again)
+    assert b.config == a.config and b.training == a.training and b.training["seed"] == 3 and len(b.cameras) == 3
+    assert b.choices["registration"]["source"] == "given" and b.model_id == a.model_id
+    for name in ("means", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_allclose(getattr(b.gaussians, name), getattr(a.gaussians, name), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(b.sim3_rig_to_object.matrix(), a.sim3_rig_to_object.matrix(), atol=1e-9)
+    for stage in ("pose", "deform", "photo"):
+        assert b.losses[stage]["total_last_window"] == pytest.approx(a.losses[stage]["total_last_window"], rel=1e-5)
+    assert {k: v["value"] for k, v in b.choices.items() if k in a.config} == {k: v["value"] for k, v in a.choices.items() if k in a.config}
+    capsys.readouterr()
+    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(tmp_path / "x"), "--like", str(first),
+                 "--views", "0,1"]) != 0
+    assert "--like takes the configuration" in capsys.readouterr().err
+
+
+def test_a_planted_checkpoint_that_would_run_code_is_refused_not_run(tmp_path, library):
+    """A pickle beside the output that runs a command when unpickled: nothing runs, the user reads one sentence."""
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    marker = tmp_path / "pwned"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    (tmp_path / ".twin.checkpoint.pt").write_bytes(pickle.dumps({"fingerprint": Payload()}))
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(repo)}
+    out = subprocess.run([sys.executable, "-m", "deploy.cli", "reconstruct", str(SAMPLE / "train"), "--library", str(library),
+                          "--out", str(tmp_path / "twin"), "--preset", "preview", "--views", "0,3,6"],
+                         capture_output=True, text=True, env=env, cwd=repo, timeout=900, check=False)
+    assert out.returncode != 0 and not marker.exists()
+    err = out.stderr.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert "is not a checkpoint this engine wrote" in err and not (tmp_path / "twin").exists()

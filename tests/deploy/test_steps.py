@@ -30,10 +30,9 @@ def short_preview(monkeypatch):
     original = presets.resolve_preset
 
     def resolve(name, stats):
-        p, c = original(name, stats)
-        return replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c
+        return replace(original(name, stats), iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10)
 
-    monkeypatch.setattr("reconstruction.pipeline.resolve_preset", resolve)
+    monkeypatch.setattr("reconstruction.presets.resolve_preset", resolve)
 
 
 def rig_capture(root: Path, *, masks: bool) -> Path:
@@ -73,10 +72,21 @@ def test_a_service_job_decodes_each_image_once_and_masks_and_registers_once(tmp_
     for module, name, calls in ((reconstruction.registration, "register_views", registered), (reconstruction.masks, "capture_masks", masked)):
         original = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _o=original, _c=calls, **k: (_c.append(1), _o(*a, **k))[1])
-    cfg = PipelineConfig(library=str(library), preset="preview", export_formats=("ply",))
+    import PIL.Image
+    import reconstruction.twin
+
+    verified: list[Path] = []
+    png_reads: list[str] = []
+    original_verify, original_open = reconstruction.twin.verify_twin, PIL.Image.open
+    monkeypatch.setattr(reconstruction.twin, "verify_twin", lambda root: (verified.append(root), original_verify(root))[1])
+    monkeypatch.setattr(PIL.Image, "open", lambda fp, *a, **k: (png_reads.append(str(fp)), original_open(fp, *a, **k))[1])
+    cfg = PipelineConfig(library=str(library), preset="preview", export_formats=())
     svc = PipelineService(store, tmp_path / "work", make_step_runner(cfg), min_free_bytes=0)
     assert svc.run_once() and svc.run_once()
     assert [j.status for j in svc.jobs.jobs()] == ["done", "done"]
+    # The twin trained in the job stays in memory: register and reconstruct neither load nor verify it, and the fit
+    # is scored from the renders in memory, not from the PNGs just written.
+    assert verified == [] and not any("renders" in p for p in png_reads)
     for cap in captures:
         files = [(cap / f).resolve() for f in json.loads((cap / "transforms.json").read_text())["cadsplat"]["sha256"]]
         # With masks/, the empty-rig frames are not needed at all.

@@ -197,8 +197,6 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
     import shutil
     from pathlib import Path
 
-    import torch
-
     from reconstruction.evaluation import METRIC_KEYS, run_protocol
     from reconstruction.library import build_library
 
@@ -216,7 +214,7 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
                        heldout_views=2, refine_steps=3, gt=gt, heldout_progress=lambda done, n: scored.append((done, n)))
     assert run.twin.model_id == run.registration.model_id == "medium_clamp_cad"
     # Nested overrides merge into the resolved preset: the rest of the field and of the rates stay.
-    field = torch.load(tmp_path / "twin" / "deformation.pt", weights_only=False)["config"]
+    field = run.twin.config["field"]
     assert field["num_anchors"] == 256 and field["project_similarity"]
     assert run.heldout_views == [0, 35] and scored == [(0, 2), (1, 2), (2, 2)]
     assert [v["name"] for v in run.report["views"]] == ["orbit00", "orbit35"]

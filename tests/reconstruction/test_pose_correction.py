@@ -1,4 +1,4 @@
-"""Pose correction: 6D rotations stay rotations, identity at init, the paper's eq. (pose), mode choice."""
+"""Pose correction: 6D rotations stay rotations, identity at init, the paper's eq. (pose), mode choice (`presets.choose_pose_mode`)."""
 
 from __future__ import annotations
 
@@ -9,15 +9,26 @@ import torch
 from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, is_rotation
+from reconstruction.presets import ConfigInputs, SceneStats, choose_pose_mode
 from reconstruction.pose_correction import (
     PoseCorrection,
     POSE_MODES,
-    choose_pose_mode,
     extrinsics_error_px,
-    corrected_c2w_numpy,
     rotation_6d_to_matrix,
     viewmats_from_c2w,
 )
+
+
+STATS = SceneStats(5, 320, 240, (5000,) * 5, 120.0)
+
+
+def corrected_c2w_numpy(correction: PoseCorrection, c2w: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return correction(torch.as_tensor(np.asarray(c2w, np.float64))).numpy()
+
+
+def mode_of(**provenance) -> str:
+    return choose_pose_mode(ConfigInputs(STATS, **provenance))
 
 
 def ring(n=5):
@@ -96,24 +107,23 @@ def test_per_camera_residuals_sit_on_the_rigs_sim3():
 
 
 def test_mode_from_provenance():
-    assert choose_pose_mode({"calibration_id": "cal-7"})[0] == "global"
-    assert choose_pose_mode({"pose_source": "rough"})[0] == "per_camera"
-    assert choose_pose_mode({})[0] == "per_camera"  # nothing says how good the poses are
-    assert choose_pose_mode({"pose_source": "rough"}, "global") == ("global", "set by the caller")
+    assert mode_of(calibration_id="cal-7") == "global"
+    assert mode_of(pose_source="rough") == "per_camera"
+    assert mode_of() == "per_camera"  # nothing says how good the poses are
+    assert mode_of(pose_source="rough", pose_mode="global") == "global"
     with pytest.raises(ValueError, match="pose mode"):
-        choose_pose_mode({}, "bogus")
+        mode_of(pose_mode="bogus")
 
 
 def test_calibration_uncertainty_in_pixels_decides_the_mode():
     # 0.3 deg and 2 mm at 0.41 m with f = 386 px: about 2.0 + 2.0 px, above the 1 px a global correction tolerates.
     px = extrinsics_error_px({"rotation_deg": 0.3, "translation_mm": 2.0}, np.array([386.0, 386.0]), np.array([0.41, 0.40]))
     assert px == pytest.approx(386.0 * (np.radians(0.3) + 0.002 / 0.40))
-    mode, why = choose_pose_mode({"calibration_id": "cal-7"}, calibration_error_px=px)
-    assert mode == "per_camera" and f"{px:.1f} px" in why
+    assert mode_of(calibration_id="cal-7", calibration_error_px=px) == "per_camera"
     # A board calibration's cross-check (0.04 deg, 0.4 mm) is a fraction of a pixel: the paper's global Sim(3).
     good = extrinsics_error_px({"rotation_deg": 0.04, "translation_mm": 0.4}, np.array([386.0]), np.array([0.41]))
-    assert good < 1.0 and choose_pose_mode({"calibration_id": "cal-7"}, calibration_error_px=good)[0] == "global"
-    assert choose_pose_mode({"calibration_id": "cal-7"}, "global", calibration_error_px=px)[0] == "global"
+    assert good < 1.0 and mode_of(calibration_id="cal-7", calibration_error_px=good) == "global"
+    assert mode_of(calibration_id="cal-7", calibration_error_px=px, pose_mode="global") == "global"
 
 
 def test_pivot_and_unit_keep_the_correction_a_sim3():

@@ -17,7 +17,8 @@ from calibration.capture import load_views, read_capture  # noqa: E402
 from calibration.camera import look_at_c2w  # noqa: E402
 from calibration.so3 import axis_angle_to_matrix  # noqa: E402
 from reconstruction.deformation import FieldConfig  # noqa: E402
-from reconstruction.presets import PAPER, SceneStats, resolve_preset  # noqa: E402
+from reconstruction.pipeline import FileCheckpoint  # noqa: E402
+from reconstruction.presets import PAPER, PAPER_RATES, ConfigInputs, SceneStats, reasons, resolve_preset  # noqa: E402
 from reconstruction.splats import init_splats  # noqa: E402
 from reconstruction.train import Plateau, Views, _grads_finite, train  # noqa: E402
 from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
@@ -44,7 +45,7 @@ def sample_scene(n_views=5, noise_deg=3.0, size=None):
 
 def tiny_preset(pose=25, deform=15, photo=20):
     stats = SceneStats(5, 320, 240, (5000,) * 5, 120.0)
-    p, _ = resolve_preset("preview", stats)
+    p = resolve_preset("preview", stats)
     return replace(p, num_splats=3000, iters_pose=pose, iters_deform=deform, iters_photo=photo, dropout_p0=0.5, dropout_anneal=10,
                    field=FieldConfig(2, 32, 10, 256), checkpoint_every=10)
 
@@ -58,7 +59,7 @@ def test_short_run_is_finite_and_pose_moves_towards_truth(tmp_path):
     splats = init_splats(parts.vertices, parts.faces, 3000, sh_degree=0, seed=0)
     preset = tiny_preset(pose=40)
     stages = []
-    res = train(views, splats, preset, progress=lambda s, i, c, l: stages.append((s, l)), checkpoint=tmp_path / "ck.pt")
+    res = train(views, splats, preset, progress=lambda s, i, c, l: stages.append((s, l)), checkpoint=FileCheckpoint(tmp_path / "twin"))
     assert [s for s, _ in stages][:1] == ["pose"] and stages[-1][0] == "photo"
     assert all(np.isfinite(l) for _, l in stages)
     assert res.skipped_steps == 0 and finite_model(res.model)
@@ -99,7 +100,7 @@ class _Stop(Exception):
     pass
 
 
-def _interrupted_run(ck: Path):
+def _interrupted_run(ck: FileCheckpoint):
     """A 3-view run stopped after Stage I's deformation iteration 10, which wrote `ck`: (views, splats, preset)."""
     views, parts, _ = sample_scene(n_views=3)
     splats = init_splats(parts.vertices, parts.faces, 2000, sh_degree=0, seed=0)
@@ -111,12 +112,12 @@ def _interrupted_run(ck: Path):
 
     with pytest.raises(_Stop):
         train(views, splats, preset, checkpoint=ck, progress=interrupt)
-    assert ck.exists()
+    assert ck.path.exists()
     return views, splats, preset
 
 
 def test_checkpoint_resumes_where_it_stopped(tmp_path):
-    ck = tmp_path / "ck.pt"
+    ck = FileCheckpoint(tmp_path / "twin")
     views, splats, preset = _interrupted_run(ck)
     seen = []
     res = train(views, splats, preset, checkpoint=ck, progress=lambda s, i, c, l: seen.append((s, i)))
@@ -128,7 +129,7 @@ def test_checkpoint_resumes_where_it_stopped(tmp_path):
 def test_checkpoint_of_other_splats_is_not_resumed(tmp_path):
     # The same count in another order (an engine that lays splats out otherwise): every per-splat row of the
     # checkpoint would land on the wrong splat, so training starts over.
-    ck = tmp_path / "ck.pt"
+    ck = FileCheckpoint(tmp_path / "twin")
     views, splats, preset = _interrupted_run(ck)
     order = np.random.default_rng(0).permutation(len(splats))
     shuffled = replace(splats, gaussians=splats.gaussians.subset(order), normals=splats.normals[order],
@@ -172,16 +173,17 @@ def test_plateau_detector():
 def test_cpu_preset_sizes_from_the_scene():
     small = SceneStats(3, 320, 240, (2000,) * 3, 20.0)
     big = SceneStats(12, 640, 480, (60000,) * 12, 300.0)
-    ps, cs = resolve_preset("cpu", small)
-    pb, cb = resolve_preset("cpu", big)
+    ps = resolve_preset("cpu", small)
+    pb = resolve_preset("cpu", big)
+    cb = reasons(pb, ConfigInputs(big))
     assert ps.num_splats < pb.num_splats <= 15_000
     assert ps.sh_degree == 0 and pb.sh_degree == 2
     assert pb.image_scale == 0.6 and ps.image_scale == 1.0
     assert pb.views_per_iter == 0 and pb.init_opacity == 0.9
     assert all("why" in c and "value" in c for c in cb.values())
-    paper, _ = resolve_preset("paper", big)
+    paper = resolve_preset("paper", big)
     assert (paper.num_splats, paper.sh_degree, paper.iters_pose, paper.iters_deform, paper.iters_photo) == (600_000, 3, 3000, 3000, 24_000)
-    assert paper.lr == {"deformation": 1.6e-5, "pose": 5e-4, "scales": 5e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 1.25e-4}
+    assert paper.lr == PAPER_RATES and paper.lr.at("deformation", "photo") == 1.6e-5 and paper.lr.at("pose", "deform") == 5e-4
     with pytest.raises(ValueError, match="unknown preset"):
         resolve_preset("fast", big)
 
@@ -343,7 +345,7 @@ def test_view_dependent_colour_decays_towards_none_only_when_the_preset_says_so(
     assert norm(plain) > 0 and norm(decayed) < 0.5 * norm(plain)
     assert bool(torch.isfinite(decayed.sh0).all())
     stats = SceneStats(10, 320, 240, (5000,) * 10, 120.0)
-    assert resolve_preset("cpu", stats)[0].shn_decay == 1.0 and resolve_preset("preview", stats)[0].shn_decay == 0.0
+    assert resolve_preset("cpu", stats).shn_decay == 1.0 and resolve_preset("preview", stats).shn_decay == 0.0
     assert PAPER.shn_decay == 0.0
 
 

@@ -56,7 +56,7 @@ def test_round_trip_and_every_ply_column(tmp_path):
     twin = make_twin()
     mesh = MeshParts(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]),
                      np.array([0, 1]), ["body", "lid"])
-    out = save_twin(twin, tmp_path / "twin", deformation_state={"w": np.ones(3)}, mesh_cad=mesh, mesh_deformed=mesh,
+    out = save_twin(replace(twin, config={"name": "cpu"}, training={"seed": 3}), tmp_path / "twin", mesh_cad=mesh, mesh_deformed=mesh,
                     renders={"a.png": np.ones((4, 5, 4), np.float32)})
     back = load_twin(out)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
@@ -69,7 +69,7 @@ def test_round_trip_and_every_ply_column(tmp_path):
     np.testing.assert_allclose(back.sim3_rig_to_object_init.matrix(), twin.sim3_rig_to_object_init.matrix(), atol=1e-12)
     np.testing.assert_allclose(back.cameras[0].c2w_object_opencv, twin.cameras[0].c2w_object_opencv)
     assert back.cameras[0].camera.width == 64
-    assert (out / "renders" / "a.png").exists() and (out / "deformation.pt").exists()
+    assert (out / "renders" / "a.png").exists() and back.config == {"name": "cpu"} and back.training == {"seed": 3}
 
     # Every column, read with plyfile directly, in the Inria order and meaning: padded to degree 3
     # (what Inria's loader reads without flags), the fitted degree in a header comment.

@@ -21,10 +21,10 @@ RUN = textwrap.dedent("""
     import numba
     from deploy.commands.inspect import inspect_twin_dir
     from reconstruction.library import build_library
-    from reconstruction.pipeline import reconstruct
+    from reconstruction.pipeline import reconstruct_capture
     sample, work = Path(sys.argv[1]), Path(tempfile.mkdtemp())
     build_library(sample / "library_meshes", work / "library", progress=False, log=lambda _m: None)
-    reconstruct(sample / "train", work / "library", work / "twin", preset="cpu",
+    reconstruct_capture(sample / "train", work / "library", work / "twin", preset="cpu",
                 overrides={"iters_pose": 2, "iters_deform": 2, "iters_photo": 2})
     inspect_twin_dir(work / "twin", work / "inspection", tolerance_mm=1.5, max_unseen_pct=50.0, turntable=2)
     ours = ("reconstruction", "calibration", "simulation", "deploy", "rig")
