@@ -47,6 +47,8 @@ demo: env
 	$(VENV)/bin/cadsplat demo
 
 test: env
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	$(PY) -m pytest -n 2 --timeout=900 -q
 
 # The quick benchmarks (minutes; no shared data needed): each rewrites its table in benchmarks/results/.

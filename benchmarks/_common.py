@@ -55,8 +55,9 @@ def load_line() -> str:
     return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
 
 
-def symmetric_surface_distance(a_v: np.ndarray, a_f: np.ndarray, b_v: np.ndarray, b_f: np.ndarray, n: int,
-                               seed: int = 0) -> tuple[float, float]:
+def symmetric_surface_distance(
+    a_v: np.ndarray, a_f: np.ndarray, b_v: np.ndarray, b_f: np.ndarray, n: int, seed: int = 0
+) -> tuple[float, float]:
     """Mean and p95 of closest-point distances (pooled over both directions) from `n` area-uniform samples
     of each mesh (vertices [V, 3], faces [F, 3]) to the other mesh's surface, exact point-to-triangle.
     Against the other mesh's samples instead, two samplings of one surface would already lie 0.3-0.5 % of
@@ -107,6 +108,10 @@ def engine_kwargs(method: str, preset: str, cuda: bool) -> dict:
     elif method != "full":
         raise ValueError(f"unknown method {method!r}")
     if preset == "paper" and not cuda:
-        kw["overrides"] = {"iters_pose": PAPER.iters_pose // 30, "iters_deform": PAPER.iters_deform // 30,
-                           "iters_photo": PAPER.iters_photo // 30, "dropout_anneal": PAPER.dropout_anneal // 30}
+        kw["overrides"] = {
+            "iters_pose": PAPER.iters_pose // 30,
+            "iters_deform": PAPER.iters_deform // 30,
+            "iters_photo": PAPER.iters_photo // 30,
+            "dropout_anneal": PAPER.dropout_anneal // 30,
+        }
     return kw

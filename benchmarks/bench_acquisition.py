@@ -52,7 +52,9 @@ def run(source: str, n_cams: int, captures: int, root: Path) -> dict:
     for c in cams:
         c.open()
     store = CaptureStore(root, min_free_bytes=0)
-    acq = Acquisition(cams, store, thresholds=Thresholds(sync_tolerance_ns=50_000_000), settings=agree_photometry(cams, CameraSettings(W, H)))
+    acq = Acquisition(
+        cams, store, thresholds=Thresholds(sync_tolerance_ns=50_000_000), settings=agree_photometry(cams, CameraSettings(W, H))
+    )
     trig = SoftwareTrigger()
     acq.handle(trig.fire())  # warm-up (thread pool, first PNG encode)
     lat = []
@@ -76,8 +78,8 @@ def run(source: str, n_cams: int, captures: int, root: Path) -> dict:
 
 
 def render_cost(views: int, captures: int) -> float:
-    from rig.synthetic_driver import SyntheticRig, procedural_part
     from rig.assembly import sample_mesh
+    from rig.synthetic_driver import SyntheticRig, procedural_part
 
     rig = SyntheticRig.from_mesh(sample_mesh() or procedural_part(), views, width=W, height=H)
     rig.views(0)
@@ -106,7 +108,9 @@ def main() -> None:
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(f"| {r['source']} | {r['cameras']} | {r['median_ms']:.0f} | {r['p99_ms']:.0f} | {r['captures_per_s']:.2f} | {r['mb_per_capture']:.2f} | {r['mb_per_s']:.1f} |")
+        lines.append(
+            f"| {r['source']} | {r['cameras']} | {r['median_ms']:.0f} | {r['p99_ms']:.0f} | {r['captures_per_s']:.2f} | {r['mb_per_capture']:.2f} | {r['mb_per_s']:.1f} |"
+        )
     if args.render:
         lines += ["", "| synthetic MuJoCo rig (render only) | cameras | s per trigger |", "|---|---:|---:|"]
         for n in (4, 8, 13):
@@ -125,7 +129,14 @@ def main() -> None:
     for source in ("pattern", "pattern+noise"):
         rs = [r for r in rows if r["source"] == source]
         x = [r["cameras"] for r in rs]
-        a.errorbar(x, [r["median_ms"] for r in rs], yerr=[[0] * len(rs), [r["p99_ms"] - r["median_ms"] for r in rs]], marker="o", capsize=3, label=source)
+        a.errorbar(
+            x,
+            [r["median_ms"] for r in rs],
+            yerr=[[0] * len(rs), [r["p99_ms"] - r["median_ms"] for r in rs]],
+            marker="o",
+            capsize=3,
+            label=source,
+        )
         b.plot(x, [r["captures_per_s"] for r in rs], marker="o", label=source)
     a.set(xlabel="cameras", ylabel="trigger -> committed (ms)", title="latency (median, bar to p99)")
     b.set(xlabel="cameras", ylabel="captures / s", title="sustained rate")

@@ -54,7 +54,15 @@ def views_sweep() -> tuple[str, list]:
         cv = float(np.mean([v for v in rig.intrinsics_cv_px.values() if v is not None]))
         ex = max(v["rotation_deg"] for v in rig.extrinsics_cv.values()) if rig.extrinsics_cv else float("nan")
         rows.append([shared + close, dt, rms, cv, ex, rot, trans])
-    head = ["views/camera", "calibrate s (4 cams, incl. cross-val)", "RMS px", "intrinsics cross-val px", "extrinsics cross-val deg", "max rot err deg", "max trans err mm"]
+    head = [
+        "views/camera",
+        "calibrate s (4 cams, incl. cross-val)",
+        "RMS px",
+        "intrinsics cross-val px",
+        "extrinsics cross-val deg",
+        "max rot err deg",
+        "max trans err mm",
+    ]
     return table(head, rows), rows
 
 
@@ -81,7 +89,19 @@ def drift_timing() -> str:
             err = geodesic_angle_deg(np.array(c.c2r)[:3, :3], knocked[:3, :3])
             others = max(res.cameras[n].effect_px for n in cams if n != "cam2")
             rows.append([label, mode, per_cam, c.status, c.rotation_deg, err, c.effect_px, others])
-    return table(["reference", "mode", "ms / camera", "knocked cam status", "measured deg (true 0.100)", "pose error deg", "effect px", "max effect px, others"], rows)
+    return table(
+        [
+            "reference",
+            "mode",
+            "ms / camera",
+            "knocked cam status",
+            "measured deg (true 0.100)",
+            "pose error deg",
+            "effect px",
+            "max effect px, others",
+        ],
+        rows,
+    )
 
 
 def real_images() -> str:
@@ -89,7 +109,10 @@ def real_images() -> str:
     if (CALIBRATION_DATA / "opencv_chessboard").exists():
         spec = parse_board("chessboard:9x6:0.025")
         for side, ref in (("left", 0.409), ("right", 0.459)):
-            dets = {p.name: detect_board(spec, cv2.imread(str(p))) for p in sorted((CALIBRATION_DATA / "opencv_chessboard").glob(f"{side}*.jpg"))}
+            dets = {
+                p.name: detect_board(spec, cv2.imread(str(p)))
+                for p in sorted((CALIBRATION_DATA / "opencv_chessboard").glob(f"{side}*.jpg"))
+            }
             r = calibrate_intrinsics(dets, (640, 480))
             rows.append([f"OpenCV chessboard {side} (13 views)", r.rms_px, ref, f"fx {r.camera.K[0, 0]:.1f} fy {r.camera.K[1, 1]:.1f}"])
     if (CALIBRATION_DATA / "charuco").exists():
@@ -107,7 +130,14 @@ def main() -> None:
     argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     sweep_md, rows = views_sweep()
-    parts = ["## Real photographs", real_images(), "## Synthetic 4-camera rig: views sweep", sweep_md, "## Drift check (0.1 deg knock on cam2)", drift_timing()]
+    parts = [
+        "## Real photographs",
+        real_images(),
+        "## Synthetic 4-camera rig: views sweep",
+        sweep_md,
+        "## Drift check (0.1 deg knock on cam2)",
+        drift_timing(),
+    ]
     text = "\n\n".join(parts) + "\n"
     print(text)
     (RESULTS / "calibration.md").write_text(text)

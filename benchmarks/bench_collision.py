@@ -25,9 +25,9 @@ import numpy as np
 from benchmarks._common import RESULTS, SHARED, load_line
 from simulation.asset import load_mesh_asset
 from simulation.collision import (
-    DEFAULT_TOLERANCE,
     DECOMPOSE_FACES,
     DEFAULT_HULL_BUDGET,
+    DEFAULT_TOLERANCE,
     CollisionGeometry,
     DecompositionOptions,
     collision_geometry,
@@ -41,11 +41,29 @@ from simulation.mjcf import BodySpec, write_mjcf_package
 from simulation.run import load_model, rest_report, simulate
 from simulation.scene import euler_xyz_to_quat, resting_position
 
-YCB = ["011_banana", "033_spatula", "037_scissors", "043_phillips_screwdriver", "050_medium_clamp", "061_foam_brick", "072-c_toy_airplane", "077_rubiks_cube"]
+YCB = [
+    "011_banana",
+    "033_spatula",
+    "037_scissors",
+    "043_phillips_screwdriver",
+    "050_medium_clamp",
+    "061_foam_brick",
+    "072-c_toy_airplane",
+    "077_rubiks_cube",
+]
 PARTS = {
-    "1002_tray_bottom.STL": "mm", "ADIS16480.STL": "m", "angle_block.STL": "in", "counter.unitsmm.STL": None,
-    "featuretype.STL": "in", "idler_riser.STL": "in", "large_block.STL": "mm", "octagonal_pocket.stl": "m",
-    "plate_holes.STL": "mm", "round.stl": "mm", "torus.STL": "in", "busted.STL": "mm",
+    "1002_tray_bottom.STL": "mm",
+    "ADIS16480.STL": "m",
+    "angle_block.STL": "in",
+    "counter.unitsmm.STL": None,
+    "featuretype.STL": "in",
+    "idler_riser.STL": "in",
+    "large_block.STL": "mm",
+    "octagonal_pocket.stl": "m",
+    "plate_holes.STL": "mm",
+    "round.stl": "mm",
+    "torus.STL": "in",
+    "busted.STL": "mm",
 }
 
 
@@ -91,16 +109,36 @@ def main() -> None:
             dec_err = np.nan if not pieces else sum(convex_volume(p) for p in pieces) / vol - 1
             chosen = collision_geometry(asset.vertices, asset.faces, vol, face_part=asset.face_part, decomposition=opts)
             rep, sim_s = drop(asset, chosen, Path(tmp))
-            rows.append({
-                "mesh": name, "faces": len(asset.faces), "extent_m": float(np.ptp(asset.vertices, 0).max()),
-                "hull_err": hull_err, "hull_s": hull_s, "prim": prim.kind, "prim_err": prim_err, "prim_s": prim_s,
-                "pieces": len(pieces) if pieces else 0, "dec_err": dec_err, "dec_s": dec_s,
-                "chosen": chosen.kind, "chosen_err": chosen.volume_error, "chosen_pieces": chosen.hull_count + len(chosen.primitives),
-                "chosen_s": chosen.seconds, "hausdorff_mm": 1e3 * chosen.hausdorff,
-                "ke_ratio": rep.kinetic_ratio, "rest_pen_mm": 1e3 * rep.final_penetration, "peak_pen_mm": 1e3 * rep.peak_penetration,
-                "lowest_mm": 1e3 * rep.lowest_height, "support_mm": 1e3 * rep.support_margin, "sim_s": sim_s,
-            })
-            print(f"{name}: hull {100 * hull_err:.1f}%, {prim.kind} {100 * prim_err:.1f}%, CoACD {rows[-1]['pieces']} pieces {100 * dec_err:.1f}% in {dec_s:.1f} s", flush=True)
+            rows.append(
+                {
+                    "mesh": name,
+                    "faces": len(asset.faces),
+                    "extent_m": float(np.ptp(asset.vertices, 0).max()),
+                    "hull_err": hull_err,
+                    "hull_s": hull_s,
+                    "prim": prim.kind,
+                    "prim_err": prim_err,
+                    "prim_s": prim_s,
+                    "pieces": len(pieces) if pieces else 0,
+                    "dec_err": dec_err,
+                    "dec_s": dec_s,
+                    "chosen": chosen.kind,
+                    "chosen_err": chosen.volume_error,
+                    "chosen_pieces": chosen.hull_count + len(chosen.primitives),
+                    "chosen_s": chosen.seconds,
+                    "hausdorff_mm": 1e3 * chosen.hausdorff,
+                    "ke_ratio": rep.kinetic_ratio,
+                    "rest_pen_mm": 1e3 * rep.final_penetration,
+                    "peak_pen_mm": 1e3 * rep.peak_penetration,
+                    "lowest_mm": 1e3 * rep.lowest_height,
+                    "support_mm": 1e3 * rep.support_margin,
+                    "sim_s": sim_s,
+                }
+            )
+            print(
+                f"{name}: hull {100 * hull_err:.1f}%, {prim.kind} {100 * prim_err:.1f}%, CoACD {rows[-1]['pieces']} pieces {100 * dec_err:.1f}% in {dec_s:.1f} s",
+                flush=True,
+            )
     table = render_table(rows, opts, f"{load_line()} at the end")
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -138,7 +176,11 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for key, t_key, label, marker in [("hull_err", "hull_s", "convex hull", "o"), ("prim_err", "prim_s", "best primitive", "s"), ("dec_err", "dec_s", "CoACD", "^")]:
+    for key, t_key, label, marker in [
+        ("hull_err", "hull_s", "convex hull", "o"),
+        ("prim_err", "prim_s", "best primitive", "s"),
+        ("dec_err", "dec_s", "CoACD", "^"),
+    ]:
         x = [max(r[t_key], 1e-4) for r in rows if np.isfinite(r[key])]
         y = [100 * abs(r[key]) for r in rows if np.isfinite(r[key])]
         ax.scatter(x, y, marker=marker, label=label)

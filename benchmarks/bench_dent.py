@@ -96,13 +96,24 @@ def pick_dent_centre(vertices: np.ndarray, faces: np.ndarray, cameras) -> int:
     return int(np.flatnonzero(np.all(vertices == uniq[int(np.argmax(score))], axis=1))[0])
 
 
-def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance_mm: float, max_unseen_pct: float,
-        views: int = 9, seed: int = 7, source: Path = SOURCE, log=print) -> dict:
+def run(
+    work: Path,
+    *,
+    preset: str,
+    depth_mm: float,
+    radius_mm: float,
+    tolerance_mm: float,
+    max_unseen_pct: float,
+    views: int = 9,
+    seed: int = 7,
+    source: Path = SOURCE,
+    log=print,
+) -> dict:
     """Synthesise, reconstruct and inspect the nominal and the dented part under `work`; returns the findings."""
     import trimesh
 
     from calibration.camera import Camera
-    from deploy.commands.inspect import inspect_twin_dir
+    from deploy.inspection_report import inspect_twin_dir
     from reconstruction.library import build_library
     from reconstruction.pipeline import reconstruct_capture
     from rig.synthetic import synth_dataset
@@ -127,18 +138,34 @@ def run(work: Path, *, preset: str, depth_mm: float, radius_mm: float, tolerance
     dented_path = copy_part(source, text, dent(vertices, faces, centre, depth_mm * 1e-3, radius_mm * 1e-3), work / "dented" / "object")
     synth_dataset(dented_path, work / "dented", views=views, heldout=0, seed=seed)
     timings = {"synth_and_library_s": time.perf_counter() - t}
-    out: dict = {"part": str(source), "model_id": model_id, "dent_centre_mm": (centre * 1000).tolist(), "depth_mm": depth_mm, "radius_mm": radius_mm, "preset": preset,
-                 "tolerance_mm": tolerance_mm, "max_unseen_pct": max_unseen_pct, "views": views}
+    out: dict = {
+        "part": str(source),
+        "model_id": model_id,
+        "dent_centre_mm": (centre * 1000).tolist(),
+        "depth_mm": depth_mm,
+        "radius_mm": radius_mm,
+        "preset": preset,
+        "tolerance_mm": tolerance_mm,
+        "max_unseen_pct": max_unseen_pct,
+        "views": views,
+    }
     for name in ("nominal", "dented"):
         t = time.perf_counter()
         log(f"reconstructing the {name} part ({preset})")
         reconstruct_capture(work / name / "train", library, work / name / "twin", preset=preset, model_id=model_id, seed=0, overwrite=True)
         timings[f"reconstruct_{name}_s"] = time.perf_counter() - t
-        doc = inspect_twin_dir(work / name / "twin", work / name / "inspection", tolerance_mm=tolerance_mm,
-                               max_unseen_pct=max_unseen_pct, turntable=8)
+        doc = inspect_twin_dir(
+            work / name / "twin", work / name / "inspection", tolerance_mm=tolerance_mm, max_unseen_pct=max_unseen_pct, turntable=8
+        )
         v = doc["verdict"]
-        out[name] = {"line": v["line"], "status": v["status"], "exit_code": v["exit_code"], "unseen_pct": v["unseen_pct"],
-                     "max_abs_mm": v["max_abs_mm"], "at_mm": v["at_mm"]}
+        out[name] = {
+            "line": v["line"],
+            "status": v["status"],
+            "exit_code": v["exit_code"],
+            "unseen_pct": v["unseen_pct"],
+            "max_abs_mm": v["max_abs_mm"],
+            "at_mm": v["at_mm"],
+        }
         if v["at_mm"] is not None:
             out[name]["distance_to_dent_mm"] = float(np.linalg.norm(np.array(v["at_mm"]) - centre * 1000))
         csv_rows = _rows(work / name / "inspection")
@@ -168,34 +195,41 @@ def write_markdown(res: dict, load: str, path: Path) -> str:
         r = res[name]
         dist = f"{r['distance_to_dent_mm']:.1f}" if r.get("distance_to_dent_mm") is not None else "n/a"
         patch = f"{r['patch_mean_deviation_mm']:+.2f}" if r["patch_mean_deviation_mm"] is not None else "n/a"
-        return (f"| {name} | `{r['line']}` | {r['exit_code']} | {dist} | {patch} ({r['patch_seen_vertices']} seen) | "
-                f"{r['max_abs_away_from_dent_mm']:.2f} | {r['unseen_pct']:.1f} |")
+        return (
+            f"| {name} | `{r['line']}` | {r['exit_code']} | {dist} | {patch} ({r['patch_seen_vertices']} seen) | "
+            f"{r['max_abs_away_from_dent_mm']:.2f} | {r['unseen_pct']:.1f} |"
+        )
 
     c = res["dent_centre_mm"]
     t = res["timings_s"]
-    text = "\n".join([
-        "# Known dent: `cadsplat inspect` on a synthetic part",
-        "",
-        f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; load {load}.",
-        "",
-        (f"Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the"
-         if Path(res["part"]) == SOURCE else f"Nominal part and CAD: `{res['model_id']}` ({res['part']}, its own mesh as the"),
-        f"library model). Dented part: the same mesh pushed in along its normal by up to {res['depth_mm']:g} mm (cosine bump,",
-        f"radius {res['radius_mm']:g} mm) at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, the side-wall vertex the rig sees best.",
-        f"Synthetic rig (`cadsplat synth`, {res['views']} views, 320x240, seed 7, same cameras and pose for both); reconstruction",
-        f"preset `{res['preset']}` with the model given; `inspect --tolerance {res['tolerance_mm']:g} --max-unseen "
-        f"{res['max_unseen_pct']:g}`.",
-        "",
-        "| part | verdict | exit | worst vertex to dent centre (mm) | mean deviation within r/2 of the centre (mm) | "
-        "max abs deviation > 2r from the dent (mm) | unseen % |",
-        "|---|---|---:|---:|---:|---:|---:|",
-        row("nominal"),
-        row("dented"),
-        "",
-        f"Wall time: synthesis + library {t['synth_and_library_s']:.0f} s, reconstruction {t['reconstruct_nominal_s']:.0f} s "
-        f"(nominal) and {t['reconstruct_dented_s']:.0f} s (dented).",
-        "",
-    ])
+    text = "\n".join(
+        [
+            "# Known dent: `cadsplat inspect` on a synthetic part",
+            "",
+            f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; load {load}.",
+            "",
+            (
+                "Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the"
+                if Path(res["part"]) == SOURCE
+                else f"Nominal part and CAD: `{res['model_id']}` ({res['part']}, its own mesh as the"
+            ),
+            f"library model). Dented part: the same mesh pushed in along its normal by up to {res['depth_mm']:g} mm (cosine bump,",
+            f"radius {res['radius_mm']:g} mm) at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, the side-wall vertex the rig sees best.",
+            f"Synthetic rig (`cadsplat synth`, {res['views']} views, 320x240, seed 7, same cameras and pose for both); reconstruction",
+            f"preset `{res['preset']}` with the model given; `inspect --tolerance {res['tolerance_mm']:g} --max-unseen "
+            f"{res['max_unseen_pct']:g}`.",
+            "",
+            "| part | verdict | exit | worst vertex to dent centre (mm) | mean deviation within r/2 of the centre (mm) | "
+            "max abs deviation > 2r from the dent (mm) | unseen % |",
+            "|---|---|---:|---:|---:|---:|---:|",
+            row("nominal"),
+            row("dented"),
+            "",
+            f"Wall time: synthesis + library {t['synth_and_library_s']:.0f} s, reconstruction {t['reconstruct_nominal_s']:.0f} s "
+            f"(nominal) and {t['reconstruct_dented_s']:.0f} s (dented).",
+            "",
+        ]
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return text
@@ -214,11 +248,18 @@ def main() -> None:
     args = ap.parse_args()
     import tempfile
 
-    from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
+    from deploy.inspection_report import DEFAULT_MAX_UNSEEN_PCT
 
     work = args.work or Path(tempfile.mkdtemp(prefix="cadsplat-dent-"))
-    res = run(work, preset=args.preset, depth_mm=args.depth_mm, radius_mm=args.radius_mm, tolerance_mm=args.tolerance,
-              max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen, source=args.part)
+    res = run(
+        work,
+        preset=args.preset,
+        depth_mm=args.depth_mm,
+        radius_mm=args.radius_mm,
+        tolerance_mm=args.tolerance,
+        max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT if args.max_unseen is None else args.max_unseen,
+        source=args.part,
+    )
     print(json.dumps(res, indent=1))
     load = f"1-min {load_line()}"
     print(write_markdown(res, load, args.out or RESULTS / f"dent_{args.preset}.md"))

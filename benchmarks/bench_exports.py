@@ -49,12 +49,20 @@ def validator_errors(glb: Path) -> tuple[str, str, str]:
     if found is None:
         return "n/a", "n/a", "n/a"
     node, mods = found
-    js = ("const fs=require('fs');require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
-          ".then(r=>console.log(JSON.stringify(r.issues)))")
-    res = subprocess.run([node, "-e", js, str(glb)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=600)
+    js = (
+        "const fs=require('fs');require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
+        ".then(r=>console.log(JSON.stringify(r.issues)))"
+    )
+    res = subprocess.run(
+        [node, "-e", js, str(glb)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=600
+    )
     issues = json.loads(res.stdout)
-    beyond = [m for m in issues["messages"] if m["severity"] == 0 and not (
-        m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and m["pointer"].rsplit("/", 1)[-1].startswith("KHR_gaussian_splatting:"))]
+    beyond = [
+        m
+        for m in issues["messages"]
+        if m["severity"] == 0
+        and not (m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and m["pointer"].rsplit("/", 1)[-1].startswith("KHR_gaussian_splatting:"))
+    ]
     return str(issues["numErrors"]), str(len(beyond)), str(issues["numWarnings"])
 
 
@@ -86,11 +94,24 @@ def measure(scene: str, twin_dir: Path, work: Path, decomposition: Decomposition
     errors, beyond, warnings = validator_errors(glb)
     col = body.collision
     return dict(
-        scene=scene, splats=twin.num_splats, sh=twin.gaussians.sh_degree, usd_splats=len(field.GetPositionsAttr().Get()),
-        usd_mass_vs_mjcf=UsdPhysics.MassAPI(root).GetMassAttr().Get() / float(model.body_mass[1]) - 1, up_axis=UsdGeom.GetStageUpAxis(stage),
-        up_err_deg=float(np.degrees(np.arccos(np.clip(up.vector @ seen_up, -1, 1)))), glb_errors=errors, glb_beyond=beyond, glb_warnings=warnings,
-        glb_kb=glb.stat().st_size / 1024, spz_kb=spz.stat().st_size / 1024, ply_kb=(twin_dir / SPLATS_PLY).stat().st_size / 1024,
-        hulls=col.hull_count + len(col.primitives), budget=col.hull_budget, col_kind=col.kind, col_err=col.volume_error, body_s=body_s,
+        scene=scene,
+        splats=twin.num_splats,
+        sh=twin.gaussians.sh_degree,
+        usd_splats=len(field.GetPositionsAttr().Get()),
+        usd_mass_vs_mjcf=UsdPhysics.MassAPI(root).GetMassAttr().Get() / float(model.body_mass[1]) - 1,
+        up_axis=UsdGeom.GetStageUpAxis(stage),
+        up_err_deg=float(np.degrees(np.arccos(np.clip(up.vector @ seen_up, -1, 1)))),
+        glb_errors=errors,
+        glb_beyond=beyond,
+        glb_warnings=warnings,
+        glb_kb=glb.stat().st_size / 1024,
+        spz_kb=spz.stat().st_size / 1024,
+        ply_kb=(twin_dir / SPLATS_PLY).stat().st_size / 1024,
+        hulls=col.hull_count + len(col.primitives),
+        budget=col.hull_budget,
+        col_kind=col.kind,
+        col_err=col.volume_error,
+        body_s=body_s,
     )
 
 
@@ -98,7 +119,7 @@ def render_table(rows: list[dict], budget: int, load: str) -> str:
     lines = [
         "# Exports of the rig_scenes twins: USD, glTF KHR_gaussian_splatting, .spz, collision at the hull budget",
         "",
-        f"`python -m benchmarks.bench_exports` (hull budget {budget}); {load}. Up: the CAD's declared axis (+z); \"up err\" is its",
+        f'`python -m benchmarks.bench_exports` (hull budget {budget}); {load}. Up: the CAD\'s declared axis (+z); "up err" is its',
         "angle to the cameras' mean up axis taken into the object frame by the twin's registration. GLB errors: all of the Khronos validator's (2.0.0-dev.3.10), then those left beyond the ones it raises for",
         "every `KHR_gaussian_splatting:*` attribute name, which its released version does not accept yet (KhronosGroup/glTF-Validator#252).",
         "",

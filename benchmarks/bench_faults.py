@@ -52,13 +52,28 @@ def rig_sweep(tmp: Path, mode: str) -> dict:
     count = FaultyDisk(tmp / f"{mode}-count")
     _run_rig(tmp / f"{mode}-count", count, triggers=TRIGGERS)
     sites = len(count.calls)
-    tally = {"sites": sites, "triggers": 0, "committed": 0, "of_which_held_then_written": 0, "refused": 0, "quarantined": 0,
-             "spilled": 0, "imported_at_next_start": 0, "failed": 0, "lost": 0, "half_written": 0, "not_one_sentence": 0}
+    tally = {
+        "sites": sites,
+        "triggers": 0,
+        "committed": 0,
+        "of_which_held_then_written": 0,
+        "refused": 0,
+        "quarantined": 0,
+        "spilled": 0,
+        "imported_at_next_start": 0,
+        "failed": 0,
+        "lost": 0,
+        "half_written": 0,
+        "not_one_sentence": 0,
+    }
     for n in range(1, sites + 1):
         root = tmp / f"{mode}-{n}"
-        disk = {"enospc": lambda: FaultyDisk(root, fail_at=n), "filled": lambda: FaultyDisk(root, fill_at=n),
-                "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True),  # then writable again
-                "erofs-until-stop": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True)}[mode]()
+        disk = {
+            "enospc": lambda: FaultyDisk(root, fail_at=n),
+            "filled": lambda: FaultyDisk(root, fill_at=n),
+            "erofs": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True),  # then writable again
+            "erofs-until-stop": lambda: FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True),
+        }[mode]()
         outs, _ = _run_rig(root, disk, heal=mode == "erofs", triggers=TRIGGERS)
         for o in outs[1:]:
             if o.status == "held":
@@ -115,15 +130,23 @@ def service_sweep(tmp: Path) -> dict:
         svc = PipelineService(tmp / "svc-store", tmp / "svc-count", _Steps(), min_free_bytes=0)
         while svc.run_once():
             pass
-    tally = {"sites": len(count.calls), "stopped_said": 0, "refused_at_start": 0, "jobs_failed": 0, "jobs_done_after_space_returned": 0,
-             "attempts_spent_on_full_disk": 0, "half_written": 0}
+    tally = {
+        "sites": len(count.calls),
+        "stopped_said": 0,
+        "refused_at_start": 0,
+        "jobs_failed": 0,
+        "jobs_done_after_space_returned": 0,
+        "attempts_spent_on_full_disk": 0,
+        "half_written": 0,
+    }
     for n in range(1, len(count.calls) + 1):
         work, free = tmp / f"svc-{n}", {"b": 10 << 30}
         disk = FaultyDisk(work, fail_at=n, persistent=True)
         with disk.active():
             try:
-                svc = PipelineService(tmp / "svc-store", work, _Steps(), min_free_bytes=1 << 20, resume_margin_bytes=1 << 20,
-                                      free_bytes=lambda _p: free["b"])
+                svc = PipelineService(
+                    tmp / "svc-store", work, _Steps(), min_free_bytes=1 << 20, resume_margin_bytes=1 << 20, free_bytes=lambda _p: free["b"]
+                )
             except (RuntimeError, OSError):
                 tally["refused_at_start"] += 1
                 continue
@@ -146,8 +169,24 @@ def kill_rig(tmp: Path, kills: int, rng: random.Random) -> dict:
     store = tmp / "kill-rig"
     committed: list[str] = []
     tally = {"kills": 0, "reported_committed": 0, "missing": 0, "verify_problems": 0, "recovered_to_quarantine": 0}
-    argv = cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "8", "--store", str(store),
-                    "--views", "3", "--size", "96", "72", "--min-free-gb", "0")
+    argv = cadsplat(
+        "rig",
+        "watch",
+        "--simulate",
+        "--trigger",
+        "can",
+        "--rate",
+        "8",
+        "--store",
+        str(store),
+        "--views",
+        "3",
+        "--size",
+        "96",
+        "72",
+        "--min-free-gb",
+        "0",
+    )
     for _ in range(kills):
         out, killed = run_until_killed(argv, rng.uniform(0.0, 1.5), ready=("reference", "committed"))
         tally["kills"] += killed
@@ -165,11 +204,48 @@ def kill_service(tmp: Path, kills: int, rng: random.Random) -> dict:
     from reconstruction.library import build_library
 
     store, work, lib = tmp / "kill-svc-S", tmp / "kill-svc-W", tmp / "kill-svc-L"
-    out, _ = run_until_killed(cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "4", "--max-captures", "2",
-                                       "--store", str(store), "--views", "4", "--size", "128", "96", "--min-free-gb", "0"), 300)
+    out, _ = run_until_killed(
+        cadsplat(
+            "rig",
+            "watch",
+            "--simulate",
+            "--trigger",
+            "can",
+            "--rate",
+            "4",
+            "--max-captures",
+            "2",
+            "--store",
+            str(store),
+            "--views",
+            "4",
+            "--size",
+            "128",
+            "96",
+            "--min-free-gb",
+            "0",
+        ),
+        300,
+    )
     build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
-    argv = cadsplat("service", "run", "--store", str(store), "--work", str(work), "--library", str(lib), "--preset", "preview",
-                    "--poll", "0.2", "--min-free-gb", "0", "--max-jobs", "2")
+    argv = cadsplat(
+        "service",
+        "run",
+        "--store",
+        str(store),
+        "--work",
+        str(work),
+        "--library",
+        str(lib),
+        "--preset",
+        "preview",
+        "--poll",
+        "0.2",
+        "--min-free-gb",
+        "0",
+        "--max-jobs",
+        "2",
+    )
     tally = {"captures": len(reported(out)), "kills": 0, "half_written_published": 0}
     for _ in range(kills):
         _, killed = run_until_killed(argv, rng.uniform(0.5, 8.0), ready=("resumed", "enqueued", "step-"))
@@ -181,8 +257,15 @@ def kill_service(tmp: Path, kills: int, rng: random.Random) -> dict:
     final, killed = run_until_killed(argv, 1200)
     statuses = job_statuses(work)
     after = work_after_kill(work)
-    tally.update({"jobs_done": statuses.count("done"), "jobs_failed": statuses.count("failed"), "twins_verifying": after["twins"],
-                  "exports": after["exports"], "leftovers_after_final_run": after["leftovers"]})
+    tally.update(
+        {
+            "jobs_done": statuses.count("done"),
+            "jobs_failed": statuses.count("failed"),
+            "twins_verifying": after["twins"],
+            "exports": after["exports"],
+            "leftovers_after_final_run": after["leftovers"],
+        }
+    )
     return tally
 
 
@@ -195,8 +278,10 @@ def _spill_one(spill_root: Path, store: Path) -> str:
     from rig.store import Spill
 
     k = np.array([[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]])
-    frames = [FrameData(f"cam{i}", np.full((72, 96, 3), 60 + 40 * i, np.uint8), Camera(k, 96, 72, np.zeros(0), np.eye(4)), f"cam{i}", i)
-              for i in range(3)]
+    frames = [
+        FrameData(f"cam{i}", np.full((72, 96, 3), 60 + 40 * i, np.uint8), Camera(k, 96, 72, np.zeros(0), np.eye(4)), f"cam{i}", i)
+        for i in range(3)
+    ]
     capture_id = "090000-20260101T000000Z"  # above any id the rig reaches here, so the import cannot collide
     Spill(spill_root, store).write(capture_id, frames, {"rig_id": "bench"})
     return capture_id
@@ -209,13 +294,31 @@ def two_writers(tmp: Path, runs: int) -> dict:
     from deploy.commands.store import verify_store
     from tests.deploy.test_rig_cli import SMALL, _env, watching
 
-    tally = {"runs": runs, "second_writers": 0, "refused": 0, "named_first_pid": 0, "not_one_sentence": 0, "second_captures": 0,
-             "first_captures": 0, "reused_ids": 0, "quarantined": 0, "verify_problems": 0}
+    tally = {
+        "runs": runs,
+        "second_writers": 0,
+        "refused": 0,
+        "named_first_pid": 0,
+        "not_one_sentence": 0,
+        "second_captures": 0,
+        "first_captures": 0,
+        "reused_ids": 0,
+        "quarantined": 0,
+        "verify_problems": 0,
+    }
     for n in range(runs):
         store = tmp / f"writers-{n}"
         with watching(store) as first:
             for argv in (("watch", "--simulate", "--rate", "4", "--max-captures", "2"), ("capture", "--simulate")):
-                r = subprocess.run(cadsplat("rig", *argv, "--store", str(store), *SMALL), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=300, check=False)
+                r = subprocess.run(
+                    cadsplat("rig", *argv, "--store", str(store), *SMALL),
+                    capture_output=True,
+                    text=True,
+                    env=_env(),
+                    cwd=REPO,
+                    timeout=300,
+                    check=False,
+                )
                 tally["second_writers"] += 1
                 tally["refused"] += r.returncode != 0
                 tally["named_first_pid"] += f"(pid {first.pid})" in r.stderr
@@ -237,8 +340,17 @@ def import_during_watch(tmp: Path, runs: int, per_run: int = 5) -> dict:
     from deploy.commands.store import verify_store
     from tests.deploy.test_rig_cli import SMALL, _env, watching
 
-    tally = {"runs": runs, "imports_during_watch": 0, "refused": 0, "named_rig_pid": 0, "not_one_sentence": 0, "quarantined": 0,
-             "rig_captures": 0, "imported_after_stop": 0, "verify_problems": 0}
+    tally = {
+        "runs": runs,
+        "imports_during_watch": 0,
+        "refused": 0,
+        "named_rig_pid": 0,
+        "not_one_sentence": 0,
+        "quarantined": 0,
+        "rig_captures": 0,
+        "imported_after_stop": 0,
+        "verify_problems": 0,
+    }
     for n in range(runs):
         store, spill = tmp / f"import-{n}", tmp / f"import-{n}.spill"
         waiting = _spill_one(spill, store)
@@ -279,6 +391,7 @@ def verify_during_watch(tmp: Path, verifies: int, per_run: int = 20) -> dict:
         tally["verify_problems_after_stop"] += len(verify_store(store, tmp / "no-spill")[1])
     return tally
 
+
 BOMBS = ((12000, 12000), (30000, 30000))
 
 
@@ -303,8 +416,10 @@ def bomb_capture(tmp: Path, width: int, height: int) -> tuple[Path, int]:
     from tests.calibration.test_capture import png_bomb
 
     cam, rng = Camera.from_fov(1.0, 48, 36), np.random.default_rng(0)
-    root = write_capture(tmp / f"bomb-{width}x{height}", [FrameData(f"v{i}", rng.integers(0, 255, (36, 48, 3), dtype=np.uint8), cam, f"cam{i}")
-                                                          for i in range(2)]).root
+    root = write_capture(
+        tmp / f"bomb-{width}x{height}",
+        [FrameData(f"v{i}", rng.integers(0, 255, (36, 48, 3), dtype=np.uint8), cam, f"cam{i}") for i in range(2)],
+    ).root
     size = png_bomb(root / "images/v1.png", width, height)
     doc = json.loads((root / "transforms.json").read_text())
     doc["cadsplat"]["sha256"]["images/v1.png"] = sha256_file(root / "images/v1.png")
@@ -322,20 +437,44 @@ def bomb_runs(tmp: Path) -> list[dict]:
     rows, caps = [], [bomb_capture(tmp, width, height) for width, height in BOMBS]
     for (width, height), (cap, size) in zip(BOMBS, caps):
         rc, peak, err = _peak_rss(cadsplat("register", str(cap), "--library", str(lib), "--out", str(tmp / "reg.json")), tmp / "bomb.err")
-        rows.append({"image": f"{width}x{height} RGB PNG, {size / 1024:.0f} KB", "run": "cadsplat register", "exit": rc,
-                     "refused_before_decoding": "not decoded" in err, "one_sentence": one_sentence(err), "peak_rss_mb": f"{peak:.0f}"})
+        rows.append(
+            {
+                "image": f"{width}x{height} RGB PNG, {size / 1024:.0f} KB",
+                "run": "cadsplat register",
+                "exit": rc,
+                "refused_before_decoding": "not decoded" in err,
+                "one_sentence": one_sentence(err),
+                "peak_rss_mb": f"{peak:.0f}",
+            }
+        )
     cap, size = caps[0]
-    decode = ("import sys, cv2, numpy as np; d = np.fromfile(sys.argv[1], np.uint8); "
-              "img = cv2.imdecode(d, cv2.IMREAD_UNCHANGED); print(np.ascontiguousarray(img, dtype=np.float32).shape)")
+    decode = (
+        "import sys, cv2, numpy as np; d = np.fromfile(sys.argv[1], np.uint8); "
+        "img = cv2.imdecode(d, cv2.IMREAD_UNCHANGED); print(np.ascontiguousarray(img, dtype=np.float32).shape)"
+    )
     rc, peak, _ = _peak_rss([sys.executable, "-c", decode, str(cap / "images/v1.png")], tmp / "decode.err")
-    rows.append({"image": f"{BOMBS[0][0]}x{BOMBS[0][1]} RGB PNG, {size / 1024:.0f} KB", "run": "decoded without the cap (read_image before)",
-                 "exit": rc, "refused_before_decoding": False, "one_sentence": "-", "peak_rss_mb": f"{peak:.0f}"})
+    rows.append(
+        {
+            "image": f"{BOMBS[0][0]}x{BOMBS[0][1]} RGB PNG, {size / 1024:.0f} KB",
+            "run": "decoded without the cap (read_image before)",
+            "exit": rc,
+            "refused_before_decoding": False,
+            "one_sentence": "-",
+            "peak_rss_mb": f"{peak:.0f}",
+        }
+    )
     return rows
 
 
 def rows_table(title: str, rows: list[dict]) -> str:
-    return (f"### {title}\n\n| " + " | ".join(rows[0]) + " |\n|" + "---|" * len(rows[0]) + "\n"
-            + "".join("| " + " | ".join(str(v) for v in r.values()) + " |\n" for r in rows))
+    return (
+        f"### {title}\n\n| "
+        + " | ".join(rows[0])
+        + " |\n|"
+        + "---|" * len(rows[0])
+        + "\n"
+        + "".join("| " + " | ".join(str(v) for v in r.values()) + " |\n" for r in rows)
+    )
 
 
 # A service whose register step of capture 000000 dies as an OOM-killed process does: SIGKILL, no clean-up.
@@ -366,28 +505,53 @@ def poison_job(tmp: Path, max_attempts: int = 3, restart_limit: int = 20) -> dic
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     deaths = 0
     for _ in range(restart_limit):
-        rc = subprocess.run([sys.executable, "-c", POISON_SERVICE, str(store), str(work), str(max_attempts)], check=False, env=env, timeout=300).returncode
+        rc = subprocess.run(
+            [sys.executable, "-c", POISON_SERVICE, str(store), str(work), str(max_attempts)], check=False, env=env, timeout=300
+        ).returncode
         if rc == 0:
             break
         deaths += 1
     jobs = JobStore(work / "jobs.sqlite").jobs()
-    history = subprocess.run(cadsplat("service", "history", "--work", str(work)), capture_output=True, text=True, check=False, env=env, timeout=120).stdout
+    history = subprocess.run(
+        cadsplat("service", "history", "--work", str(work)), capture_output=True, text=True, check=False, env=env, timeout=120
+    ).stdout
     poison = jobs[0]
-    return {"max_attempts": max_attempts, "service_deaths": deaths, "queue_drained": rc == 0, "poison_status": poison.status,
-            "poison_error": f"`{poison.error}`", "in_history": bool(poison.error) and poison.error in history,
-            "next_jobs_done": sum(j.status == "done" for j in jobs[1:]), "next_jobs": len(jobs) - 1}
+    return {
+        "max_attempts": max_attempts,
+        "service_deaths": deaths,
+        "queue_drained": rc == 0,
+        "poison_status": poison.status,
+        "poison_error": f"`{poison.error}`",
+        "in_history": bool(poison.error) and poison.error in history,
+        "next_jobs_done": sum(j.status == "done" for j in jobs[1:]),
+        "next_jobs": len(jobs) - 1,
+    }
 
 
 def table(title: str, tally: dict) -> str:
-    return f"### {title}\n\n| " + " | ".join(tally) + " |\n|" + "---|" * len(tally) + "\n| " + " | ".join(str(v) for v in tally.values()) + " |\n"
+    return (
+        f"### {title}\n\n| "
+        + " | ".join(tally)
+        + " |\n|"
+        + "---|" * len(tally)
+        + "\n| "
+        + " | ".join(str(v) for v in tally.values())
+        + " |\n"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kills", type=int, default=100, help="SIGKILLs of rig watch (acceptance: 100)")
-    ap.add_argument("--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)")
-    ap.add_argument("--parts", default="sites,kills", help="comma-separated: sites (parts 1), kills (parts 2 and 3), "
-                    "two-writers, import-during-watch, verify-during-watch (part 4), bomb (part 5), poison (part 6)")
+    ap.add_argument(
+        "--service-kills", type=int, default=None, help="SIGKILLs of service run (default: --kills; 0 skips part 3, the slowest)"
+    )
+    ap.add_argument(
+        "--parts",
+        default="sites,kills",
+        help="comma-separated: sites (parts 1), kills (parts 2 and 3), "
+        "two-writers, import-during-watch, verify-during-watch (part 4), bomb (part 5), poison (part 6)",
+    )
     ap.add_argument("--writer-runs", type=int, default=10, help="runs of the two-writers and import-during-watch parts")
     ap.add_argument("--verifies", type=int, default=100, help="store verify runs of the verify-during-watch part (acceptance: 100)")
     ap.add_argument("--out", type=Path, default=RESULTS / "faults.md")
@@ -401,7 +565,9 @@ def main() -> None:
     try:
         if "sites" in parts:
             for mode in ("enospc", "filled", "erofs", "erofs-until-stop"):
-                sections.append(table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode)))
+                sections.append(
+                    table(f"Rig store, {mode} at each write site (a reference + {TRIGGERS} captures per run)", rig_sweep(tmp, mode))
+                )
                 print(sections[-1], flush=True)
             sections.append(table("Calibration keeper, ENOSPC at each write site", keeper_sweep(tmp)))
             print(sections[-1], flush=True)
@@ -411,16 +577,28 @@ def main() -> None:
             sections.append(table(f"SIGKILL of `rig watch --simulate` at {args.kills} random points", kill_rig(tmp, args.kills, rng)))
             print(sections[-1], flush=True)
         if "kills" in parts and service_kills:
-            sections.append(table(f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
-                                  kill_service(tmp, service_kills, rng)))
+            sections.append(
+                table(
+                    f"SIGKILL of `service run` at {service_kills} random points, then one run to the end",
+                    kill_service(tmp, service_kills, rng),
+                )
+            )
             print(sections[-1], flush=True)
         if "two-writers" in parts:
-            sections.append(table(f"Two writers on one store: a second `rig watch` and a `rig capture` while `rig watch` runs ({args.writer_runs} runs)",
-                                  two_writers(tmp, args.writer_runs)))
+            sections.append(
+                table(
+                    f"Two writers on one store: a second `rig watch` and a `rig capture` while `rig watch` runs ({args.writer_runs} runs)",
+                    two_writers(tmp, args.writer_runs),
+                )
+            )
             print(sections[-1], flush=True)
         if "import-during-watch" in parts:
-            sections.append(table(f"`store import-spill` during `rig watch` ({args.writer_runs} runs of 5, a capture waiting in the spill)",
-                                  import_during_watch(tmp, args.writer_runs)))
+            sections.append(
+                table(
+                    f"`store import-spill` during `rig watch` ({args.writer_runs} runs of 5, a capture waiting in the spill)",
+                    import_during_watch(tmp, args.writer_runs),
+                )
+            )
             print(sections[-1], flush=True)
         if "verify-during-watch" in parts:
             sections.append(table(f"`store verify` during `rig watch` ({args.verifies} verifies)", verify_during_watch(tmp, args.verifies)))
@@ -429,13 +607,17 @@ def main() -> None:
             sections.append(rows_table("PNG decompression bombs in a capture (issue 58, 9)", bomb_runs(tmp)))
             print(sections[-1], flush=True)
         if "poison" in parts:
-            sections.append(table("A poison job: its register step SIGKILLs the service, which is restarted after each death", poison_job(tmp)))
+            sections.append(
+                table("A poison job: its register step SIGKILLs the service, which is restarted after each death", poison_job(tmp))
+            )
             print(sections[-1], flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    head = (f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --parts {args.parts} --kills {args.kills} --service-kills {service_kills}`, "
-            f"{time.perf_counter() - t0:.0f} s, "
-            f"load average {os.getloadavg()[0]:.1f} at the end.\n\n")
+    head = (
+        f"# Fault injection (issue 16)\n\n`python -m benchmarks.bench_faults --parts {args.parts} --kills {args.kills} --service-kills {service_kills}`, "
+        f"{time.perf_counter() - t0:.0f} s, "
+        f"load average {os.getloadavg()[0]:.1f} at the end.\n\n"
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(head + "\n".join(sections))
     print(f"wrote {args.out}")

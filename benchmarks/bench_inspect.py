@@ -63,8 +63,9 @@ def scene_row(scene: str, twin_dir: Path) -> dict:
         return row
     t0 = time.process_time()  # CPU seconds: wall time on a machine shared by several jobs says little
     cad, deformed = twin.load_mesh_cad(), twin.load_mesh_deformed()
-    insp = inspect_meshes(cad.vertices, cad.faces, cad.face_part, cad.part_names, deformed.vertices, deformed.faces,
-                          [c.camera for c in twin.cameras])
+    insp = inspect_meshes(
+        cad.vertices, cad.faces, cad.face_part, cad.part_names, deformed.vertices, deformed.faces, [c.camera for c in twin.cameras]
+    )
     row["inspect_cpu_s"] = time.process_time() - t0
     true_v, true_f = load_mesh(DATA / "scenes" / scene / "gt_mesh.ply")
     truth_mm = 1000.0 * true_deviation(cad.vertices, cad.faces, true_v, true_f, diameter)
@@ -107,8 +108,10 @@ def _f(x, fmt: str = "{:.2f}") -> str:
 
 
 def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
-    head = ("| scene | Pearson r (seen) | RMS true dev (mm) | RMS map error (mm) | unseen % (in no camera's view) | truth left out % | "
-            "twin mean % (p95) | CAD mean % (p95) | twin closer than CAD by | inspect CPU s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    head = (
+        "| scene | Pearson r (seen) | RMS true dev (mm) | RMS map error (mm) | unseen % (in no camera's view) | truth left out % | "
+        "twin mean % (p95) | CAD mean % (p95) | twin closer than CAD by | inspect CPU s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )
     lines = [head]
     for r in rows:
         if "note" in r:
@@ -118,34 +121,39 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
             f"| {r['scene']} | {_f(r['pearson_seen'])} | {_f(r['rms_true_mm'])} | {_f(r['rms_error_mm'])} | {_f(r['unseen_pct'], '{:.1f}')} "
             f"({_f(r.get('out_of_view_pct'), '{:.1f}')}) | "
             f"{_f(r['truth_left_out_pct'], '{:.1f}')} | {_f(r['twin_mean_pct'])} ({_f(r['twin_p95_pct'])}) | "
-            f"{_f(r['cad_mean_pct'])} ({_f(r['cad_p95_pct'])}) | {_f(r['twin_vs_cad_gain_pct'], '{:+.1f} %')} | {_f(r['inspect_cpu_s'], '{:.2f}')} |")
+            f"{_f(r['cad_mean_pct'])} ({_f(r['cad_p95_pct'])}) | {_f(r['twin_vs_cad_gain_pct'], '{:+.1f} %')} | {_f(r['inspect_cpu_s'], '{:.2f}')} |"
+        )
     done = [r for r in rows if "note" not in r]
     if done:
         med = lambda k: float(np.nanmedian([r[k] for r in done]))  # noqa: E731
-        lines.append(f"| **median** ({len(done)}) | **{_f(med('pearson_seen'))}** | {_f(med('rms_true_mm'))} | {_f(med('rms_error_mm'))} | "
-                     f"{_f(med('unseen_pct'), '{:.1f}')} ({_f(med('out_of_view_pct'), '{:.1f}')}) | {_f(med('truth_left_out_pct'), '{:.1f}')} | "
-                     f"{_f(med('twin_mean_pct'))} "
-                     f"({_f(med('twin_p95_pct'))}) | {_f(med('cad_mean_pct'))} ({_f(med('cad_p95_pct'))}) | "
-                     f"{_f(med('twin_vs_cad_gain_pct'), '{:+.1f} %')} | {_f(med('inspect_cpu_s'), '{:.2f}')} |")
-    text = "\n".join([
-        "# Inspection against the truth (rig_scenes)",
-        "",
-        f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows})) or 'n/a'}); written "
-        f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect`; load {load}.",
-        "",
-        "Map: per CAD vertex, `inspect`'s deviation (twin's deformed surface vs CAD along the CAD normal) against the true",
-        "one (gt_mesh.ply vs CAD, same line cast); Pearson r and RMS over the vertices `inspect` declares seen (projects",
-        "into a training view, unoccluded, normal within 75 deg of the line of sight). Unseen %: share of the CAD surface",
-        "area no training view sees (in brackets: the share no training camera has in view at all, the rig's coverage). Truth left out: CAD vertices whose normal line misses the true surface or runs past",
-        "an edge (true hit > 3x the closest-point distance + 0.2 % of the diameter). Geometry: symmetric mean closest-point",
-        f"distance to gt_mesh.ply, {SAMPLES} area-uniform samples per surface, exact point-to-triangle, % of the true",
-        "bounding-sphere diameter (p95 pooled over both directions); the last column is the twin's relative gain over the CAD.",
-        f"Figure `{path.with_suffix('.png').name}`: per scene, the reported (left, unseen grey) and true (right) deviation from",
-        "the first training view, one colour scale per scene (turbo: blue inside the CAD, red outside).",
-        "",
-        *lines,
-        "",
-    ])
+        lines.append(
+            f"| **median** ({len(done)}) | **{_f(med('pearson_seen'))}** | {_f(med('rms_true_mm'))} | {_f(med('rms_error_mm'))} | "
+            f"{_f(med('unseen_pct'), '{:.1f}')} ({_f(med('out_of_view_pct'), '{:.1f}')}) | {_f(med('truth_left_out_pct'), '{:.1f}')} | "
+            f"{_f(med('twin_mean_pct'))} "
+            f"({_f(med('twin_p95_pct'))}) | {_f(med('cad_mean_pct'))} ({_f(med('cad_p95_pct'))}) | "
+            f"{_f(med('twin_vs_cad_gain_pct'), '{:+.1f} %')} | {_f(med('inspect_cpu_s'), '{:.2f}')} |"
+        )
+    text = "\n".join(
+        [
+            "# Inspection against the truth (rig_scenes)",
+            "",
+            f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows})) or 'n/a'}); written "
+            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect`; load {load}.",
+            "",
+            "Map: per CAD vertex, `inspect`'s deviation (twin's deformed surface vs CAD along the CAD normal) against the true",
+            "one (gt_mesh.ply vs CAD, same line cast); Pearson r and RMS over the vertices `inspect` declares seen (projects",
+            "into a training view, unoccluded, normal within 75 deg of the line of sight). Unseen %: share of the CAD surface",
+            "area no training view sees (in brackets: the share no training camera has in view at all, the rig's coverage). Truth left out: CAD vertices whose normal line misses the true surface or runs past",
+            "an edge (true hit > 3x the closest-point distance + 0.2 % of the diameter). Geometry: symmetric mean closest-point",
+            f"distance to gt_mesh.ply, {SAMPLES} area-uniform samples per surface, exact point-to-triangle, % of the true",
+            "bounding-sphere diameter (p95 pooled over both directions); the last column is the twin's relative gain over the CAD.",
+            f"Figure `{path.with_suffix('.png').name}`: per scene, the reported (left, unseen grey) and true (right) deviation from",
+            "the first training view, one colour scale per scene (turbo: blue inside the CAD, red outside).",
+            "",
+            *lines,
+            "",
+        ]
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return text
@@ -177,8 +185,10 @@ def main() -> None:
         from calibration.fileio import atomic_write_png
 
         width = max(t.shape[1] for t in tiles)
-        atomic_write_png(args.out.with_suffix(".png"), np.concatenate([np.pad(t, ((0, 0), (0, width - t.shape[1]), (0, 0)), constant_values=255)
-                                                                      for t in tiles], 0))
+        atomic_write_png(
+            args.out.with_suffix(".png"),
+            np.concatenate([np.pad(t, ((0, 0), (0, width - t.shape[1]), (0, 0)), constant_values=255) for t in tiles], 0),
+        )
     print(write_markdown(rows, args.twins, load, args.out))
 
 

@@ -33,8 +33,15 @@ DATASETS = {"rig_scenes": SHARED / "rig_scenes", "rig_scenes_640": SHARED / "rig
 LIBRARY = SHARED / "rig_scenes" / "library"
 
 
-def map_scores(reported_mm: np.ndarray, uncertainty_mm: np.ndarray, footprint_mm: np.ndarray, truth_mm: np.ndarray, seen: np.ndarray,
-               area_mm2: np.ndarray, tolerance_mm: float) -> dict:
+def map_scores(
+    reported_mm: np.ndarray,
+    uncertainty_mm: np.ndarray,
+    footprint_mm: np.ndarray,
+    truth_mm: np.ndarray,
+    seen: np.ndarray,
+    area_mm2: np.ndarray,
+    tolerance_mm: float,
+) -> dict:
     """Scores of one map [V] against the truth [V] (NaN where the truth is not reached) over the `seen` vertices."""
     from reconstruction.inspect import tolerance_calls
 
@@ -47,15 +54,20 @@ def map_scores(reported_mm: np.ndarray, uncertainty_mm: np.ndarray, footprint_mm
     seen_area = area_mm2[seen].sum()
     straddle_all = np.zeros(len(seen), bool)
     straddle_all[seen] = tolerance_calls(reported_mm[seen], uncertainty_mm[seen], tolerance_mm)[1]
-    return {"vertices": int(ok.sum()), "median_mm": float(np.median(err)), "p90_mm": float(np.percentile(err, 90)),
-            "median_px": float(np.median(err_px)), "p90_px": float(np.percentile(err_px, 90)),
-            "pixel_mm": float(np.median(footprint_mm[ok])),
-            "pearson": float(np.corrcoef(reported_mm[ok], truth_mm[ok])[0, 1]) if ok.sum() > 2 else float("nan"),
-            "agreement_all_pct": float(100.0 * agree.mean()),
-            "agreement_certain_pct": float(100.0 * agree[certain].mean()) if certain.any() else float("nan"),
-            "uncertain_pct": float(100.0 * area_mm2[straddle_all].sum() / max(seen_area, 1e-300)),
-            "coverage_pct": float(100.0 * np.mean(err <= uncertainty_mm[ok])),
-            "uncertainty_median_mm": float(np.median(uncertainty_mm[ok]))}
+    return {
+        "vertices": int(ok.sum()),
+        "median_mm": float(np.median(err)),
+        "p90_mm": float(np.percentile(err, 90)),
+        "median_px": float(np.median(err_px)),
+        "p90_px": float(np.percentile(err_px, 90)),
+        "pixel_mm": float(np.median(footprint_mm[ok])),
+        "pearson": float(np.corrcoef(reported_mm[ok], truth_mm[ok])[0, 1]) if ok.sum() > 2 else float("nan"),
+        "agreement_all_pct": float(100.0 * agree.mean()),
+        "agreement_certain_pct": float(100.0 * agree[certain].mean()) if certain.any() else float("nan"),
+        "uncertain_pct": float(100.0 * area_mm2[straddle_all].sum() / max(seen_area, 1e-300)),
+        "coverage_pct": float(100.0 * np.mean(err <= uncertainty_mm[ok])),
+        "uncertainty_median_mm": float(np.median(uncertainty_mm[ok])),
+    }
 
 
 def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> dict:
@@ -66,8 +78,13 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
 
     gt = json.loads((data / "scenes" / scene / "gt.json").read_text())
     twin = load_twin(twin_dir)
-    row: dict = {"scene": scene, "model_id": twin.model_id, "preset": twin.preset, "train_s": float(twin.timings_s.get("total", float("nan"))),
-                 "size": f"{twin.cameras[0].width}x{twin.cameras[0].height}"}
+    row: dict = {
+        "scene": scene,
+        "model_id": twin.model_id,
+        "preset": twin.preset,
+        "train_s": float(twin.timings_s.get("total", float("nan"))),
+        "size": f"{twin.cameras[0].width}x{twin.cameras[0].height}",
+    }
     if twin.model_id != scene:
         row["note"] = f"registered {twin.model_id}, not {scene}: no truth to compare the map with"
         return row
@@ -84,8 +101,12 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
     row["maps"] = {}
     for name, m in (("mesh", insp), ("mesh+masks", refined)):
         v = verdict(m, tolerance_mm, 25.0)
-        row["maps"][name] = {**map_scores(m.deviation_mm, m.uncertainty_mm, m.footprint_mm, truth_mm, m.seen, m.area_mm2, tolerance_mm),
-                             "status": v.status, "unseen_pct": m.unseen_pct(), "cpu_s": cpu[name]}
+        row["maps"][name] = {
+            **map_scores(m.deviation_mm, m.uncertainty_mm, m.footprint_mm, truth_mm, m.seen, m.area_mm2, tolerance_mm),
+            "status": v.status,
+            "unseen_pct": m.unseen_pct(),
+            "cpu_s": cpu[name],
+        }
     return row
 
 
@@ -102,45 +123,72 @@ def _f(x, fmt: str = "{:.2f}") -> str:
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
 
 
-COLUMNS = (("median mm", "median_mm", "{:.2f}"), ("p90 mm", "p90_mm", "{:.2f}"), ("median px", "median_px", "{:.2f}"),
-           ("p90 px", "p90_px", "{:.2f}"), ("pixel mm", "pixel_mm", "{:.2f}"), ("r", "pearson", "{:.3f}"),
-           ("agree all %", "agreement_all_pct", "{:.1f}"), ("agree certain %", "agreement_certain_pct", "{:.1f}"),
-           ("uncertain % of seen", "uncertain_pct", "{:.1f}"), ("unseen %", "unseen_pct", "{:.1f}"),
-           ("U median mm", "uncertainty_median_mm", "{:.2f}"), ("coverage %", "coverage_pct", "{:.1f}"), ("verdict", "status", "{}"))
+COLUMNS = (
+    ("median mm", "median_mm", "{:.2f}"),
+    ("p90 mm", "p90_mm", "{:.2f}"),
+    ("median px", "median_px", "{:.2f}"),
+    ("p90 px", "p90_px", "{:.2f}"),
+    ("pixel mm", "pixel_mm", "{:.2f}"),
+    ("r", "pearson", "{:.3f}"),
+    ("agree all %", "agreement_all_pct", "{:.1f}"),
+    ("agree certain %", "agreement_certain_pct", "{:.1f}"),
+    ("uncertain % of seen", "uncertain_pct", "{:.1f}"),
+    ("unseen %", "unseen_pct", "{:.1f}"),
+    ("U median mm", "uncertainty_median_mm", "{:.2f}"),
+    ("coverage %", "coverage_pct", "{:.1f}"),
+    ("verdict", "status", "{}"),
+)
 
 
 def table(rows: list[dict], name: str) -> list[str]:
-    lines = ["| scene | size | " + " | ".join(c for c, _, _ in COLUMNS) + " | inspect CPU s | twin train s |",
-             "|---|---|" + "---:|" * (len(COLUMNS) + 2)]
+    lines = [
+        "| scene | size | " + " | ".join(c for c, _, _ in COLUMNS) + " | inspect CPU s | twin train s |",
+        "|---|---|" + "---:|" * (len(COLUMNS) + 2),
+    ]
     done = [r for r in rows if name in r.get("maps", {})]
     for r in rows:
         if name not in r.get("maps", {}):
             lines.append(f"| {r['scene']} | {r['size']} | {r.get('note', 'not measured')} |" + " |" * (len(COLUMNS) + 1))
             continue
         m = r["maps"][name]
-        lines.append(f"| {r['scene']} | {r['size']} | " + " | ".join(_f(m[k], f) for _, k, f in COLUMNS)
-                     + f" | {_f(m['cpu_s'], '{:.1f}')} | {_f(r['train_s'], '{:.0f}')} |")
+        lines.append(
+            f"| {r['scene']} | {r['size']} | "
+            + " | ".join(_f(m[k], f) for _, k, f in COLUMNS)
+            + f" | {_f(m['cpu_s'], '{:.1f}')} | {_f(r['train_s'], '{:.0f}')} |"
+        )
     if done:
         med = {k: float(np.nanmedian([r["maps"][name][k] for r in done])) for _, k, f in COLUMNS if k != "status"}
-        lines.append(f"| **median** ({len(done)}) | | " + " | ".join(_f(med[k], f"**{f}**") if k != "status" else "" for _, k, f in COLUMNS)
-                     + f" | {_f(float(np.median([r['maps'][name]['cpu_s'] for r in done])), '{:.1f}')}"
-                     f" | {_f(float(np.median([r['train_s'] for r in done])), '{:.0f}')} |")
+        lines.append(
+            f"| **median** ({len(done)}) | | "
+            + " | ".join(_f(med[k], f"**{f}**") if k != "status" else "" for _, k, f in COLUMNS)
+            + f" | {_f(float(np.median([r['maps'][name]['cpu_s'] for r in done])), '{:.1f}')}"
+            f" | {_f(float(np.median([r['train_s'] for r in done])), '{:.0f}')} |"
+        )
     return lines
 
 
 def write_markdown(rows: list[dict], data: str, twins: Path, tolerance_mm: float, machine: str, path: Path) -> str:
     maps = sorted({m for r in rows for m in r.get("maps", {})})
-    text = [f"# Inspection map against the truth ({data})", "",
-            (f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written "
-             f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' "
-             "common module offers no anchor ratio; inspection CPU seconds are process time, twin training seconds the twin's own wall record."), "",
-            (f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "
+    text = [
+        f"# Inspection map against the truth ({data})",
+        "",
+        (
+            f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written "
+            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' "
+            "common module offers no anchor ratio; inspection CPU seconds are process time, twin training seconds the twin's own wall record."
+        ),
+        "",
+        (
+            f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "
             "along the CAD normal), in mm and in pixels at the object (over the vertex's pixel footprint, the median over the views "
             f"that see it; `pixel mm` is its median). At the {tolerance_mm:g} mm tolerance: the in/out call against the truth's on all "
             "vertices and on those the verdict calls certain (uncertainty not straddling the tolerance); uncertain %: the seen area "
             "whose uncertainty straddles it. Coverage: the share of vertices whose true error lies inside their k = 2 uncertainty "
             "U (nominal 95 %). Verdict at the tolerance with 25 % unseen allowed (these CAD variants are deformed by 3-5 % of "
-            "their size: the truth is FAIL everywhere)."), ""]
+            "their size: the truth is FAIL everywhere)."
+        ),
+        "",
+    ]
     for name in maps:
         text += [f"## map `{name}`", "", *table(rows, name), ""]
     out = "\n".join(text)

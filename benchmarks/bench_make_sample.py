@@ -57,7 +57,9 @@ def welded(path: Path, unit: str) -> trimesh.Trimesh:
 def decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
     if len(mesh.faces) <= faces:
         return mesh
-    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), target_reduction=1.0 - faces / len(mesh.faces))
+    v, f = fast_simplification.simplify(
+        np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), target_reduction=1.0 - faces / len(mesh.faces)
+    )
     return trimesh.Trimesh(v, f, process=True)
 
 
@@ -93,18 +95,32 @@ def write_library(shared: Path, dst: Path) -> list[dict]:
     disp = smooth_deformation(cad.vertices, cad.extents, DEFORM_AMPLITUDE_M, SEED)
     cad = trimesh.Trimesh(cad.vertices + disp, cad.faces, process=False)
     cad.export(dst / f"{TRUE_MODEL_ID}.ply")
-    models.append({
-        "id": TRUE_MODEL_ID, "file": f"library_meshes/{TRUE_MODEL_ID}.ply", "unit": "m", "faces": len(cad.faces),
-        "source": f"YCB {OBJECT} google_16k", "made": f"decimated {len(clamp.faces)} -> {len(cad.faces)} faces, smooth deformation up to {DEFORM_AMPLITUDE_M * 1e3:.1f} mm",
-        "max_deformation_mm": float(np.linalg.norm(disp, axis=1).max() * 1e3), "is_true_object": True,
-    })
+    models.append(
+        {
+            "id": TRUE_MODEL_ID,
+            "file": f"library_meshes/{TRUE_MODEL_ID}.ply",
+            "unit": "m",
+            "faces": len(cad.faces),
+            "source": f"YCB {OBJECT} google_16k",
+            "made": f"decimated {len(clamp.faces)} -> {len(cad.faces)} faces, smooth deformation up to {DEFORM_AMPLITUDE_M * 1e3:.1f} mm",
+            "max_deformation_mm": float(np.linalg.norm(disp, axis=1).max() * 1e3),
+            "is_true_object": True,
+        }
+    )
     for model_id, rel, unit, faces in DISTRACTORS:
         mesh = decimate(welded(shared / rel, unit), faces)
         mesh.export(dst / f"{model_id}.ply")
-        models.append({
-            "id": model_id, "file": f"library_meshes/{model_id}.ply", "unit": "m", "faces": len(mesh.faces),
-            "source": rel, "made": (f"converted from {unit} to m, " if unit != "m" else "") + f"decimated to {len(mesh.faces)} faces", "is_true_object": False,
-        })
+        models.append(
+            {
+                "id": model_id,
+                "file": f"library_meshes/{model_id}.ply",
+                "unit": "m",
+                "faces": len(mesh.faces),
+                "source": rel,
+                "made": (f"converted from {unit} to m, " if unit != "m" else "") + f"decimated to {len(mesh.faces)} faces",
+                "is_true_object": False,
+            }
+        )
     return models
 
 
@@ -151,7 +167,9 @@ def build(shared: Path, dst: Path) -> dict:
         "gt": "gt.json",
         "library_meshes": "library_meshes",
         "models": models,
-        "sha256": {str(p.relative_to(dst)): sha256_file(p) for p in sorted((dst / "library_meshes").iterdir()) + sorted((dst / "object").iterdir())},
+        "sha256": {
+            str(p.relative_to(dst)): sha256_file(p) for p in sorted((dst / "library_meshes").iterdir()) + sorted((dst / "object").iterdir())
+        },
     }
     atomic_write_json(dst / "sample.json", manifest)
     return {"synth_s": synth_s, "views": gt["views"], "heldout": gt["heldout"]}
@@ -182,8 +200,10 @@ def main() -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
-    print(f"| sample | views | held-out | synth wall (s) | size on disk (MB) |\n|---|---|---|---|---|\n"
-          f"| {OBJECT} | {stats['views']} | {stats['heldout']} | {stats['synth_s']:.1f} | {size / 1e6:.2f} |")
+    print(
+        f"| sample | views | held-out | synth wall (s) | size on disk (MB) |\n|---|---|---|---|---|\n"
+        f"| {OBJECT} | {stats['views']} | {stats['heldout']} | {stats['synth_s']:.1f} | {size / 1e6:.2f} |"
+    )
     return 0
 
 

@@ -101,29 +101,40 @@ def scene_row(scene: Path, views: str, runs: Path | None, variant: str | None) -
     fitted, rms, rms_true = best_sim3(rig_c2w, true_c2w, Ks, surface_points(vertices, faces, FIT_POINTS), true_sim3)
     held = read_capture(scene / "heldout")
     _, masks, cams = load_views(held, list(range(len(held))))
-    row = {"scene": scene.name, "views": len(idx), "rms_px_true": rms_true, "rms_px_best": rms,
-           "iou_true": heldout_iou(vertices, faces, cams, masks, true_sim3),
-           "iou_best": heldout_iou(vertices, faces, cams, masks, fitted)}
+    row = {
+        "scene": scene.name,
+        "views": len(idx),
+        "rms_px_true": rms_true,
+        "rms_px_best": rms,
+        "iou_true": heldout_iou(vertices, faces, cams, masks, true_sim3),
+        "iou_best": heldout_iou(vertices, faces, cams, masks, fitted),
+    }
     run = None if runs is None else runs / "runs" / f"{variant}-v{views}" / f"{scene.name}-r0.json"
     row["iou_twin"] = json.loads(run.read_text())["mean"]["iou"] if run is not None and run.exists() else None
     return row
 
 
 def table(rows: list[dict]) -> list[str]:
-    out = ["| scene | views | noise, RMS px at the true Sim(3) | at the best Sim(3) | held-out IoU, true mesh at the true Sim(3) "
-           "| at the best Sim(3) (ceiling) | twin | twin / ceiling gap |",
-           "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    out = [
+        "| scene | views | noise, RMS px at the true Sim(3) | at the best Sim(3) | held-out IoU, true mesh at the true Sim(3) "
+        "| at the best Sim(3) (ceiling) | twin | twin / ceiling gap |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         twin = "-" if r["iou_twin"] is None else f"{r['iou_twin']:.3f}"
         gap = "-" if r["iou_twin"] is None else f"{r['iou_twin'] - r['iou_best']:+.3f}"
-        out.append(f"| {r['scene']} | {r['views']} | {r['rms_px_true']:.2f} | {r['rms_px_best']:.2f} | {r['iou_true']:.3f} "
-                   f"| {r['iou_best']:.3f} | {twin} | {gap} |")
+        out.append(
+            f"| {r['scene']} | {r['views']} | {r['rms_px_true']:.2f} | {r['rms_px_best']:.2f} | {r['iou_true']:.3f} "
+            f"| {r['iou_best']:.3f} | {twin} | {gap} |"
+        )
     mean = lambda k: np.mean([r[k] for r in rows])  # noqa: E731
     twins = [r["iou_twin"] for r in rows if r["iou_twin"] is not None]
     twin_mean = f"{np.mean(twins):.3f}" if len(twins) == len(rows) else "-"
     gap = f"{np.mean(twins) - mean('iou_best'):+.3f}" if len(twins) == len(rows) else "-"
-    out.append(f"| **mean** | | {mean('rms_px_true'):.2f} | {mean('rms_px_best'):.2f} | {mean('iou_true'):.3f} "
-               f"| **{mean('iou_best'):.3f}** | {twin_mean} | {gap} |")
+    out.append(
+        f"| **mean** | | {mean('rms_px_true'):.2f} | {mean('rms_px_best'):.2f} | {mean('iou_true'):.3f} "
+        f"| **{mean('iou_best'):.3f}** | {twin_mean} | {gap} |"
+    )
     return out
 
 
@@ -138,12 +149,16 @@ def main() -> int:
     if not (RIG_SCENES / "scenes").is_dir():
         print(f"cannot run: the rig scenes are not at {RIG_SCENES} (set CADSPLAT_SHARED_DATA)")
         return 2
-    lines = ["# Held-out silhouette ceiling under the rig scenes' calibration noise (`python -m benchmarks.bench_noise_ceiling`)", "",
-             METHOD, ""]
+    lines = [
+        "# Held-out silhouette ceiling under the rig scenes' calibration noise (`python -m benchmarks.bench_noise_ceiling`)",
+        "",
+        METHOD,
+        "",
+    ]
     for views in args.views:
         rows = [scene_row(RIG_SCENES / "scenes" / s, views, args.runs, args.variant) for s in args.scenes.split(",")]
         lines += [f"## {views} training views" + (f" (twins: `{args.variant}`)" if args.variant else ""), "", *table(rows), ""]
-        print("\n".join(lines[-len(rows) - 4:]))
+        print("\n".join(lines[-len(rows) - 4 :]))
     lines.append(f"Written by `python -m benchmarks.bench_noise_ceiling`; {load_line()}.")
     args.out.write_text("\n".join(lines) + "\n")
     return 0

@@ -152,14 +152,17 @@ def spans_of(events, thread: int) -> list[Span]:
     """`Span`s of torch profiler `events` (FunctionEvents) on `thread`."""
     mine = [e for e in events if e.thread == thread]
     index = {e.id: k for k, e in enumerate(mine)}
-    return [Span(e.name, e.time_range.start, e.time_range.end,
-                 index.get(e.cpu_parent.id) if e.cpu_parent is not None else None, e.sequence_nr) for e in mine]
+    return [
+        Span(e.name, e.time_range.start, e.time_range.end, index.get(e.cpu_parent.id) if e.cpu_parent is not None else None, e.sequence_nr)
+        for e in mine
+    ]
 
 
 def _labelled(fn, label: str):
     def wrapper(*args, **kwargs):
         with torch.profiler.record_function(label):
             return fn(*args, **kwargs)
+
     return wrapper
 
 
@@ -174,14 +177,23 @@ def labels() -> Iterator[None]:
     import reconstruction.train as train
 
     targets = [
-        (train, "rasterize", "cs:rasterize"), (rasterization, "project_gaussians", "cs:projection"),
-        (rasterization, "sh_colors", "cs:sh_colours"), (rasterization, "bin_gaussians", "cs:binning"),
-        (losses, "ssim_map", "cs:ssim"), (losses, "dssim_l1_sums", "cs:ssim"), (train, "sh_neighbour_loss", "cs:sh_loss"),
-        (train, "sample_colors", "cs:consistency"), (train, "consistency_loss", "cs:consistency"),
-        (deformation.DeformationField, "forward", "cs:field"), (train.SplatModel, "viewmats", "cs:pose"),
-        (train.SplatModel, "clamp_", "cs:optimizer"), (train, "_grads_finite", "cs:optimizer"),
-        (adam.Adam, "step", "cs:optimizer"), (adam.Adam, "zero_grad", "cs:optimizer"),
-        (train, "_save_checkpoint", "cs:checkpoint"), (torch.autograd, "backward", "cs:backward"),
+        (train, "rasterize", "cs:rasterize"),
+        (rasterization, "project_gaussians", "cs:projection"),
+        (rasterization, "sh_colors", "cs:sh_colours"),
+        (rasterization, "bin_gaussians", "cs:binning"),
+        (losses, "ssim_map", "cs:ssim"),
+        (losses, "dssim_l1_sums", "cs:ssim"),
+        (train, "sh_neighbour_loss", "cs:sh_loss"),
+        (train, "sample_colors", "cs:consistency"),
+        (train, "consistency_loss", "cs:consistency"),
+        (deformation.DeformationField, "forward", "cs:field"),
+        (train.SplatModel, "viewmats", "cs:pose"),
+        (train.SplatModel, "clamp_", "cs:optimizer"),
+        (train, "_grads_finite", "cs:optimizer"),
+        (adam.Adam, "step", "cs:optimizer"),
+        (adam.Adam, "zero_grad", "cs:optimizer"),
+        (train, "_save_checkpoint", "cs:checkpoint"),
+        (torch.autograd, "backward", "cs:backward"),
     ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in targets]
     try:
@@ -267,9 +279,14 @@ def run(capture: Path, library: Path, preset: str, iters: int | None, work: Path
     return rec, marks, prof
 
 
-def table(per_iter: list[dict[str, float]], stages: list[tuple[str, int]], plain_ms: dict[str, float],
-          stage_wall_s: dict[str, float], iterations: dict[str, int],
-          cores: dict[str, float] | None = None) -> tuple[str, dict[str, int]]:
+def table(
+    per_iter: list[dict[str, float]],
+    stages: list[tuple[str, int]],
+    plain_ms: dict[str, float],
+    stage_wall_s: dict[str, float],
+    iterations: dict[str, int],
+    cores: dict[str, float] | None = None,
+) -> tuple[str, dict[str, int]]:
     """Markdown table: ms per iteration and % of the profiled iteration per bucket and stage (median
     over the stage's steady iterations), plus the rasterizer's share, the stage walls and, with `cores`
     (`steady_cores` of the production run), how many cores each stage kept busy."""
@@ -280,28 +297,38 @@ def table(per_iter: list[dict[str, float]], stages: list[tuple[str, int]], plain
     order = [s for s in ("pose", "deform", "photo") if by_stage[s]]
     mean = {s: {k: float(np.mean([r.get(k, 0.0) for r in by_stage[s]])) / 1000 for k in [*BUCKETS, "wall"]} for s in order}
     names = {"pose": "Stage I pose", "deform": "Stage I pose+deformation", "photo": "Stage II photometric"}
-    lines = ["| where (ms per iteration, % of it) | " + " | ".join(names[s] for s in order) + " |",
-             "|---|" + "---|" * len(order)]
+    lines = ["| where (ms per iteration, % of it) | " + " | ".join(names[s] for s in order) + " |", "|---|" + "---|" * len(order)]
     for key, label in BUCKETS.items():
         cells = [f"{mean[s][key]:.1f} ({100 * mean[s][key] / mean[s]['wall']:.0f} %)" for s in order]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append("| **iteration, profiled** | " + " | ".join(f"**{mean[s]['wall']:.1f}**" for s in order) + " |")
     spread = {s: np.percentile([r["wall"] for r in by_stage[s]], [10, 90]) / 1000 for s in order}
-    lines.append("| iteration, profiled: 10th-90th percentile | " + " | ".join(f"{spread[s][0]:.1f}-{spread[s][1]:.1f}" for s in order) + " |")
+    lines.append(
+        "| iteration, profiled: 10th-90th percentile | " + " | ".join(f"{spread[s][0]:.1f}-{spread[s][1]:.1f}" for s in order) + " |"
+    )
     lines.append("| iteration, production run (median) | " + " | ".join(f"{plain_ms.get(s, float('nan')):.1f}" for s in order) + " |")
     outside = [100 * (1 - sum(mean[s][k] for k in RASTERIZER) / mean[s]["wall"]) for s in order]
     lines.append("| **outside the rasterizer** | " + " | ".join(f"**{o:.0f} %**" for o in outside) + " |")
     if cores is not None:
-        lines.append(f"| cores busy, production run (CPU s per wall s, of {os.cpu_count()}) | "
-                     + " | ".join(f"{cores[s]:.2f}" if s in cores else "-" for s in order) + " |")
-    lines.append("| stage wall, production run (s; iterations) | "
-                 + " | ".join(f"{stage_wall_s.get(s, 0):.1f} ({iterations.get(s, 0)})" for s in order) + " |")
+        lines.append(
+            f"| cores busy, production run (CPU s per wall s, of {os.cpu_count()}) | "
+            + " | ".join(f"{cores[s]:.2f}" if s in cores else "-" for s in order)
+            + " |"
+        )
+    lines.append(
+        "| stage wall, production run (s; iterations) | "
+        + " | ".join(f"{stage_wall_s.get(s, 0):.1f} ({iterations.get(s, 0)})" for s in order)
+        + " |"
+    )
     # The whole training: each stage's profiled iteration weighted by the production run's iteration count.
     total = sum(iterations.get(s, 0) * mean[s]["wall"] for s in order)
     raster = sum(iterations.get(s, 0) * sum(mean[s][k] for k in RASTERIZER) for s in order)
     if total > 0:
-        lines += ["", f"Outside the rasterizer over the whole training (stages weighted by the production run's iterations): "
-                      f"**{100 * (1 - raster / total):.0f} %**."]
+        lines += [
+            "",
+            f"Outside the rasterizer over the whole training (stages weighted by the production run's iterations): "
+            f"**{100 * (1 - raster / total):.0f} %**.",
+        ]
     return "\n".join(lines), {s: len(by_stage[s]) for s in order}
 
 
@@ -309,7 +336,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--preset", default="cpu", choices=["cpu", "preview"])
     ap.add_argument("--capture", type=Path, default=None, help="a capture, or a rig scene holding train/ (default: the bundled sample)")
-    ap.add_argument("--library", type=Path, default=None, help="a built library for --capture (default: built from shared rig_scenes/library)")
+    ap.add_argument(
+        "--library", type=Path, default=None, help="a built library for --capture (default: built from shared rig_scenes/library)"
+    )
     ap.add_argument("--iters", type=int, default=30, help="iterations per stage (each stage runs exactly this many)")
     ap.add_argument("--work", type=Path, default=None, help="scratch directory (default: a temporary one)")
     ap.add_argument("--out", type=Path, default=RESULTS / "profile.md", help="markdown file the section is appended to")
@@ -347,27 +376,35 @@ def main() -> None:
     spans = spans_of(events, thread=next(e.thread for e in events if e.name == ITERATION))
     text, counts = table(attribute(spans), marks.stages, plain_ms, stage_wall, rec.train.iterations, cores)
     cmd = "python -m benchmarks.bench_profile " + " ".join(
-        f"--{k} {v}" for k, v in (("preset", args.preset), ("capture", args.capture), ("iters", args.iters)) if v is not None)
-    section = "\n".join([
-        f"## `{args.preset}` preset, {scene}", "",
-        f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
-        f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; CPU {cpu_line()}; the anchor {machine:.0f} ms a step "
-        f"(`reconstruction.render.anchor`), the production run {1000 * rec.twin.timings_s['total'] / machine:.1f}x the anchor; the run "
-        f"then keeps both cores busy ({load_line()} at its end); "
-        f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
-        f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "
-        f"per stage (first {WARMUP} left out): "
-        + ", ".join(f"{s} {n}" for s, n in counts.items()) + ".", "",
-        "Bucket times are the profiled run's means (main-thread self time; the rasterizer's numba kernels run on its "
-        "worker threads while the main thread waits inside the rasterizer); the profiler adds its own overhead (compare "
-        "the profiled iteration with the production run's). Checkpoints are written every `checkpoint_every` iterations "
-        "(50 in `cpu` and `preview`): with fewer capped iterations the checkpoint row stays 0.", "",
-        text, "",
-    ])
+        f"--{k} {v}" for k, v in (("preset", args.preset), ("capture", args.capture), ("iters", args.iters)) if v is not None
+    )
+    section = "\n".join(
+        [
+            f"## `{args.preset}` preset, {scene}",
+            "",
+            f"`{cmd}` — {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average {load[0]:.1f} / {load[1]:.1f} / "
+            f"{load[2]:.1f} (1/5/15 min) on {os.cpu_count()} cores at the start; CPU {cpu_line()}; the anchor {machine:.0f} ms a step "
+            f"(`reconstruction.render.anchor`), the production run {1000 * rec.twin.timings_s['total'] / machine:.1f}x the anchor; the run "
+            f"then keeps both cores busy ({load_line()} at its end); "
+            f"torch threads {torch.get_num_threads()}; {rec.twin.num_splats} splats; production run {rec.twin.timings_s['total']:.1f} s "
+            f"end to end; profiled run: each stage capped at {args.iters} iterations, plateau stop off; profiled iterations "
+            f"per stage (first {WARMUP} left out): " + ", ".join(f"{s} {n}" for s, n in counts.items()) + ".",
+            "",
+            "Bucket times are the profiled run's means (main-thread self time; the rasterizer's numba kernels run on its "
+            "worker threads while the main thread waits inside the rasterizer); the profiler adds its own overhead (compare "
+            "the profiled iteration with the production run's). Checkpoints are written every `checkpoint_every` iterations "
+            "(50 in `cpu` and `preview`): with fewer capped iterations the checkpoint row stays 0.",
+            "",
+            text,
+            "",
+        ]
+    )
     print(section, flush=True)
-    header = ("# Where an iteration's time goes (`python -m benchmarks.bench_profile`)\n\n"
-              "Issue 20's measuring stick: the production training loop per stage, by bucket. Method: the module "
-              "docstring of benchmarks/bench_profile.py.\n\n")
+    header = (
+        "# Where an iteration's time goes (`python -m benchmarks.bench_profile`)\n\n"
+        "Issue 20's measuring stick: the production training loop per stage, by bucket. Method: the module "
+        "docstring of benchmarks/bench_profile.py.\n\n"
+    )
     previous = args.out.read_text() if args.out.exists() else header
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(previous.rstrip("\n") + "\n\n" + section)

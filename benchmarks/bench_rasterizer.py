@@ -184,9 +184,7 @@ def run_production(mesh_path: Path, sh_degree: int | None, n_cams: int, width: i
 
     def forward():
         backgrounds = None if sh_degree is None else torch.rand(n_cams, 3, generator=gen)
-        rgb, alpha, meta = rasterize(
-            *params.values(), colors, viewmats, Ks, width, height, sh_degree=sh_degree, backgrounds=backgrounds
-        )
+        rgb, alpha, meta = rasterize(*params.values(), colors, viewmats, Ks, width, height, sh_degree=sh_degree, backgrounds=backgrounds)
         loss = (alpha - target_alpha).abs().mean()
         if sh_degree is not None:
             loss = loss + (rgb - target_rgb).abs().mean()

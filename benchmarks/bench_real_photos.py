@@ -29,8 +29,7 @@ import numpy as np
 from benchmarks._common import RESULTS, SHARED, engine_kwargs
 
 NERS = SHARED / "real" / "ners"
-PUBLISHED = {"NeRS (20 cars, fixed optimized cameras)": (16.5, 0.720, 0.172),
-             "CADSplat paper (20 cars)": (18.7, 0.767, 0.157)}
+PUBLISHED = {"NeRS (20 cars, fixed optimized cameras)": (16.5, 0.720, 0.172), "CADSplat paper (20 cars)": (18.7, 0.767, 0.157)}
 
 
 def convert(work: Path) -> dict[str, Path]:
@@ -77,12 +76,30 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     kw = engine_kwargs("sphere-init", args.preset, torch.cuda.is_available())
     if args.override:
         kw["overrides"] = kw.get("overrides", {}) | args.override
-    run = run_protocol(capture_dir, capture_dir, None, work / "twins" / capture_dir.name / f"{tag}-{held:02d}",
-                       preset=args.preset, views=train_idx, heldout_views=[held], refine_steps=args.refine_steps, reuse=True,
-                       overwrite=True, **kw)
-    doc = {"held": held, "train_views": train_idx, "pose_mode": run.twin.pose_mode, "num_splats": run.twin.num_splats,
-           "train_s": run.timings_s["reconstruct"], "mean": run.mean, "mean_refined": run.mean_refined,
-           "refine": run.report["views"][0].get("refine", {}), "train_fit": training_fit(capture, run.twin, train_idx)}
+    run = run_protocol(
+        capture_dir,
+        capture_dir,
+        None,
+        work / "twins" / capture_dir.name / f"{tag}-{held:02d}",
+        preset=args.preset,
+        views=train_idx,
+        heldout_views=[held],
+        refine_steps=args.refine_steps,
+        reuse=True,
+        overwrite=True,
+        **kw,
+    )
+    doc = {
+        "held": held,
+        "train_views": train_idx,
+        "pose_mode": run.twin.pose_mode,
+        "num_splats": run.twin.num_splats,
+        "train_s": run.timings_s["reconstruct"],
+        "mean": run.mean,
+        "mean_refined": run.mean_refined,
+        "refine": run.report["views"][0].get("refine", {}),
+        "train_fit": training_fit(capture, run.twin, train_idx),
+    }
     doc["refine"].pop("c2w_object", None)
     cache.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(cache, doc)
@@ -100,12 +117,21 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="preview preset, 3 folds per set, 50 refinement steps")
     ap.add_argument("--preset", default=None)
     ap.add_argument("--refine-steps", type=int, default=None)
-    ap.add_argument("--folds", default=None, help="score only some leave-one-out folds: the first N for every set, or per set as car=8,espresso=3, "
-                         "or a range of held-out photos as car=1-7")
+    ap.add_argument(
+        "--folds",
+        default=None,
+        help="score only some leave-one-out folds: the first N for every set, or per set as car=8,espresso=3, "
+        "or a range of held-out photos as car=1-7",
+    )
     ap.add_argument("--sets", default="car,espresso", help="comma-separated: car, espresso")
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-real-photos"))
-    ap.add_argument("--override", action="append", default=[], metavar="FIELD=INT",
-                    help="set an integer preset field after the preset is sized, e.g. iters_deform=400 (repeatable)")
+    ap.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="FIELD=INT",
+        help="set an integer preset field after the preset is sized, e.g. iters_deform=400 (repeatable)",
+    )
     args = ap.parse_args()
     try:
         args.override = {k: int(v) for k, v in (o.split("=", 1) for o in args.override)}
@@ -117,8 +143,13 @@ def main() -> None:
     args.refine_steps = args.refine_steps if args.refine_steps is not None else (50 if args.quick else 400)
     args.folds = args.folds or ("3" if args.quick else None)
     try:
-        caps = ({k: fold_range(v) for k, v in (p.split("=") for p in args.folds.split(","))} if args.folds and "=" in args.folds
-                else {name: fold_range(args.folds) for name in ("car", "espresso")} if args.folds else {})
+        caps = (
+            {k: fold_range(v) for k, v in (p.split("=") for p in args.folds.split(","))}
+            if args.folds and "=" in args.folds
+            else {name: fold_range(args.folds) for name in ("car", "espresso")}
+            if args.folds
+            else {}
+        )
     except ValueError:
         sys.exit(f"--folds takes N, SET=N or SET=FIRST-LAST (held-out photo indices), got {args.folds!r}")
     args.work.mkdir(parents=True, exist_ok=True)
@@ -138,11 +169,16 @@ def main() -> None:
         "| set | folds | train s / fold | PSNR | SSIM | LPIPS | PSNR (no refinement) | IoU |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    per_fold = ["", "Per fold: the held-out photo's object-crop PSNR after refinement and at its imported camera (no refinement) "
-                "with its IoU there; how well the twin fits its own training photos (silhouette IoU mean (min-max) at the "
-                "cameras it trained with, mean at the imported cameras; object-crop PSNR at the trained cameras).", "",
-                "| set | held out | pose mode | PSNR | PSNR (no refinement) | IoU (no refinement) | training IoU, trained cameras | "
-                "training IoU, imported cameras | training PSNR |", "|---|---|---|---|---|---|---|---|---|"]
+    per_fold = [
+        "",
+        "Per fold: the held-out photo's object-crop PSNR after refinement and at its imported camera (no refinement) "
+        "with its IoU there; how well the twin fits its own training photos (silhouette IoU mean (min-max) at the "
+        "cameras it trained with, mean at the imported cameras; object-crop PSNR at the trained cameras).",
+        "",
+        "| set | held out | pose mode | PSNR | PSNR (no refinement) | IoU (no refinement) | training IoU, trained cameras | "
+        "training IoU, imported cameras | training PSNR |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     wanted = set(args.sets.split(","))
     for name, cap in convert(args.work).items():
         if cap.name not in wanted:
@@ -160,12 +196,17 @@ def main() -> None:
             f = folds[-1]
             m = f["mean_refined"] or f["mean"]
             fit = f["train_fit"]
-            print(f"{name} fold {held}: PSNR {m['psnr']:.2f} SSIM {m['ssim']:.3f} LPIPS {m['lpips']:.3f}; training photos: IoU "
-                  f"{np.mean(fit['trained']['iou']):.3f} at the trained cameras, {np.mean(fit['imported']['iou']):.3f} at the "
-                  f"imported ones ({f['train_s']:.0f} s)", flush=True)
-            per_fold.append(f"| {name} | {held} | {f['pose_mode']} | {m['psnr']:.2f} | {f['mean']['psnr']:.2f} | {f['mean']['iou']:.3f} | "
-                            f"{np.mean(fit['trained']['iou']):.3f} ({min(fit['trained']['iou']):.3f}-{max(fit['trained']['iou']):.3f}) | "
-                            f"{np.mean(fit['imported']['iou']):.3f} | {np.mean(fit['trained']['psnr']):.2f} |")
+            print(
+                f"{name} fold {held}: PSNR {m['psnr']:.2f} SSIM {m['ssim']:.3f} LPIPS {m['lpips']:.3f}; training photos: IoU "
+                f"{np.mean(fit['trained']['iou']):.3f} at the trained cameras, {np.mean(fit['imported']['iou']):.3f} at the "
+                f"imported ones ({f['train_s']:.0f} s)",
+                flush=True,
+            )
+            per_fold.append(
+                f"| {name} | {held} | {f['pose_mode']} | {m['psnr']:.2f} | {f['mean']['psnr']:.2f} | {f['mean']['iou']:.3f} | "
+                f"{np.mean(fit['trained']['iou']):.3f} ({min(fit['trained']['iou']):.3f}-{max(fit['trained']['iou']):.3f}) | "
+                f"{np.mean(fit['imported']['iou']):.3f} | {np.mean(fit['trained']['psnr']):.2f} |"
+            )
         if not folds:
             lines.append(f"| {name} | 0 | - | - | - | - | - | - |")
             continue
@@ -174,13 +215,19 @@ def main() -> None:
             vals = [(f["mean_refined"] if refined and f["mean_refined"] else f["mean"])[key] for f in folds]
             return float(np.mean([v for v in vals if v is not None]))
 
-        lines.append(f"| {name} | {len(folds)}/{n} | {np.mean([f['train_s'] for f in folds]):.0f} | {avg('psnr'):.2f} | "
-                     f"{avg('ssim'):.3f} | {avg('lpips'):.3f} | {avg('psnr', False):.2f} | {avg('iou'):.3f} |")
+        lines.append(
+            f"| {name} | {len(folds)}/{n} | {np.mean([f['train_s'] for f in folds]):.0f} | {avg('psnr'):.2f} | "
+            f"{avg('ssim'):.3f} | {avg('lpips'):.3f} | {avg('psnr', False):.2f} | {avg('iou'):.3f} |"
+        )
     for name, (p, s, lp) in PUBLISHED.items():
         lines.append(f"| {name} | published | - | {p} | {s:.3f} | {lp:.3f} | - | - |")
     lines += per_fold
-    lines += ["", f"2 shared CPU cores (15-minute load average {os.getloadavg()[2]:.1f} when this table was written). Folds are "
-              f"cached; this invocation took {(time.perf_counter() - t0) / 60:.1f} min.", ""]
+    lines += [
+        "",
+        f"2 shared CPU cores (15-minute load average {os.getloadavg()[2]:.1f} when this table was written). Folds are "
+        f"cached; this invocation took {(time.perf_counter() - t0) / 60:.1f} min.",
+        "",
+    ]
     text = "\n".join(lines)
     suffix = "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
     (RESULTS / f"real_photos{suffix}.md").write_text(text)

@@ -30,9 +30,9 @@ import torch
 from benchmarks._common import REPO, RESULTS, SHARED, decimate
 from calibration.camera import look_at_c2w
 from reconstruction.deformation import DeformationField, FieldConfig
+from reconstruction.mesh_io import read_mesh_parts
 from reconstruction.render import rasterize
 from reconstruction.splats import init_splats
-from reconstruction.mesh_io import read_mesh_parts
 
 SAMPLE_CAD = REPO / "sample" / "library_meshes" / "medium_clamp_cad.ply"
 OBJECTS = ["050_medium_clamp", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane"]
@@ -70,8 +70,9 @@ def field_sweep(n_splats: int, steps: int) -> list[dict]:
             opt.step()
         dt = (time.perf_counter() - t0) / steps
         rms = float(np.sqrt(((f().detach().numpy() - target) ** 2).mean()))
-        rows.append({"config": name, "evals": f.num_evaluations, "ms_per_step": 1000 * dt, "rms_mm": 1000 * rms,
-                     "residual_pct": 100 * rms / rms0})
+        rows.append(
+            {"config": name, "evals": f.num_evaluations, "ms_per_step": 1000 * dt, "rms_mm": 1000 * rms, "residual_pct": 100 * rms / rms0}
+        )
         print(rows[-1], flush=True)
     return rows
 
@@ -81,8 +82,15 @@ def batching_sweep(n_splats: int, reps: int) -> list[dict]:
     s = init_splats(parts.vertices, parts.faces, n_splats, sh_degree=2, seed=0)
     c = 0.5 * (s.means.min(0) + s.means.max(0))
     K = torch.tensor([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
-    vms = torch.tensor(np.stack([np.linalg.inv(look_at_c2w(c + 0.35 * np.array([np.cos(a), np.sin(a), 0.4]), c))
-                                 for a in np.linspace(0, 2 * np.pi, 9, endpoint=False)]), dtype=torch.float32)
+    vms = torch.tensor(
+        np.stack(
+            [
+                np.linalg.inv(look_at_c2w(c + 0.35 * np.array([np.cos(a), np.sin(a), 0.4]), c))
+                for a in np.linspace(0, 2 * np.pi, 9, endpoint=False)
+            ]
+        ),
+        dtype=torch.float32,
+    )
     means, quats = torch.tensor(s.means), torch.tensor(s.gaussians.quats)
     ls = torch.tensor(s.gaussians.log_scales, requires_grad=True)
     sh = torch.tensor(s.gaussians.sh, requires_grad=True)
@@ -92,7 +100,9 @@ def batching_sweep(n_splats: int, reps: int) -> list[dict]:
         times = []
         for _ in range(reps):
             t0 = time.perf_counter()
-            rgb, a, _ = rasterize(means, quats, torch.exp(ls), torch.sigmoid(op), sh, vms[:views], K.expand(views, 3, 3), 320, 240, sh_degree=2)
+            rgb, a, _ = rasterize(
+                means, quats, torch.exp(ls), torch.sigmoid(op), sh, vms[:views], K.expand(views, 3, 3), 320, 240, sh_degree=2
+            )
             (rgb.mean() + a.mean()).backward()
             times.append(time.perf_counter() - t0)
         t = float(np.median(times))
@@ -134,21 +144,48 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
         m = trimesh.load(mesh, force="mesh", process=False)
         near = near_symmetries(np.asarray(m.vertices), np.asarray(m.faces), tol_m)
         # The paper's protocol: with and without test-time refinement (per-camera pose delta, twin frozen).
-        run = run_protocol(scene / "train", scene / "heldout", lib, work / f"{obj}_twin", preset="cpu", heldout_views=12,
-                           refine_steps=refine_steps, gt=gt, symmetries=[s.transform for s in near], reuse=reuse, overwrite=True)
+        run = run_protocol(
+            scene / "train",
+            scene / "heldout",
+            lib,
+            work / f"{obj}_twin",
+            preset="cpu",
+            heldout_views=12,
+            refine_steps=refine_steps,
+            gt=gt,
+            symmetries=[s.transform for s in near],
+            reuse=reuse,
+            overwrite=True,
+        )
         twin, t = run.twin, run.twin.timings_s
         iters = twin.choices["iterations"]["value"]
-        rows.append({
-            "object": obj, "model": twin.model_id, "splats": twin.num_splats, "wall_s": t["total"],
-            "register_s": t["registration"], "pose_s": t["train_pose"], "deform_s": t["train_deform"], "photo_s": t["train_photo"],
-            "iters": iters, "load": os.getloadavg()[0], "fgpsnr": run.mean["fgpsnr"], "iou": run.mean["iou"],
-            "fgpsnr_refined": run.mean_refined["fgpsnr"], "iou_refined": run.mean_refined["iou"],
-            "rot_init": run.reg_init["rotation_deg_median"], "ctr_init": run.reg_init["center_pct_median"],
-            "rot": run.reg_refined["rotation_deg_median"], "ctr": run.reg_refined["center_pct_median"],
-            "rot_raw": run.reg_raw["rotation_deg_median"], "ctr_raw": run.reg_raw["center_pct_median"],
-            "symmetry": _symmetry_label(near, tol_m), "pose_mode": twin.choices["pose_mode"]["value"],
-            "ambiguity": "yes" if (twin.choices["registration"]["value"].get("ambiguity") or {}).get("ambiguous") else "no",
-        })
+        rows.append(
+            {
+                "object": obj,
+                "model": twin.model_id,
+                "splats": twin.num_splats,
+                "wall_s": t["total"],
+                "register_s": t["registration"],
+                "pose_s": t["train_pose"],
+                "deform_s": t["train_deform"],
+                "photo_s": t["train_photo"],
+                "iters": iters,
+                "load": os.getloadavg()[0],
+                "fgpsnr": run.mean["fgpsnr"],
+                "iou": run.mean["iou"],
+                "fgpsnr_refined": run.mean_refined["fgpsnr"],
+                "iou_refined": run.mean_refined["iou"],
+                "rot_init": run.reg_init["rotation_deg_median"],
+                "ctr_init": run.reg_init["center_pct_median"],
+                "rot": run.reg_refined["rotation_deg_median"],
+                "ctr": run.reg_refined["center_pct_median"],
+                "rot_raw": run.reg_raw["rotation_deg_median"],
+                "ctr_raw": run.reg_raw["center_pct_median"],
+                "symmetry": _symmetry_label(near, tol_m),
+                "pose_mode": twin.choices["pose_mode"]["value"],
+                "ambiguity": "yes" if (twin.choices["registration"]["value"].get("ambiguity") or {}).get("ambiguous") else "no",
+            }
+        )
         print(rows[-1], flush=True)
     return rows
 
@@ -163,11 +200,20 @@ def _symmetry_label(near, tol_m: float) -> str:
 
 
 def _sweep_lines(fields, batching) -> list[str]:
-    lines = ["## Deformation field: cost vs accuracy (fit of a known smooth warp, same Adam steps)", "",
-             "| field | MLP evaluations | ms / step | RMS error (mm) | residual % |", "|---|---:|---:|---:|---:|"]
+    lines = [
+        "## Deformation field: cost vs accuracy (fit of a known smooth warp, same Adam steps)",
+        "",
+        "| field | MLP evaluations | ms / step | RMS error (mm) | residual % |",
+        "|---|---:|---:|---:|---:|",
+    ]
     lines += [f"| {r['config']} | {r['evals']} | {r['ms_per_step']:.1f} | {r['rms_mm']:.3f} | {r['residual_pct']:.1f} |" for r in fields]
-    lines += ["", "## Views per iteration (rasterizer forward + backward, 320x240, SH degree 2)", "",
-              "| views / iteration | s / iteration | s / view |", "|---:|---:|---:|"]
+    lines += [
+        "",
+        "## Views per iteration (rasterizer forward + backward, 320x240, SH degree 2)",
+        "",
+        "| views / iteration | s / iteration | s / view |",
+        "|---:|---:|---:|",
+    ]
     lines += [f"| {r['views_per_iter']} | {r['s_per_iter']:.3f} | {r['s_per_view']:.3f} |" for r in batching]
     return lines
 
@@ -181,31 +227,46 @@ def write(fields, batching, objects, threads: int) -> None:
         # per-object table; replace the table.
         head, _, rest = md.read_text().partition("\n## `cpu` preset on shared objects")
         lines = head.rstrip("\n").split("\n")
-        tail = rest[rest.find("\n## "):] if "\n## " in rest else ""
+        tail = rest[rest.find("\n## ") :] if "\n## " in rest else ""
     else:
-        lines = ["# Reconstruction benchmark", "", f"torch threads: {threads}; 2-core shared machine (timings are upper bounds under load).", ""]
+        lines = [
+            "# Reconstruction benchmark",
+            "",
+            f"torch threads: {threads}; 2-core shared machine (timings are upper bounds under load).",
+            "",
+        ]
         lines += _sweep_lines(fields, batching)
     if objects:
-        lines += ["", "## `cpu` preset on shared objects (9 views, 320x240, 0.3 deg / 2 mm calibration noise)", "",
-                  "Held-out: 12 of 36 orbit views (exact rig cameras), scored at the twin's poses and after the paper's test-time "
-                  "refinement (100 steps, per-camera pose delta, twin frozen). Registration errors: medians over the 9 train "
-                  "cameras against the true object poses, modulo the object's near-symmetries (`reconstruction.symmetry`: turns "
-                  "about the centroid, refined by ICP, that move the true mesh's surface by less than the 2 mm calibration noise; "
-                  "mean closest-point distance in brackets); raw: without them. Pose mode: chosen from the capture's stated "
-                  "calibration uncertainty (0.3 deg / 2 mm, about 4 px at the object). ambiguous: a distinct pose of the same "
-                  "model scored within 0.03 silhouette IoU. Load: 1-minute load average when the row was written (2 cores).", "",
-                  "| object | pose mode | splats | iters pose/deform/photo | total s | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | refined fgPSNR | refined IoU | rot init / refined (deg) | centre init / refined (%) | raw rot / centre | near-symmetries | ambiguous | load |",
-                  "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---:|"]
-        lines += [f"| {r['object']} | {r['pose_mode']} | {r['splats']} | {r['iters']['pose']}/{r['iters']['deform']}/{r['iters']['photo']} | "
-                  f"{r['wall_s']:.0f} | {r['register_s']:.0f} | {r['pose_s']:.0f} | "
-                  f"{r['deform_s']:.0f} | {r['photo_s']:.0f} | {r['fgpsnr']:.2f} | {r['iou']:.3f} | {r['fgpsnr_refined']:.2f} | "
-                  f"{r['iou_refined']:.3f} | {r['rot_init']:.2f} / {r['rot']:.2f} | "
-                  f"{r['ctr_init']:.2f} / {r['ctr']:.2f} | {r['rot_raw']:.2f} / {r['ctr_raw']:.2f} | {r['symmetry']} | {r['ambiguity']} | {r['load']:.1f} |"
-                  for r in objects]
+        lines += [
+            "",
+            "## `cpu` preset on shared objects (9 views, 320x240, 0.3 deg / 2 mm calibration noise)",
+            "",
+            "Held-out: 12 of 36 orbit views (exact rig cameras), scored at the twin's poses and after the paper's test-time "
+            "refinement (100 steps, per-camera pose delta, twin frozen). Registration errors: medians over the 9 train "
+            "cameras against the true object poses, modulo the object's near-symmetries (`reconstruction.symmetry`: turns "
+            "about the centroid, refined by ICP, that move the true mesh's surface by less than the 2 mm calibration noise; "
+            "mean closest-point distance in brackets); raw: without them. Pose mode: chosen from the capture's stated "
+            "calibration uncertainty (0.3 deg / 2 mm, about 4 px at the object). ambiguous: a distinct pose of the same "
+            "model scored within 0.03 silhouette IoU. Load: 1-minute load average when the row was written (2 cores).",
+            "",
+            "| object | pose mode | splats | iters pose/deform/photo | total s | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | refined fgPSNR | refined IoU | rot init / refined (deg) | centre init / refined (%) | raw rot / centre | near-symmetries | ambiguous | load |",
+            "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---:|",
+        ]
+        lines += [
+            f"| {r['object']} | {r['pose_mode']} | {r['splats']} | {r['iters']['pose']}/{r['iters']['deform']}/{r['iters']['photo']} | "
+            f"{r['wall_s']:.0f} | {r['register_s']:.0f} | {r['pose_s']:.0f} | "
+            f"{r['deform_s']:.0f} | {r['photo_s']:.0f} | {r['fgpsnr']:.2f} | {r['iou']:.3f} | {r['fgpsnr_refined']:.2f} | "
+            f"{r['iou_refined']:.3f} | {r['rot_init']:.2f} / {r['rot']:.2f} | "
+            f"{r['ctr_init']:.2f} / {r['ctr']:.2f} | {r['rot_raw']:.2f} / {r['ctr_raw']:.2f} | {r['symmetry']} | {r['ambiguity']} | {r['load']:.1f} |"
+            for r in objects
+        ]
         med = {k: float(np.median([r[k] for r in objects])) for k in ("rot_init", "rot", "ctr_init", "ctr", "iou", "iou_refined")}
-        lines += ["", f"Medians over the {len(objects)} objects: rotation {med['rot_init']:.2f} -> {med['rot']:.2f} deg, centre "
-                  f"{med['ctr_init']:.2f} -> {med['ctr']:.2f} % (the paper's T_opt: 2.9 deg / 6.1 %); held-out IoU {med['iou']:.3f}, "
-                  f"{med['iou_refined']:.3f} after test-time refinement."]
+        lines += [
+            "",
+            f"Medians over the {len(objects)} objects: rotation {med['rot_init']:.2f} -> {med['rot']:.2f} deg, centre "
+            f"{med['ctr_init']:.2f} -> {med['ctr']:.2f} % (the paper's T_opt: 2.9 deg / 6.1 %); held-out IoU {med['iou']:.3f}, "
+            f"{med['iou_refined']:.3f} after test-time refinement.",
+        ]
     text = "\n".join(lines) + "\n" + tail
     md.write_text(text)
     print(text)

@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 import trimesh
 
 from benchmarks._common import RESULTS, SHARED, decimate, deform
@@ -39,7 +38,15 @@ from reconstruction.library import build_library
 from reconstruction.pose_metrics import registration_errors
 from reconstruction.registration import hypothesis, independent_poses, observe, register
 from reconstruction.silhouette import pack, render_silhouette, unpack
-from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, popcount_rows, read_shard, render_model_views, write_shard
+from reconstruction.silhouette_index import (
+    GridSpec,
+    SilhouetteIndex,
+    consolidate,
+    popcount_rows,
+    read_shard,
+    render_model_views,
+    write_shard,
+)
 
 # The synthetic rig renders off-screen (set before rig.synthetic imports MuJoCo).
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -48,9 +55,17 @@ YCB = SHARED / "objects" / "ycb"
 PARTS = SHARED / "cad" / "parts"
 # Units of the shared CAD parts, declared after inspection (exact inch fractions / mm / m sizes).
 PART_UNITS = {
-    "1002_tray_bottom.STL": "mm", "ADIS16480.STL": "m", "angle_block.STL": "in", "featuretype.STL": "in",
-    "idler_riser.STL": "in", "large_block.STL": "mm", "octagonal_pocket.stl": "m", "plate_holes.STL": "mm",
-    "round.stl": "cm", "torus.STL": "in", "busted.STL": "mm",
+    "1002_tray_bottom.STL": "mm",
+    "ADIS16480.STL": "m",
+    "angle_block.STL": "in",
+    "featuretype.STL": "in",
+    "idler_riser.STL": "in",
+    "large_block.STL": "mm",
+    "octagonal_pocket.stl": "m",
+    "plate_holes.STL": "mm",
+    "round.stl": "cm",
+    "torus.STL": "in",
+    "busted.STL": "mm",
 }
 
 
@@ -113,8 +128,17 @@ def make_scenes(work: Path, n_scenes: int) -> list[Path]:
         obj = objs[i % len(objs)]
         d = work / "scenes" / f"{i:02d}_{obj}"
         if not (d / "gt.json").exists():
-            synth_dataset(YCB / obj / "textured.obj", d, views=9 + (i % 5), heldout=0, size=(320, 240), seed=100 + i,
-                          calib_noise_deg=0.3, calib_noise_mm=2.0, texture_size=256)
+            synth_dataset(
+                YCB / obj / "textured.obj",
+                d,
+                views=9 + (i % 5),
+                heldout=0,
+                size=(320, 240),
+                seed=100 + i,
+                calib_noise_deg=0.3,
+                calib_noise_mm=2.0,
+                texture_size=256,
+            )
         out.append(d)
     return out
 
@@ -154,14 +178,24 @@ def run_scenes(scenes: list[Path], lib, derived: dict) -> list[dict]:
         c2w_ind = np.stack([indep[i][1] for i in ok])
         gt_sub = {"train_c2w_object": [gt["train_c2w_object"][i] for i in ok]}
         iraw, isym = scene_errors(c2w_ind, gt_sub, obj)
-        rows.append({
-            "scene": d.name, "views": len(cams), "chosen": res.model_id, "correct": res.model_id == derived[obj][0],
-            "rot_deg": raw["rotation_deg_median"], "ctr_pct": raw["center_pct_median"],
-            "rot_sym_deg": sym["rotation_deg_median"], "ctr_sym_pct": sym["center_pct_median"],
-            "iou": res.score, "time_s": elapsed, "ambiguous": bool(res.ambiguity and res.ambiguity["ambiguous"]),
-            "indep_rot_deg": isym["rotation_deg_median"], "indep_ctr_pct": isym["center_pct_median"],
-            "indep_right_model": float(np.mean([indep[i][0] == derived[obj][0] for i in ok])),
-        })
+        rows.append(
+            {
+                "scene": d.name,
+                "views": len(cams),
+                "chosen": res.model_id,
+                "correct": res.model_id == derived[obj][0],
+                "rot_deg": raw["rotation_deg_median"],
+                "ctr_pct": raw["center_pct_median"],
+                "rot_sym_deg": sym["rotation_deg_median"],
+                "ctr_sym_pct": sym["center_pct_median"],
+                "iou": res.score,
+                "time_s": elapsed,
+                "ambiguous": bool(res.ambiguity and res.ambiguity["ambiguous"]),
+                "indep_rot_deg": isym["rotation_deg_median"],
+                "indep_ctr_pct": isym["center_pct_median"],
+                "indep_right_model": float(np.mean([indep[i][0] == derived[obj][0] for i in ok])),
+            }
+        )
         print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rows[-1].items()}), flush=True)
     return rows
 
@@ -199,15 +233,36 @@ def grid_curve(work: Path, dirs_list, canvases, n_views: int) -> list[dict]:
                 words, geom = shards[o]
                 c, r = meshes[o].bounds.mean(0), float(np.linalg.norm(meshes[o].vertices - meshes[o].bounds.mean(0), axis=1).max())
                 order = np.argsort(popcount_rows(words), kind="stable")
-                idx = SilhouetteIndex(grid, [o], words[order], popcount_rows(words)[order], geom[order], np.zeros(n_dirs, np.int32), np.arange(n_dirs, dtype=np.int32)[order], c[None], np.array([r]))
+                idx = SilhouetteIndex(
+                    grid,
+                    [o],
+                    words[order],
+                    popcount_rows(words)[order],
+                    geom[order],
+                    np.zeros(n_dirs, np.int32),
+                    np.arange(n_dirs, dtype=np.int32)[order],
+                    c[None],
+                    np.array([r]),
+                )
                 obs = observe(mask, cam, canvas)
                 m = idx.query(obs.variants, top_k=50, min_iou=0.0)
-                errs = [geodesic_angle_deg(hypothesis(obs, 0, idx, int(row), int(q), float(i)).r_obj_cam, cam.c2w[:3, :3]) for row, q, i in zip(m.rows, m.variant, m.iou)]
+                errs = [
+                    geodesic_angle_deg(hypothesis(obs, 0, idx, int(row), int(q), float(i)).r_obj_cam, cam.c2w[:3, :3])
+                    for row, q, i in zip(m.rows, m.variant, m.iou)
+                ]
                 errs1.append(errs[0])
                 errs50.append(min(errs))
-            rows.append({"canvas": canvas, "n_dirs": n_dirs, "bytes_per_model": n_dirs * grid.words * 8 + n_dirs * 24,
-                         "top1_median_deg": float(np.median(errs1)), "best50_median_deg": float(np.median(errs50)),
-                         "best50_p90_deg": float(np.percentile(errs50, 90)), "render_s_per_model": build})
+            rows.append(
+                {
+                    "canvas": canvas,
+                    "n_dirs": n_dirs,
+                    "bytes_per_model": n_dirs * grid.words * 8 + n_dirs * 24,
+                    "top1_median_deg": float(np.median(errs1)),
+                    "best50_median_deg": float(np.median(errs50)),
+                    "best50_p90_deg": float(np.percentile(errs50, 90)),
+                    "render_s_per_model": build,
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -249,8 +304,16 @@ def scale_test(lib, n_models: int, capture_dir: Path, work: Path) -> dict:
             idx.query(o.variants, top_k=50, min_iou=0.7)
         times.append(time.perf_counter() - t)
     index_bytes = sum((out / "index" / f"{n}.npy").stat().st_size for n in ("words", "counts", "geom", "model_row", "dir_idx"))
-    return {"models": n_models, "rows": len(idx), "views": len(masks), "query_s_min": min(times), "query_s_median": float(np.median(times)),
-            "index_bytes_per_model": index_bytes / n_models, "consolidate_s": t_cons, "replicate_s": t_rep}
+    return {
+        "models": n_models,
+        "rows": len(idx),
+        "views": len(masks),
+        "query_s_min": min(times),
+        "query_s_median": float(np.median(times)),
+        "index_bytes_per_model": index_bytes / n_models,
+        "consolidate_s": t_cons,
+        "replicate_s": t_rep,
+    }
 
 
 def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = None) -> str:
@@ -262,26 +325,44 @@ def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = 
     RESULTS.mkdir(parents=True, exist_ok=True)
     lines = ["# Registration benchmark" + (" (--quick)" if quick and name is None else " (--scenes-only)" if name else ""), ""]
     lines += [f"Load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine; times are wall clock).", ""]
-    lines += ["## Scenes: consensus registration vs independent per-camera matching", "",
-              "| scene | views | chosen model | right | rot ° | ctr % | rot ° (sym) | ctr % (sym) | mean IoU | ambiguous | time s | indep rot ° | indep ctr % | indep right model |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "## Scenes: consensus registration vs independent per-camera matching",
+        "",
+        "| scene | views | chosen model | right | rot ° | ctr % | rot ° (sym) | ctr % (sym) | mean IoU | ambiguous | time s | indep rot ° | indep ctr % | indep right model |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['views']} | {r['chosen']} | {'yes' if r['correct'] else 'NO'} | {r['rot_deg']:.2f} | {r['ctr_pct']:.1f} | "
-                     f"{r['rot_sym_deg']:.2f} | {r['ctr_sym_pct']:.1f} | {r['iou']:.3f} | {'yes' if r['ambiguous'] else 'no'} | {r['time_s']:.1f} | "
-                     f"{r['indep_rot_deg']:.1f} | {r['indep_ctr_pct']:.0f} | {100 * r['indep_right_model']:.0f}% |")
+        lines.append(
+            f"| {r['scene']} | {r['views']} | {r['chosen']} | {'yes' if r['correct'] else 'NO'} | {r['rot_deg']:.2f} | {r['ctr_pct']:.1f} | "
+            f"{r['rot_sym_deg']:.2f} | {r['ctr_sym_pct']:.1f} | {r['iou']:.3f} | {'yes' if r['ambiguous'] else 'no'} | {r['time_s']:.1f} | "
+            f"{r['indep_rot_deg']:.1f} | {r['indep_ctr_pct']:.0f} | {100 * r['indep_right_model']:.0f}% |"
+        )
     med = lambda k: float(np.median([r[k] for r in rows]))  # noqa: E731
-    lines += ["", f"**Median over {len(rows)} scenes**: rotation {med('rot_sym_deg'):.2f}° (raw {med('rot_deg'):.2f}°), "
-              f"camera centre {med('ctr_sym_pct'):.1f} % (raw {med('ctr_pct'):.1f} %), right model first in "
-              f"{100 * np.mean([r['correct'] for r in rows]):.0f} % of scenes, time {med('time_s'):.1f} s. "
-              f"Independent per-camera matching: {med('indep_rot_deg'):.1f}° / {med('indep_ctr_pct'):.0f} %. "
-              f"Targets: <= 4°, <= 10 %, >= 95 %. (sym = symmetry-aware for the cube and the brick, as the paper reports near-symmetric objects.)", ""]
-    lines += [f"Library: {build['models']} models ({build['distractors']} distractors per scene), built in {build['build_s']:.0f} s "
-              f"({build['build_s'] / build['models']:.2f} s per model wall, {build['workers']} workers), shard {build['shard_bytes']:.0f} bytes per model.", ""]
+    lines += [
+        "",
+        f"**Median over {len(rows)} scenes**: rotation {med('rot_sym_deg'):.2f}° (raw {med('rot_deg'):.2f}°), "
+        f"camera centre {med('ctr_sym_pct'):.1f} % (raw {med('ctr_pct'):.1f} %), right model first in "
+        f"{100 * np.mean([r['correct'] for r in rows]):.0f} % of scenes, time {med('time_s'):.1f} s. "
+        f"Independent per-camera matching: {med('indep_rot_deg'):.1f}° / {med('indep_ctr_pct'):.0f} %. "
+        f"Targets: <= 4°, <= 10 %, >= 95 %. (sym = symmetry-aware for the cube and the brick, as the paper reports near-symmetric objects.)",
+        "",
+    ]
+    lines += [
+        f"Library: {build['models']} models ({build['distractors']} distractors per scene), built in {build['build_s']:.0f} s "
+        f"({build['build_s'] / build['models']:.2f} s per model wall, {build['workers']} workers), shard {build['shard_bytes']:.0f} bytes per model.",
+        "",
+    ]
     if grid_rows:
-        lines += ["## Grid choice: best-hypothesis rotation error against grid size", "",
-                  "| canvas S | directions | bytes/model | top-1 median ° | best-of-50 median ° | best-of-50 p90 ° | render s/model |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            "## Grid choice: best-hypothesis rotation error against grid size",
+            "",
+            "| canvas S | directions | bytes/model | top-1 median ° | best-of-50 median ° | best-of-50 p90 ° | render s/model |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for g in grid_rows:
-            lines.append(f"| {g['canvas']} | {g['n_dirs']} | {g['bytes_per_model']} | {g['top1_median_deg']:.1f} | {g['best50_median_deg']:.1f} | {g['best50_p90_deg']:.1f} | {g['render_s_per_model']:.2f} |")
+            lines.append(
+                f"| {g['canvas']} | {g['n_dirs']} | {g['bytes_per_model']} | {g['top1_median_deg']:.1f} | {g['best50_median_deg']:.1f} | {g['best50_p90_deg']:.1f} | {g['render_s_per_model']:.2f} |"
+            )
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
         for canvas in sorted({g["canvas"] for g in grid_rows}):
             sub = [g for g in grid_rows if g["canvas"] == canvas]
@@ -299,12 +380,17 @@ def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = 
         fig.savefig(RESULTS / "registration_grid.png", dpi=120)
         lines += ["", "![grid](registration_grid.png)", ""]
     if scale:
-        lines += ["## Scale", "", f"{scale['models']}-model index ({scale['rows']:,} silhouettes, {scale['index_bytes_per_model']:.0f} bytes per model) "
-                  f"queried with a {scale['views']}-view capture (observe + top-50 for every view): {scale['query_s_min']:.2f} s best of 3, "
-                  f"{scale['query_s_median']:.2f} s median. Consolidating the shards took {scale['consolidate_s']:.1f} s. "
-                  f"Rendering: {build['build_s'] / build['models']:.2f} s per model wall here -> "
-                  f"{build['build_s'] / build['models'] * scale['models'] / 60:.0f} min to render {scale['models']} models at this machine's throughput "
-                  f"(the replicas themselves are copies of the {build['models']} rendered models with 1-pixel shifts: the query time is real, the build time is extrapolated).", ""]
+        lines += [
+            "## Scale",
+            "",
+            f"{scale['models']}-model index ({scale['rows']:,} silhouettes, {scale['index_bytes_per_model']:.0f} bytes per model) "
+            f"queried with a {scale['views']}-view capture (observe + top-50 for every view): {scale['query_s_min']:.2f} s best of 3, "
+            f"{scale['query_s_median']:.2f} s median. Consolidating the shards took {scale['consolidate_s']:.1f} s. "
+            f"Rendering: {build['build_s'] / build['models']:.2f} s per model wall here -> "
+            f"{build['build_s'] / build['models'] * scale['models'] / 60:.0f} min to render {scale['models']} models at this machine's throughput "
+            f"(the replicas themselves are copies of the {build['models']} rendered models with 1-pixel shifts: the query time is real, the build time is extrapolated).",
+            "",
+        ]
     text = "\n".join(lines)
     (RESULTS / (name or ("registration_quick.md" if quick else "registration.md"))).write_text(text + "\n")
     return text
@@ -331,16 +417,25 @@ def main() -> None:
     if fresh:
         timing.write_text(json.dumps({"build_s": time.perf_counter() - t}))
     build_s = json.loads(timing.read_text())["build_s"]
-    build = {"models": len(lib.models), "build_s": build_s, "workers": args.workers,
-             "shard_bytes": float(np.mean([m.shard.stat().st_size for m in lib.models])),
-             "distractors": len(lib.models) - 1 - (len(derived[sorted(derived)[0]]) - 1)}
+    build = {
+        "models": len(lib.models),
+        "build_s": build_s,
+        "workers": args.workers,
+        "shard_bytes": float(np.mean([m.shard.stat().st_size for m in lib.models])),
+        "distractors": len(lib.models) - 1 - (len(derived[sorted(derived)[0]]) - 1),
+    }
     n_scenes = args.scenes or (3 if args.quick else 8)
     scenes = make_scenes(work, n_scenes)
     rows = run_scenes(scenes, lib, derived)
     if args.scenes_only:
         print(write_report(rows, [], None, build, False, name="registration_scenes.md"))
         return
-    grid_rows = grid_curve(work, [100, 300, 600] if args.quick else [100, 200, 400, 600, 1000], [24, 32] if args.quick else [16, 24, 32, 48], 16 if args.quick else 40)
+    grid_rows = grid_curve(
+        work,
+        [100, 300, 600] if args.quick else [100, 200, 400, 600, 1000],
+        [24, 32] if args.quick else [16, 24, 32, 48],
+        16 if args.quick else 40,
+    )
     big = next((d for d in scenes if json.loads((d / "gt.json").read_text())["views"] == 13), scenes[-1])
     scale = scale_test(lib, 500 if args.quick else 3500, big / "train", work)
     print(write_report(rows, grid_rows, scale, build, args.quick))

@@ -107,7 +107,11 @@ def main() -> int:
         print(f"{SCENES}: the rig scenes are not here; set CADSPLAT_SHARED_DATA")
         return 1
     lib_dir = args.work / "library"
-    lib = load_library(lib_dir) if (lib_dir / "library.json").exists() else build_library(LIB_SRC, lib_dir, workers=1, progress=False, log=lambda s: None)
+    lib = (
+        load_library(lib_dir)
+        if (lib_dir / "library.json").exists()
+        else build_library(LIB_SRC, lib_dir, workers=1, progress=False, log=lambda s: None)
+    )
     names = sorted(p.name for p in SCENES.iterdir() if p.is_dir())
     if args.scenes:
         names = [n for n in names if n in args.scenes.split(",")]
@@ -134,9 +138,14 @@ def main() -> int:
             d = SCENES / name
             gt_doc = json.loads((d / "gt.json").read_text())
             cap = read_capture(d / "train")
-            scenes[name] = (gt_doc, Sim3.from_dict(gt_doc["sim3_rig_to_object"]), surface_points(trimesh.load(d / "gt_mesh.ply", force="mesh", process=False)),
-                            np.stack([cap.mask(i) for i in range(len(cap))]), [cap.camera(i) for i in range(len(cap))],
-                            np.stack([cap.image(i) for i in range(len(cap))]))
+            scenes[name] = (
+                gt_doc,
+                Sim3.from_dict(gt_doc["sim3_rig_to_object"]),
+                surface_points(trimesh.load(d / "gt_mesh.ply", force="mesh", process=False)),
+                np.stack([cap.mask(i) for i in range(len(cap))]),
+                [cap.camera(i) for i in range(len(cap))],
+                np.stack([cap.image(i) for i in range(len(cap))]),
+            )
         return scenes[name]
 
     def record(row: dict, into: list) -> None:
@@ -162,7 +171,10 @@ def main() -> int:
                 res = known_part_register(masks, cams1, lib, gt_doc["model_id"], prior, rig_metres_per_unit=1.0)
                 secs, cpu = time.perf_counter() - t, time.process_time() - c
                 e = errors(gt_pts, res.sim3_rig_to_object, gt_pts, gt1, True)
-                record({"scene": name, "trial": trial, "seconds": secs, "cpu_seconds": cpu, "iou": res.score, "load": os.getloadavg()[0], **e}, known_rows)
+                record(
+                    {"scene": name, "trial": trial, "seconds": secs, "cpu_seconds": cpu, "iou": res.score, "load": os.getloadavg()[0], **e},
+                    known_rows,
+                )
         write_known(known_rows, args.out / "registration_rig_scenes_known.md")
     for k in [] if args.known_only else scales:
         for name in names:
@@ -175,10 +187,19 @@ def main() -> int:
             res = register(masks, cams, lib, rig_metres_per_unit=1.0 if k == 1 else None, images=images)
             secs = time.perf_counter() - t
             e = errors(model_pts(res.model_id), res.sim3_rig_to_object, gt_pts, gt, res.model_id == gt_doc["model_id"])
-            row = {"scene": name, "k": k, "model": res.model_id, "right_model": res.model_id == gt_doc["model_id"], "seconds": secs,
-                   "iou": res.score, "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]),
-                   "decided_by": (res.ambiguity or {}).get("decided_by", ""), "model_ties": [t["model_id"] for t in res.model_ties],
-                   "part_vs_cad": res.part_scale_vs_cad, **e}
+            row = {
+                "scene": name,
+                "k": k,
+                "model": res.model_id,
+                "right_model": res.model_id == gt_doc["model_id"],
+                "seconds": secs,
+                "iou": res.score,
+                "near_tie": bool(res.ambiguity and res.ambiguity["ambiguous"]),
+                "decided_by": (res.ambiguity or {}).get("decided_by", ""),
+                "model_ties": [t["model_id"] for t in res.model_ties],
+                "part_vs_cad": res.part_scale_vs_cad,
+                **e,
+            }
             row["ok"] = bool(row["surface_pct"] < PASS_PCT)
             record(row, rows)
             write_table(rows, args.out / "registration_rig_scenes.md")
@@ -208,15 +229,19 @@ def write_table(rows: list[dict], path: Path) -> None:
         add_s = f"{r['add_s_pct']:.2f}" if r["right_model"] else f"({r['add_s_pct']:.1f})"
         part = f"{r['part_vs_cad']:.3f}" if r["part_vs_cad"] is not None else "—"
         tie = f"yes ({r['decided_by']})" if r["near_tie"] and r["decided_by"] else ("yes" if r["near_tie"] else "")
-        lines.append(f"| {r['scene']} | {r['k']:g} | {r['model']} | {'yes' if r['right_model'] else 'no'} | {add_s} | "
-                     f"{r['surface_pct']:.2f} | {r['scale_ratio']:.4f} | {part} | {r['iou']:.3f} | {tie} | {', '.join(r['model_ties'])} | "
-                     f"{r['seconds']:.1f} | {'yes' if r['ok'] else '**no**'} |")
+        lines.append(
+            f"| {r['scene']} | {r['k']:g} | {r['model']} | {'yes' if r['right_model'] else 'no'} | {add_s} | "
+            f"{r['surface_pct']:.2f} | {r['scale_ratio']:.4f} | {part} | {r['iou']:.3f} | {tie} | {', '.join(r['model_ties'])} | "
+            f"{r['seconds']:.1f} | {'yes' if r['ok'] else '**no**'} |"
+        )
     lines += ["", "| k | pass | right model | median surface % | max surface % | median s |", "|---|---|---|---|---|---|"]
     for k in ks:
         sub = [r for r in rows if r["k"] == k]
         a = np.array([r["surface_pct"] for r in sub])
-        lines.append(f"| {k:g} | {sum(r['ok'] for r in sub)}/{len(sub)} | {sum(r['right_model'] for r in sub)}/{len(sub)} | "
-                     f"{np.median(a):.2f} | {a.max():.2f} | {np.median([r['seconds'] for r in sub]):.1f} |")
+        lines.append(
+            f"| {k:g} | {sum(r['ok'] for r in sub)}/{len(sub)} | {sum(r['right_model'] for r in sub)}/{len(sub)} | "
+            f"{np.median(a):.2f} | {a.max():.2f} | {np.median([r['seconds'] for r in sub]):.1f} |"
+        )
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")
 
@@ -240,11 +265,15 @@ def write_known(rows: list[dict], path: Path) -> None:
         s = np.array([r["seconds"] for r in sub])
         a = np.array([r["add_s_pct"] for r in sub])
         cpu = np.median([r["cpu_seconds"] for r in sub])
-        lines.append(f"| {name} | {len(sub)} | {np.median(s):.3f} | {s.max():.3f} | {cpu:.3f} | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(sub)} |")
+        lines.append(
+            f"| {name} | {len(sub)} | {np.median(s):.3f} | {s.max():.3f} | {cpu:.3f} | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(sub)} |"
+        )
     s = np.array([r["seconds"] for r in rows])
     a = np.array([r["add_s_pct"] for r in rows])
     cpu = np.median([r["cpu_seconds"] for r in rows])
-    lines.append(f"| **all** | {len(rows)} | **{np.median(s):.3f}** | {s.max():.3f} | **{cpu:.3f}** | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(rows)} |")
+    lines.append(
+        f"| **all** | {len(rows)} | **{np.median(s):.3f}** | {s.max():.3f} | **{cpu:.3f}** | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(rows)} |"
+    )
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")
 

@@ -42,8 +42,16 @@ from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_dist
 from reconstruction.render.anchor import anchor_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
-SCENES = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane",
-          "033_spatula", "077_rubiks_cube", "061_foam_brick")
+SCENES = (
+    "050_medium_clamp",
+    "037_scissors",
+    "043_phillips_screwdriver",
+    "011_banana",
+    "072-c_toy_airplane",
+    "033_spatula",
+    "077_rubiks_cube",
+    "061_foam_brick",
+)
 SURFACE_SAMPLES = 20_000
 POSE_SAMPLES = 3_000
 
@@ -87,8 +95,12 @@ def pose_scores(c2w_est: np.ndarray, c2w_true: np.ndarray, points: np.ndarray, d
     adds = add_s_pct(c2w_est, c2w_true, points, diameter)
     rot = geodesic_angle_deg(c2w_true[:, :3, :3], c2w_est[:, :3, :3])
     ctr = 100.0 * np.linalg.norm(c2w_est[:, :3, 3] - c2w_true[:, :3, 3], axis=1) / diameter
-    return {"adds_pct_median": float(np.median(adds)), "rotation_deg_median": float(np.median(rot)),
-            "center_pct_diameter_median": float(np.median(ctr)), "adds_pct": adds.tolist()}
+    return {
+        "adds_pct_median": float(np.median(adds)),
+        "rotation_deg_median": float(np.median(rot)),
+        "center_pct_diameter_median": float(np.median(ctr)),
+        "adds_pct": adds.tolist(),
+    }
 
 
 def views_for(gt: dict, n: int, views: str) -> list[int]:
@@ -128,8 +140,17 @@ def score_heldout(scene: Path, twin_dir: Path, args, library: Path | None = None
     Returns (twin, {mean, mean_refined, num_splats})."""
     from reconstruction.evaluation import run_protocol
 
-    run = run_protocol(train_dir(scene, twin_dir.parent, args), scene / "heldout", library, twin_dir, refine_steps=args.refine_steps, seed=args.seed,
-                       reuse=True, overwrite=True, **engine)
+    run = run_protocol(
+        train_dir(scene, twin_dir.parent, args),
+        scene / "heldout",
+        library,
+        twin_dir,
+        refine_steps=args.refine_steps,
+        seed=args.seed,
+        reuse=True,
+        overwrite=True,
+        **engine,
+    )
     return run.twin, {"mean": run.mean, "mean_refined": run.mean_refined, "num_splats": int(run.twin.num_splats)}
 
 
@@ -154,15 +175,21 @@ def pose_and_geometry_scores(twin, scene: Path, gt: dict, idx: list[int], train_
     doc["pose_trained"] = pose_scores(trained, truth, pts, diameter)
     doc["sim3_scale"] = float(twin.sim3_rig_to_object.scale)
     true_sim3 = Sim3.from_dict(gt["sim3_rig_to_object"])
-    doc["sim3_adds_pct"] = {"registration": sim3_add_s_pct(twin.sim3_rig_to_object_init, true_sim3, pts, diameter),
-                            "twin": sim3_add_s_pct(twin.sim3_rig_to_object, true_sim3, pts, diameter)}
+    doc["sim3_adds_pct"] = {
+        "registration": sim3_add_s_pct(twin.sim3_rig_to_object_init, true_sim3, pts, diameter),
+        "twin": sim3_add_s_pct(twin.sim3_rig_to_object, true_sim3, pts, diameter),
+    }
     for name, mesh in (("cad", twin.load_mesh_cad()), ("deformed", twin.load_mesh_deformed())):
-        mean, p95 = symmetric_surface_distance(mesh.vertices, mesh.faces, np.asarray(true_mesh.vertices),
-                                               np.asarray(true_mesh.faces), SURFACE_SAMPLES)
+        mean, p95 = symmetric_surface_distance(
+            mesh.vertices, mesh.faces, np.asarray(true_mesh.vertices), np.asarray(true_mesh.faces), SURFACE_SAMPLES
+        )
         welded = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
-        doc[f"geometry_{name}"] = {"mean_pct": 100 * mean / diameter, "p95_pct": 100 * p95 / diameter,
-                                   "watertight": bool(welded.is_watertight),
-                                   "crossing_faces": int(self_intersecting_faces(mesh.vertices, mesh.faces).sum())}
+        doc[f"geometry_{name}"] = {
+            "mean_pct": 100 * mean / diameter,
+            "p95_pct": 100 * p95 / diameter,
+            "watertight": bool(welded.is_watertight),
+            "crossing_faces": int(self_intersecting_faces(mesh.vertices, mesh.faces).sum()),
+        }
     return doc
 
 
@@ -184,20 +211,45 @@ def run_engine(scene: Path, lib: Path, work: Path, args) -> dict:
         if args.rescore:
             from reconstruction.twin import load_twin
 
-            doc.update(pose_and_geometry_scores(load_twin(work / "twins" / key / scene.name), scene, gt, doc["train_views"],
-                                                train_dir(scene, work / "twins" / key, args)))
+            doc.update(
+                pose_and_geometry_scores(
+                    load_twin(work / "twins" / key / scene.name),
+                    scene,
+                    gt,
+                    doc["train_views"],
+                    train_dir(scene, work / "twins" / key, args),
+                )
+            )
             cache.write_text(json.dumps(doc, indent=1))
         return doc
     n = len(gt["train"]["c2w_opencv_object"])
     idx = views_for(gt, n, args.views)
     overrides = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.override)}
     machine = machine_reading(work / "twins" / key / scene.name)
-    twin, scores = score_heldout(scene, work / "twins" / key / scene.name, args, library=lib, preset=args.preset, views=idx,
-                                 pose_mode=args.pose_mode, overrides=overrides or None)
-    doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "timings_s": twin.timings_s, "pose_mode": twin.pose_mode, "model_id": twin.model_id,
-           "right_model": twin.model_id == gt["model_id"], "load": os.getloadavg()[0], **machine,
-           **scores, **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args))}
+    twin, scores = score_heldout(
+        scene,
+        work / "twins" / key / scene.name,
+        args,
+        library=lib,
+        preset=args.preset,
+        views=idx,
+        pose_mode=args.pose_mode,
+        overrides=overrides or None,
+    )
+    doc = {
+        "scene": scene.name,
+        "variant": key,
+        "train_views": idx,
+        "train_wall_s": float(twin.timings_s["total"]),
+        "timings_s": twin.timings_s,
+        "pose_mode": twin.pose_mode,
+        "model_id": twin.model_id,
+        "right_model": twin.model_id == gt["model_id"],
+        "load": os.getloadavg()[0],
+        **machine,
+        **scores,
+        **pose_and_geometry_scores(twin, scene, gt, idx, train_dir(scene, work / "twins" / key, args)),
+    }
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -225,8 +277,15 @@ def run_vanilla(scene: Path, iterations: int, work: Path, args) -> dict:
         result = train_vanilla_3dgs(images, masks, cams, cfg, seed=args.seed)
         save_twin(vanilla_twin(result, cams, [str(train.frames[i].camera_id) for i in idx]), twin_dir, overwrite=True)
     twin, scores = score_heldout(scene, twin_dir, args)
-    doc = {"scene": scene.name, "variant": key, "train_views": idx, "train_wall_s": float(twin.timings_s["total"]),
-           "load": os.getloadavg()[0], **machine, **scores}
+    doc = {
+        "scene": scene.name,
+        "variant": key,
+        "train_views": idx,
+        "train_wall_s": float(twin.timings_s["total"]),
+        "load": os.getloadavg()[0],
+        **machine,
+        **scores,
+    }
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(doc, indent=1))
     return doc
@@ -261,11 +320,20 @@ def plot_against_vanilla(runs: dict[str, dict[str, dict]], engine: str, out: Pat
             y = [_m(by[s], "fgpsnr") if s in by else np.nan for s in SCENES]
             twin = variant.startswith(f"{engine}-")
             ax.plot(x, y, "o-" if twin else "s--", mfc=None if twin else "none", label=variant.rsplit("-v", 1)[0])
-            axes[-1].plot(np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y), "o" if twin else "s",
-                          color=colours[v], mfc=None if twin else "none")
-            axes[-1].annotate(f"{variant.rsplit('-v', 1)[0].replace('-cpu', '')} ({v})",
-                              (np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y)), fontsize=7,
-                              xytext=(3, 3), textcoords="offset points")
+            axes[-1].plot(
+                np.mean([d["train_wall_s"] for d in by.values()]),
+                np.nanmean(y),
+                "o" if twin else "s",
+                color=colours[v],
+                mfc=None if twin else "none",
+            )
+            axes[-1].annotate(
+                f"{variant.rsplit('-v', 1)[0].replace('-cpu', '')} ({v})",
+                (np.mean([d["train_wall_s"] for d in by.values()]), np.nanmean(y)),
+                fontsize=7,
+                xytext=(3, 3),
+                textcoords="offset points",
+            )
         ax.set_xticks(x, [s.split("_", 1)[1] for s in SCENES], rotation=60, fontsize=7)
         ax.set_title(f"{'all' if v == 'all' else v} training views")
         ax.set_ylabel("held-out fgPSNR (dB)")
@@ -286,31 +354,41 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
         runs.setdefault(doc["variant"], {})[doc["scene"]] = doc
     if plot_variant:
         plot_against_vanilla(runs, plot_variant, RESULTS / "rig_scenes.png")
-    lines = ["# Reference benchmark: path-traced rig captures (`python -m benchmarks.bench_rig_scenes`)", "",
-             "`shared/data/rig_scenes`: 8 YCB objects, 9-13 training views at 320x240, metric rig, 0.1 deg / 1 mm "
-             "calibration noise not stated by the capture, deformed+decimated CAD among 110 distractors; 12 held-out views "
-             f"with exact poses, metrics at the twin's nominal poses and after {refine_steps} test-time refinement steps. "
-             "Poses: ADD-S of the training cameras (median over cameras, % of the bounding-sphere diameter), registration -> twin; "
-             "Sim(3): ADD-S of the rig-to-object similarity alone (what held-out cameras inherit). "
-             "Geometry: symmetric mean closest-point distance to the true surface (exact, from 20k samples of each surface), "
-             "% of the diameter; geo change: the median over scenes of the twin's change against its CAD; crossing faces: "
-             "faces that cross another (libigl), summed over scenes; watertight: scenes whose welded mesh is closed. Train time on 2 shared "
-             "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `anchor ms`: "
-             "the speed anchor's step read just before each twin trained (median over the scenes; one forward+backward of the tiled "
-             "pure-PyTorch rasterizer at 20k splats, 256², `reconstruction.render.anchor`); `x anchor`: the median over the scenes of "
-             "each twin's train time over the anchor step read beside it, the figure that carries from one machine to another.", "",
-             "| variant | scenes | train s | median s | x anchor | load | anchor ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
-             "ADD-S reg % | ADD-S twin % | improved | Sim(3) reg % | Sim(3) twin % | CAD geo % | twin geo % | geo change | "
-             "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |", "|---" * 26 + "|"]
+    lines = [
+        "# Reference benchmark: path-traced rig captures (`python -m benchmarks.bench_rig_scenes`)",
+        "",
+        "`shared/data/rig_scenes`: 8 YCB objects, 9-13 training views at 320x240, metric rig, 0.1 deg / 1 mm "
+        "calibration noise not stated by the capture, deformed+decimated CAD among 110 distractors; 12 held-out views "
+        f"with exact poses, metrics at the twin's nominal poses and after {refine_steps} test-time refinement steps. "
+        "Poses: ADD-S of the training cameras (median over cameras, % of the bounding-sphere diameter), registration -> twin; "
+        "Sim(3): ADD-S of the rig-to-object similarity alone (what held-out cameras inherit). "
+        "Geometry: symmetric mean closest-point distance to the true surface (exact, from 20k samples of each surface), "
+        "% of the diameter; geo change: the median over scenes of the twin's change against its CAD; crossing faces: "
+        "faces that cross another (libigl), summed over scenes; watertight: scenes whose welded mesh is closed. Train time on 2 shared "
+        "CPU cores (mean and median over the scenes); `load` is the 1-min load average when the run finished; `anchor ms`: "
+        "the speed anchor's step read just before each twin trained (median over the scenes; one forward+backward of the tiled "
+        "pure-PyTorch rasterizer at 20k splats, 256², `reconstruction.render.anchor`); `x anchor`: the median over the scenes of "
+        "each twin's train time over the anchor step read beside it, the figure that carries from one machine to another.",
+        "",
+        "| variant | scenes | train s | median s | x anchor | load | anchor ms | fgPSNR | IoU | PSNR | SSIM | LPIPS | fgPSNR ref. | IoU ref. | LPIPS ref. | "
+        "ADD-S reg % | ADD-S twin % | improved | Sim(3) reg % | Sim(3) twin % | CAD geo % | twin geo % | geo change | "
+        "twin geo p95 % | crossing faces CAD / twin | watertight twin / CAD |",
+        "|---" * 26 + "|",
+    ]
     for variant, by in runs.items():
         ds = list(by.values())
         cad = [d for d in ds if "pose_trained" in d]
         machine = [d["machine_ref_ms"] for d in ds if d.get("machine_ref_ms") is not None]
         ratios = [1000.0 * d["train_wall_s"] / d["machine_ref_ms"] for d in ds if d.get("machine_ref_ms")]
-        row = [variant, str(len(ds)), f"{np.mean([d['train_wall_s'] for d in ds]):.0f}",
-               f"{np.median([d['train_wall_s'] for d in ds]):.1f}", f"{np.median(ratios):.1f}x" if ratios else "-",
-               f"{np.mean([d['load'] for d in ds]):.1f}",
-               f"{np.median(machine):.0f}" if machine else "-"]
+        row = [
+            variant,
+            str(len(ds)),
+            f"{np.mean([d['train_wall_s'] for d in ds]):.0f}",
+            f"{np.median([d['train_wall_s'] for d in ds]):.1f}",
+            f"{np.median(ratios):.1f}x" if ratios else "-",
+            f"{np.mean([d['load'] for d in ds]):.1f}",
+            f"{np.median(machine):.0f}" if machine else "-",
+        ]
         row += [f"{np.nanmean([_m(d, k) for d in ds]):.3f}" for k in ("fgpsnr", "iou", "psnr", "ssim", "lpips")]
         # Runs without test-time refinement (`--refine-steps 0`) have no refined metrics: '-', not nan.
         refined = [d for d in ds if d.get("mean_refined")]
@@ -319,25 +397,44 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
             reg = [d["pose_registration"]["adds_pct_median"] for d in cad]
             tr = [d["pose_trained"]["adds_pct_median"] for d in cad]
             sim = [d.get("sim3_adds_pct", {}) for d in cad]
-            row += [f"{np.median(reg):.2f}", f"{np.median(tr):.2f}", f"{sum(t < r for t, r in zip(tr, reg))}/{len(cad)}",
-                    f"{np.median([x.get('registration', np.nan) for x in sim]):.2f}", f"{np.median([x.get('twin', np.nan) for x in sim]):.2f}",
-                    f"{np.median([d['geometry_cad']['mean_pct'] for d in cad]):.3f}",
-                    f"{np.median([d['geometry_deformed']['mean_pct'] for d in cad]):.3f}",
-                    f"{np.median([100 * (d['geometry_deformed']['mean_pct'] / d['geometry_cad']['mean_pct'] - 1) for d in cad]):+.1f} %",
-                    f"{np.median([d['geometry_deformed']['p95_pct'] for d in cad]):.3f}"]
+            row += [
+                f"{np.median(reg):.2f}",
+                f"{np.median(tr):.2f}",
+                f"{sum(t < r for t, r in zip(tr, reg))}/{len(cad)}",
+                f"{np.median([x.get('registration', np.nan) for x in sim]):.2f}",
+                f"{np.median([x.get('twin', np.nan) for x in sim]):.2f}",
+                f"{np.median([d['geometry_cad']['mean_pct'] for d in cad]):.3f}",
+                f"{np.median([d['geometry_deformed']['mean_pct'] for d in cad]):.3f}",
+                f"{np.median([100 * (d['geometry_deformed']['mean_pct'] / d['geometry_cad']['mean_pct'] - 1) for d in cad]):+.1f} %",
+                f"{np.median([d['geometry_deformed']['p95_pct'] for d in cad]):.3f}",
+            ]
             known = [d for d in cad if "crossing_faces" in d["geometry_cad"]]
-            row += [f"{sum(d['geometry_cad']['crossing_faces'] for d in known)} / {sum(d['geometry_deformed']['crossing_faces'] for d in known)}",
-                    f"{sum(d['geometry_deformed']['watertight'] for d in known)} / {sum(d['geometry_cad']['watertight'] for d in known)}"] \
-                if known else ["-", "-"]
+            row += (
+                [
+                    f"{sum(d['geometry_cad']['crossing_faces'] for d in known)} / {sum(d['geometry_deformed']['crossing_faces'] for d in known)}",
+                    f"{sum(d['geometry_deformed']['watertight'] for d in known)} / {sum(d['geometry_cad']['watertight'] for d in known)}",
+                ]
+                if known
+                else ["-", "-"]
+            )
         else:
             row += ["-"] * 11
         lines.append("| " + " | ".join(row) + " |")
     cpus = {v: sorted({d["cpu"] for d in by.values() if d.get("cpu")}) for v, by in runs.items()}
     if any(cpus.values()):
-        lines += ["", "CPUs the timed runs trained on (runs before 2026-11-28 did not record theirs): "
-                  + "; ".join(f"`{v}` {' / '.join(c)}" for v, c in cpus.items() if c) + "."]
-    lines += ["", "Per scene: fgPSNR / IoU at nominal poses; ADD-S % registration -> twin; geometry % CAD -> twin.", "",
-              "| scene | " + " | ".join(runs) + " |", "|---" * (len(runs) + 1) + "|"]
+        lines += [
+            "",
+            "CPUs the timed runs trained on (runs before 2026-11-28 did not record theirs): "
+            + "; ".join(f"`{v}` {' / '.join(c)}" for v, c in cpus.items() if c)
+            + ".",
+        ]
+    lines += [
+        "",
+        "Per scene: fgPSNR / IoU at nominal poses; ADD-S % registration -> twin; geometry % CAD -> twin.",
+        "",
+        "| scene | " + " | ".join(runs) + " |",
+        "|---" * (len(runs) + 1) + "|",
+    ]
     for scene in SCENES:
         cells = []
         for by in runs.values():
@@ -347,8 +444,10 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
                 continue
             cell = f"{_m(d, 'fgpsnr'):.2f} / {_m(d, 'iou'):.3f}"
             if "pose_trained" in d:
-                cell += (f"; {d['pose_registration']['adds_pct_median']:.2f} -> {d['pose_trained']['adds_pct_median']:.2f}"
-                         f"; {d['geometry_cad']['mean_pct']:.2f} -> {d['geometry_deformed']['mean_pct']:.2f}")
+                cell += (
+                    f"; {d['pose_registration']['adds_pct_median']:.2f} -> {d['pose_trained']['adds_pct_median']:.2f}"
+                    f"; {d['geometry_cad']['mean_pct']:.2f} -> {d['geometry_deformed']['mean_pct']:.2f}"
+                )
             cells.append(cell)
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
@@ -367,10 +466,17 @@ def main() -> None:
     ap.add_argument("--override", action="append", default=[], help="preset field KEY=JSON value")
     ap.add_argument("--vanilla", type=int, nargs="*", default=[], help="also train vanilla 3DGS for these iteration counts")
     ap.add_argument("--no-engine", action="store_true", help="only the vanilla runs")
-    ap.add_argument("--vanilla-eps2d", type=float, default=0.3,
-                    help="screen-space dilation (px^2) vanilla 3DGS trains and is drawn with (3DGS's 0.3; another value names its runs apart)")
-    ap.add_argument("--exact-cameras", action="store_true",
-                    help="oracle: train on the true camera poses instead of the noisy recorded ones (name the variant apart)")
+    ap.add_argument(
+        "--vanilla-eps2d",
+        type=float,
+        default=0.3,
+        help="screen-space dilation (px^2) vanilla 3DGS trains and is drawn with (3DGS's 0.3; another value names its runs apart)",
+    )
+    ap.add_argument(
+        "--exact-cameras",
+        action="store_true",
+        help="oracle: train on the true camera poses instead of the noisy recorded ones (name the variant apart)",
+    )
     ap.add_argument("--refine-steps", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-rig-scenes"))
@@ -397,14 +503,19 @@ def main() -> None:
             t0 = time.perf_counter()
             if not args.no_engine:
                 doc = run_engine(scene, lib, args.work, args)
-                print(f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} "
-                      f"ADD-S {doc['pose_registration']['adds_pct_median']:.2f} -> {doc['pose_trained']['adds_pct_median']:.2f} % "
-                      f"geo {doc['geometry_cad']['mean_pct']:.3f} -> {doc['geometry_deformed']['mean_pct']:.3f} % "
-                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
+                print(
+                    f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} "
+                    f"ADD-S {doc['pose_registration']['adds_pct_median']:.2f} -> {doc['pose_trained']['adds_pct_median']:.2f} % "
+                    f"geo {doc['geometry_cad']['mean_pct']:.3f} -> {doc['geometry_deformed']['mean_pct']:.3f} % "
+                    f"({time.perf_counter() - t0:.0f} s)",
+                    flush=True,
+                )
             for iters in args.vanilla:
                 doc = run_vanilla(scene, iters, args.work, args)
-                print(f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} "
-                      f"({doc['train_wall_s']:.0f} s)", flush=True)
+                print(
+                    f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} ({doc['train_wall_s']:.0f} s)",
+                    flush=True,
+                )
     print(write_report(args.work, args.refine_steps, args.plot or args.variant))
 
 

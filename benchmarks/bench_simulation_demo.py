@@ -40,7 +40,9 @@ from simulation.scene import CameraSpec, Placement
 OUT = RESULTS / "simulation_demo"
 CLAMP, SCREWDRIVER = "050_medium_clamp", "043_phillips_screwdriver"
 DROP_HEIGHT = 0.06  # m between the clamp's top and the screwdriver's lowest point
-SCREW_TURN = matrix_to_quat(axis_angle_to_matrix(np.array([0.0, 0.0, np.deg2rad(35.0)])) @ axis_angle_to_matrix(np.array([np.deg2rad(8.0), 0.0, 0.0])))
+SCREW_TURN = matrix_to_quat(
+    axis_angle_to_matrix(np.array([0.0, 0.0, np.deg2rad(35.0)])) @ axis_angle_to_matrix(np.array([np.deg2rad(8.0), 0.0, 0.0]))
+)
 
 
 def placements(clamp_src: Path, screw_src: Path, tolerance: float, clamp_mesh: np.ndarray, screw_mesh: np.ndarray) -> list[Placement]:
@@ -56,7 +58,14 @@ def placements(clamp_src: Path, screw_src: Path, tolerance: float, clamp_mesh: n
     unit = {"unit": "m"} if clamp_src.is_file() else {}
     return [
         Placement(name="clamp", source=clamp_src, pos=(0.0, 0.0, clamp_z), collision_tolerance=tolerance, **unit),
-        Placement(name="screwdriver", source=screw_src, pos=(float(xy[0]), float(xy[1]), z), quat=tuple(SCREW_TURN), collision_tolerance=tolerance, **unit),
+        Placement(
+            name="screwdriver",
+            source=screw_src,
+            pos=(float(xy[0]), float(xy[1]), z),
+            quat=tuple(SCREW_TURN),
+            collision_tolerance=tolerance,
+            **unit,
+        ),
     ]
 
 
@@ -126,24 +135,41 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
     for run_name, bodies in (("twin", bodies_t), ("true", bodies_r)):
         for b in bodies:
             c = b.collision
-            lines.append(f"| {b.asset.name} | {run_name} | {b.asset.mass.mass:.4f} | {c.kind} | {c.hull_count + len(c.primitives)} "
-                         f"| {100 * c.volume_error:+.1f}% | {1e3 * c.hausdorff:.2f} | {c.seconds:.0f} |")
-    lines += ["", f"Rest pose (last frame; body origin = object-frame origin) and contacts at rest; final kinetic energy "
-              f"{traj_t.kinetic[-1]:.1e} J (twin) / {traj_r.kinetic[-1]:.1e} J (true):", "",
-              "| body | twin pos mm | true pos mm | pos diff mm | rotation diff deg |", "|---|---|---|---:|---:|"]
+            lines.append(
+                f"| {b.asset.name} | {run_name} | {b.asset.mass.mass:.4f} | {c.kind} | {c.hull_count + len(c.primitives)} "
+                f"| {100 * c.volume_error:+.1f}% | {1e3 * c.hausdorff:.2f} | {c.seconds:.0f} |"
+            )
+    lines += [
+        "",
+        f"Rest pose (last frame; body origin = object-frame origin) and contacts at rest; final kinetic energy "
+        f"{traj_t.kinetic[-1]:.1e} J (twin) / {traj_r.kinetic[-1]:.1e} J (true):",
+        "",
+        "| body | twin pos mm | true pos mm | pos diff mm | rotation diff deg |",
+        "|---|---|---|---:|---:|",
+    ]
     for i, b in enumerate(bodies_t):
         pt, pr = 1e3 * traj_t.pos[-1, i], 1e3 * traj_r.pos[-1, i]
-        lines.append(f"| {b.asset.name} | {np.round(pt, 1).tolist()} | {np.round(pr, 1).tolist()} | {np.linalg.norm(pt - pr):.1f} "
-                     f"| {angle_deg(traj_t.quat[-1, i], traj_r.quat[-1, i]):.1f} |")
+        lines.append(
+            f"| {b.asset.name} | {np.round(pt, 1).tolist()} | {np.round(pr, 1).tolist()} | {np.linalg.norm(pt - pr):.1f} "
+            f"| {angle_deg(traj_t.quat[-1, i], traj_r.quat[-1, i]):.1f} |"
+        )
     lines += ["", "| contact pair | twin contacts | true contacts | twin to nearest true contact, mean / max mm |", "|---|---:|---:|---|"]
     for pair in sorted({(c[0], c[1]) for c in contacts_t + contacts_r}):
         a, b = contact_summary(contacts_t, pair), contact_summary(contacts_r, pair)
-        near = "n/a" if not (len(a) and len(b)) else "{:.1f} / {:.1f}".format(*(1e3 * np.array([(d := cKDTree(b).query(a)[0]).mean(), d.max()])))
+        near = (
+            "n/a"
+            if not (len(a) and len(b))
+            else "{:.1f} / {:.1f}".format(*(1e3 * np.array([(d := cKDTree(b).query(a)[0]).mean(), d.max()])))
+        )
         lines.append(f"| {pair[0]} - {pair[1]} | {len(a)} | {len(b)} | {near} |")
-    lines += ["", f"Wall time: twin bodies {prep_t:.0f} s (repair, mass, CoACD), true bodies {prep_r:.0f} s; "
-              f"simulation {sim_t:.1f} s (twin) / {sim_r:.1f} s (true); Gaussian renders {render_s:.0f} s for {len(frames)} frames "
-              f"({sum(len(s) for s in splats_t)} splats).", "",
-              "![first](frame_first.png) ![last](frame_last.png) ![contacts](contacts.png)"]
+    lines += [
+        "",
+        f"Wall time: twin bodies {prep_t:.0f} s (repair, mass, CoACD), true bodies {prep_r:.0f} s; "
+        f"simulation {sim_t:.1f} s (twin) / {sim_r:.1f} s (true); Gaussian renders {render_s:.0f} s for {len(frames)} frames "
+        f"({sum(len(s) for s in splats_t)} splats).",
+        "",
+        "![first](frame_first.png) ![last](frame_last.png) ![contacts](contacts.png)",
+    ]
     return "\n".join(lines) + "\n"
 
 

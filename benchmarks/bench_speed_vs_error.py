@@ -44,8 +44,16 @@ import numpy as np
 from benchmarks._common import RESULTS, SHARED, decimate, deform, engine_kwargs
 
 YCB = SHARED / "objects" / "ycb"
-OBJECTS = ("050_medium_clamp", "037_scissors", "043_phillips_screwdriver", "011_banana", "072-c_toy_airplane", "033_spatula",
-           "077_rubiks_cube", "061_foam_brick")
+OBJECTS = (
+    "050_medium_clamp",
+    "037_scissors",
+    "043_phillips_screwdriver",
+    "011_banana",
+    "072-c_toy_airplane",
+    "033_spatula",
+    "077_rubiks_cube",
+    "061_foam_brick",
+)
 VIEW_COUNTS = ("all", 8, 5, 3)
 # Methods whose twin lives in the CAD model's frame, so that gt.json's object-frame poses apply.
 CAD_FRAME_METHODS = ("full", "no-mask-warmup", "no-deformation", "no-pose", "no-sh-smoothness")
@@ -76,8 +84,17 @@ def make_scene(work: Path, index: int, obj: str) -> Path:
 
     d = work / "scenes" / f"{index:02d}_{obj}"
     if not (d / "gt.json").exists():
-        synth_dataset(YCB / obj / "textured.obj", d, views=9 + index % 5, heldout=36, size=(320, 240), seed=200 + index,
-                      calib_noise_deg=0.3, calib_noise_mm=2.0, texture_size=512)
+        synth_dataset(
+            YCB / obj / "textured.obj",
+            d,
+            views=9 + index % 5,
+            heldout=36,
+            size=(320, 240),
+            seed=200 + index,
+            calib_noise_deg=0.3,
+            calib_noise_mm=2.0,
+            texture_size=512,
+        )
     if not (d / "lib" / "library.json").exists():
         (d / "cad").mkdir(exist_ok=True)
         mesh = trimesh.load(YCB / obj / "textured.obj", force="mesh")
@@ -150,13 +167,31 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
         engine = {"preset": run.preset, **engine_kwargs(run.method, run.preset, torch.cuda.is_available())}
     gt = json.loads((scene_dir / "gt.json").read_text())
     cad_frame = run.method in CAD_FRAME_METHODS
-    result = run_protocol(scene_dir / "train", scene_dir / "heldout", scene_dir / "lib", twin_dir, views=idx, seed=args.seed,
-                          heldout_views=args.heldout_views, refine_steps=args.refine_steps, gt=gt if cad_frame else None,
-                          symmetries=scene_symmetries(scene_dir, gt) if cad_frame else None, reuse=True, overwrite=True, **engine)
+    result = run_protocol(
+        scene_dir / "train",
+        scene_dir / "heldout",
+        scene_dir / "lib",
+        twin_dir,
+        views=idx,
+        seed=args.seed,
+        heldout_views=args.heldout_views,
+        refine_steps=args.refine_steps,
+        gt=gt if cad_frame else None,
+        symmetries=scene_symmetries(scene_dir, gt) if cad_frame else None,
+        reuse=True,
+        overwrite=True,
+        **engine,
+    )
     doc = {
-        "run": run.__dict__, "train_views": idx, "heldout_views": result.heldout_views, "refine_steps": args.refine_steps,
-        "train_wall_s": result.timings_s["reconstruct"], "num_splats": result.twin.num_splats,
-        "mean": result.mean, "mean_refined": result.mean_refined, "eval_timings_s": result.report["timings_s"],
+        "run": run.__dict__,
+        "train_views": idx,
+        "heldout_views": result.heldout_views,
+        "refine_steps": args.refine_steps,
+        "train_wall_s": result.timings_s["reconstruct"],
+        "num_splats": result.twin.num_splats,
+        "mean": result.mean,
+        "mean_refined": result.mean_refined,
+        "eval_timings_s": result.report["timings_s"],
         "registration": {k: v for k, v in (result.reg_raw or {}).items() if k.endswith("median")},
         "registration_near_symmetric": {k: v for k, v in (result.reg_refined or {}).items() if k.endswith("median")},
     }
@@ -197,7 +232,8 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         f"0.3 deg / 2 mm calibration noise, deformed+decimated CAD), {args.heldout_views} held-out views each, metrics "
         f"{'after ' + str(args.refine_steps) + ' test-time refinement steps' if refined else 'at the nominal poses (no refinement)'}; "
         f"train wall time on this machine's 2 shared CPU cores (load from other jobs inflates it). "
-        + (f"Sweep wall time {wall / 60:.1f} min." if wall else "Rewritten from the cached runs (--report-only).") + " Rows appear as their runs finish: a row with fewer scenes is a sweep that was stopped.",
+        + (f"Sweep wall time {wall / 60:.1f} min." if wall else "Rewritten from the cached runs (--report-only).")
+        + " Rows appear as their runs finish: a row with fewer scenes is a sweep that was stopped.",
         "",
         "Means over the scenes each row ran on. Δ columns: the row minus `full`/`cpu` at the same views, paired over the "
         "scenes both ran on (the fair comparison when a row covers fewer scenes). 'no ref.': at the twin's poses, before "
@@ -228,14 +264,26 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         cells = [f"{_mean(ds, k, refined):.3f}" for k in SUMMARY]
         cells += [f"{np.nanmean([metric(d, k, False) for d in ds]):.3f}" for k in ("fgpsnr", "iou")]
         delta = ["-", "-"] if (method, preset) == ("full", "cpu") else [paired(ds, views, k) for k in ("fgpsnr", "iou")]
-        lines.append(f"| {method} | {preset} | {views} | {len(ds)} | {np.mean([d['train_wall_s'] for d in ds]):.0f} | "
-                     f"{int(np.mean([d['num_splats'] for d in ds]))} | " + " | ".join(cells + delta) + f" | {rot} | {ctr} |")
+        lines.append(
+            f"| {method} | {preset} | {views} | {len(ds)} | {np.mean([d['train_wall_s'] for d in ds]):.0f} | "
+            f"{int(np.mean([d['num_splats'] for d in ds]))} | " + " | ".join(cells + delta) + f" | {rot} | {ctr} |"
+        )
     scenes = sorted({d["run"]["scene"] for d in docs})
-    cols = [k for k in sorted({(d["run"]["method"], d["run"]["preset"]) for d in docs if str(d["run"]["views"]) == "all"},
-                              key=lambda mp: (order.get(mp[0], 9), mp[1]))]
+    cols = [
+        k
+        for k in sorted(
+            {(d["run"]["method"], d["run"]["preset"]) for d in docs if str(d["run"]["views"]) == "all"},
+            key=lambda mp: (order.get(mp[0], 9), mp[1]),
+        )
+    ]
     by = {(d["run"]["scene"], d["run"]["method"], d["run"]["preset"]): d for d in docs if str(d["run"]["views"]) == "all"}
-    lines += ["", "Per scene, all training views: fgPSNR (dB) / IoU after refinement; rot (deg) of the training cameras for the CAD-frame methods.", "",
-              "| scene | " + " | ".join(f"{m}/{p}" for m, p in cols) + " |", "|---|" + "---|" * len(cols)]
+    lines += [
+        "",
+        "Per scene, all training views: fgPSNR (dB) / IoU after refinement; rot (deg) of the training cameras for the CAD-frame methods.",
+        "",
+        "| scene | " + " | ".join(f"{m}/{p}" for m, p in cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
     for sc in scenes:
         cells = []
         for m, p in cols:
@@ -269,7 +317,7 @@ def write_report(docs: list[dict], args, wall: float) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for ax, key, label in zip(axes, ("fgpsnr", "iou"), ("fgPSNR (dB) ↑", "IoU ↑")):
         series: dict[tuple[str, str], list[tuple[int, float]]] = {}
-        for (method, preset, views), ds in groups.items():
+        for (method, preset, _views), ds in groups.items():
             n = int(np.mean([len(d["train_views"]) for d in ds]))
             series.setdefault((method, preset), []).append((n, _mean(ds, key, refined)))
         for (method, preset), pts in sorted(series.items()):
@@ -289,15 +337,31 @@ def write_report(docs: list[dict], args, wall: float) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="2 scenes, all + 3 views, preview presets, short vanilla, 4 held-out views, 20 refinement steps")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-speed-vs-error"), help="cache of scenes, twins and per-run metrics (resumable)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="2 scenes, all + 3 views, preview presets, short vanilla, 4 held-out views, 20 refinement steps",
+    )
+    ap.add_argument(
+        "--work",
+        type=Path,
+        default=Path("/tmp/cadsplat-bench-speed-vs-error"),
+        help="cache of scenes, twins and per-run metrics (resumable)",
+    )
     ap.add_argument("--scenes", type=int, default=None)
     ap.add_argument("--refine-steps", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--report-only", action="store_true", help="rewrite the table and plots from the runs cached in --work")
-    ap.add_argument("--few", type=int, default=None, help="scenes for the sphere and extra-ablation rows (default: 2 on a CPU, all on CUDA)")
-    ap.add_argument("--only", action="append", default=None, metavar="METHOD/PRESET/VIEWS",
-                    help="run only these rows of the plan, e.g. full/cpu/all (repeatable)")
+    ap.add_argument(
+        "--few", type=int, default=None, help="scenes for the sphere and extra-ablation rows (default: 2 on a CPU, all on CUDA)"
+    )
+    ap.add_argument(
+        "--only",
+        action="append",
+        default=None,
+        metavar="METHOD/PRESET/VIEWS",
+        help="run only these rows of the plan, e.g. full/cpu/all (repeatable)",
+    )
     args = ap.parse_args()
     if not YCB.exists():
         sys.exit(f"needs the shared data folder ({YCB} is absent)")
@@ -319,8 +383,9 @@ def main() -> None:
         # On 2 CPU cores a cpu-preset run and its scoring take ~2 min: every scene gets the view-count study
         # and the strongest ablation; the sphere, the other ablations and the CPU `paper` run get fewer.
         few = min(args.few or (n_scenes if cuda else 2), n_scenes)
-        plan = [("all", m, p, n_scenes) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla), ("no-mask-warmup", "cpu"),
-                                                     ("full", "preview"))]
+        plan = [
+            ("all", m, p, n_scenes) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla), ("no-mask-warmup", "cpu"), ("full", "preview"))
+        ]
         plan += [(v, m, p, n_scenes) for v in (3, 5, 8) for m, p in (("full", "cpu"), ("vanilla-3dgs", vanilla))]
         plan += [("all", m, "cpu", few) for m in ("sphere-init", "no-deformation", "no-pose", "no-sh-smoothness")]
         plan += [("all", "full", "paper", n_scenes if cuda else 1)]
@@ -331,7 +396,9 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if args.report_only:
-        docs = [json.loads(p.read_text()) for p in sorted((args.work / "runs").glob(f"*/*-r{args.refine_steps}-h{args.heldout_views}.json"))]
+        docs = [
+            json.loads(p.read_text()) for p in sorted((args.work / "runs").glob(f"*/*-r{args.refine_steps}-h{args.heldout_views}.json"))
+        ]
         print(write_report(docs, args, 0.0))
         return
     scenes = [make_scene(args.work, i, obj) for i, obj in enumerate(OBJECTS[:n_scenes])]
@@ -347,8 +414,10 @@ def main() -> None:
                 continue
             docs.append(doc)
             m = doc["mean_refined"] or doc["mean"]
-            print(f"{run.key}: train {doc['train_wall_s']:.0f} s, fgPSNR {m['fgpsnr']}, IoU {m['iou']:.3f} "
-                  f"({time.perf_counter() - t:.0f} s)", flush=True)
+            print(
+                f"{run.key}: train {doc['train_wall_s']:.0f} s, fgPSNR {m['fgpsnr']}, IoU {m['iou']:.3f} ({time.perf_counter() - t:.0f} s)",
+                flush=True,
+            )
             write_report(docs, args, time.perf_counter() - t0)
     print(write_report(docs, args, time.perf_counter() - t0))
 

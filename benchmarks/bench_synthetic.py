@@ -65,9 +65,15 @@ def main() -> int:
         "|---|---|" + "---|" * len(SIZES),
     ]
     for backdrop, (build_s, times) in rows.items():
-        lines.append(f"| {'backdrop + shadows' if backdrop else 'flat'} | {build_s:.2f} | " + " | ".join(f"{1e3 * t:.0f}" for t in times) + " |")
-    lines += ["", "| synth_dataset | views | wall (s) | s/view incl. backgrounds + PNG writes |", "|---|---|---|---|",
-              f"| 320x240, flat | 9 + 36 | {synth_s:.1f} | {synth_s / 45:.2f} |"]
+        lines.append(
+            f"| {'backdrop + shadows' if backdrop else 'flat'} | {build_s:.2f} | " + " | ".join(f"{1e3 * t:.0f}" for t in times) + " |"
+        )
+    lines += [
+        "",
+        "| synth_dataset | views | wall (s) | s/view incl. backgrounds + PNG writes |",
+        "|---|---|---|---|",
+        f"| 320x240, flat | 9 + 36 | {synth_s:.1f} | {synth_s / 45:.2f} |",
+    ]
     text = "\n".join(lines)
     print(text)
     (args.out / "synthetic.md").write_text(text + "\n")

@@ -82,7 +82,9 @@ def true_to_twin(twin_json: dict, gt_json: dict, transforms: dict) -> np.ndarray
     c2w_twin @ inv(c2w_true) (both OpenCV, matched by image name), rotations averaged (scipy), translations meaned."""
     names = [Path(f["file_path"]).name for f in transforms["frames"]]
     true_c2w = dict(zip(names, np.asarray(gt_json["train"]["c2w_opencv_object"], np.float64)))
-    maps = [np.asarray(c["c2w_object_opencv"], np.float64) @ np.linalg.inv(true_c2w[Path(c["file_path"]).name]) for c in twin_json["cameras"]]
+    maps = [
+        np.asarray(c["c2w_object_opencv"], np.float64) @ np.linalg.inv(true_c2w[Path(c["file_path"]).name]) for c in twin_json["cameras"]
+    ]
     out = np.eye(4)
     out[:3, :3] = Rotation.from_matrix([m[:3, :3] for m in maps]).mean().as_matrix()
     out[:3, 3] = np.mean([m[:3, 3] for m in maps], 0)
@@ -118,9 +120,13 @@ def gltf_errors(glb: Path) -> str:
     if found is None:
         return "n/a"
     node, mods = found
-    js = ("const fs=require('fs');require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
-          ".then(r=>console.log(JSON.stringify(r.issues)))")
-    res = subprocess.run([node, "-e", js, str(glb)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=300)
+    js = (
+        "const fs=require('fs');require('gltf-validator').validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
+        ".then(r=>console.log(JSON.stringify(r.issues)))"
+    )
+    res = subprocess.run(
+        [node, "-e", js, str(glb)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=300
+    )
     if res.returncode != 0:
         return "failed"
     issues = json.loads(res.stdout)
@@ -138,8 +144,15 @@ def measure(scene: str, twin_dir: Path, work: Path, decomposition: Decomposition
     export_s = time.perf_counter() - t0
     a, col = body.asset, body.collision
     rho = a.density.value
-    row = {"scene": scene, "model": twin_json["model_id"], "true_model": gt_json["model_id"], "repair": "; ".join(a.repair.summary()),
-           "export_s": export_s, "v_true": v_true, "true_from": how}
+    row = {
+        "scene": scene,
+        "model": twin_json["model_id"],
+        "true_model": gt_json["model_id"],
+        "repair": "; ".join(a.repair.summary()),
+        "export_s": export_s,
+        "v_true": v_true,
+        "true_from": how,
+    }
     try:
         model = load_model(write_mjcf_package(work / "mjcf", [body], SimOptions()))
         row["exact_loads"] = "yes"
@@ -148,7 +161,9 @@ def measure(scene: str, twin_dir: Path, work: Path, decomposition: Decomposition
         row["exact_loads"] = f"no: {e}"
         mj_mass, mj_inertia = np.nan, np.full(3, np.nan)
     true_moments = np.sort(np.linalg.eigvalsh(rho * i_true))
-    in_twin = true_mesh.copy().apply_transform(true_to_twin(twin_json, gt_json, json.loads((scene_dir / "train" / "transforms.json").read_text())))
+    in_twin = true_mesh.copy().apply_transform(
+        true_to_twin(twin_json, gt_json, json.loads((scene_dir / "train" / "transforms.json").read_text()))
+    )
     offset = inside_offset(a.trimesh(), in_twin)
     row.update(
         vol_cad=closed_volume(twin_dir / "mesh_cad.glb") / v_true - 1,
@@ -163,7 +178,11 @@ def measure(scene: str, twin_dir: Path, work: Path, decomposition: Decomposition
         gyration_vs_true=worst((mj_inertia / mj_mass) / (true_moments / (rho * v_true)) - 1),
         mass_vs_twin=mj_mass / a.mass.mass - 1,
         inertia_vs_twin=worst(mj_inertia / np.sort(a.mass.principal_moments) - 1),
-        col_kind=col.kind, hulls=col.hull_count, col_err=col.volume_error, hausdorff_mm=1e3 * col.hausdorff, col_s=col.seconds,
+        col_kind=col.kind,
+        hulls=col.hull_count,
+        col_err=col.volume_error,
+        hausdorff_mm=1e3 * col.hausdorff,
+        col_s=col.seconds,
     )
     glb = export_glb(twin_dir, work / "twin.glb")
     row["gltf"] = gltf_errors(glb)
@@ -181,7 +200,7 @@ def render_table(rows: list[dict], load: str) -> str:
     head = (
         "# Twins as simulation bodies: mass, inertia and contact geometry against the truth\n\n"
         f"rig_scenes twins (cadsplat twin directories), exported with `simulation.export.twin_body` at 1050 kg/m^3; "
-        f"mass and principal inertia as MuJoCo computes them from the MJCF (`inertia=\"exact\"`). Load: {load}.\n\n"
+        f'mass and principal inertia as MuJoCo computes them from the MJCF (`inertia="exact"`). Load: {load}.\n\n'
         "## Where the volume goes\n\n"
         "Each step's enclosed volume against the true one (gt_mesh.ply). *CAD*: the twin's mesh_cad.glb after repair; "
         "*deformed*: mesh_deformed.glb as saved (signed volume of the welded mesh), then after `repair_mesh`; *MJCF*: MuJoCo's mass / density. "
@@ -234,8 +253,11 @@ def main() -> None:
         for scene in scenes:
             rows.append(measure(scene, args.twins / scene, Path(tmp) / scene, DecompositionOptions(timeout_s=args.coacd_timeout)))
             r = rows[-1]
-            print(f"{scene}: mass {100 * r['mass_vs_true']:+.1f}% vs true ({100 * r['mass_vs_twin']:+.2f}% vs twin), offset {r['offset_mm']:+.2f} mm, "
-                  f"{r['col_kind']} {r['hulls']} hulls {100 * r['col_err']:+.1f}%, {r['col_s']:.0f} s", flush=True)
+            print(
+                f"{scene}: mass {100 * r['mass_vs_true']:+.1f}% vs true ({100 * r['mass_vs_twin']:+.2f}% vs twin), offset {r['offset_mm']:+.2f} mm, "
+                f"{r['col_kind']} {r['hulls']} hulls {100 * r['col_err']:+.1f}%, {r['col_s']:.0f} s",
+                flush=True,
+            )
             # The table so far after every twin: a long run cut short still leaves its rows.
             table = render_table(rows, f"{load_line()} after the last row")
             args.out.parent.mkdir(parents=True, exist_ok=True)

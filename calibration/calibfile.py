@@ -43,7 +43,7 @@ class QualityGate:
     min_coverage: float = 0.15
 
 
-def quality_problems(doc: "CalibrationDoc", gate: QualityGate = QualityGate()) -> list[str]:
+def quality_problems(doc: CalibrationDoc, gate: QualityGate = QualityGate()) -> list[str]:
     """One sentence per camera figure that makes `doc` implausible (empty list: it passes the gate)."""
     out = []
     for name, cam in doc.cameras.items():
@@ -52,7 +52,9 @@ def quality_problems(doc: "CalibrationDoc", gate: QualityGate = QualityGate()) -
         fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
         rms = fig.get("rms_px")
         if rms is not None and not float(rms) <= gate.max_rms_px:
-            out.append(f"camera '{name}' reprojects with RMS {float(rms):.1f} px, above the {gate.max_rms_px:g} px a good calibration stays under")
+            out.append(
+                f"camera '{name}' reprojects with RMS {float(rms):.1f} px, above the {gate.max_rms_px:g} px a good calibration stays under"
+            )
         if not (abs(cx - w / 2) <= gate.max_principal_offset * w and abs(cy - h / 2) <= gate.max_principal_offset * h):
             out.append(f"camera '{name}' has its principal point at ({cx:.0f}, {cy:.0f}) px, far from the centre of its {w}x{h} image")
         lo, hi = (f * max(w, h) for f in gate.focal_range)
@@ -60,7 +62,9 @@ def quality_problems(doc: "CalibrationDoc", gate: QualityGate = QualityGate()) -
             out.append(f"camera '{name}' has focal lengths fx {fx:.0f} / fy {fy:.0f} px, outside {lo:.0f}..{hi:.0f} px for a {w}x{h} image")
         cov = fig.get("coverage")
         if cov is not None and float(cov) < gate.min_coverage:
-            out.append(f"camera '{name}' saw board corners on only {100 * float(cov):.0f}% of its image (at least {100 * gate.min_coverage:.0f}% is needed)")
+            out.append(
+                f"camera '{name}' saw board corners on only {100 * float(cov):.0f}% of its image (at least {100 * gate.min_coverage:.0f}% is needed)"
+            )
     return out
 
 
@@ -90,9 +94,11 @@ class CalibrationDoc:
             raise CalibrationFileError(f"calibration has no camera '{name}' (it has {', '.join(self.cameras)})")
         return self.cameras[name]
 
-    def with_cameras(self, cameras: dict[str, Camera], *, source: str, notes: dict | None = None) -> "CalibrationDoc":
+    def with_cameras(self, cameras: dict[str, Camera], *, source: str, notes: dict | None = None) -> CalibrationDoc:
         """A successor document: new poses, the same figures, this version as parent."""
-        return replace(self, cameras={**self.cameras, **cameras}, source=source, parent=self.version, version=None, created="", notes=notes or {})
+        return replace(
+            self, cameras={**self.cameras, **cameras}, source=source, parent=self.version, version=None, created="", notes=notes or {}
+        )
 
 
 def extrinsics_uncertainty(doc: CalibrationDoc) -> dict | None:
@@ -186,9 +192,19 @@ def from_document(d: dict, where: str = "calibration") -> CalibrationDoc:
     units = d.get("units")
     if units is not None and (not isinstance(units, str) or units not in UNIT_TO_M):
         # Checked here, where a calibration is loaded: captures state these units and every one would be refused later.
-        raise CalibrationFileError(f"{where}: units {units!r} is not a unit cadsplat knows (one of {', '.join(UNIT_TO_M)}, or no units for an unknown scale)")
+        raise CalibrationFileError(
+            f"{where}: units {units!r} is not a unit cadsplat knows (one of {', '.join(UNIT_TO_M)}, or no units for an unknown scale)"
+        )
     return CalibrationDoc(
-        cameras, figures, d.get("source", "board"), d.get("board"), d.get("version"), d.get("parent"), d.get("created", ""), d.get("notes", {}), d.get("fiducials"),
+        cameras,
+        figures,
+        d.get("source", "board"),
+        d.get("board"),
+        d.get("version"),
+        d.get("parent"),
+        d.get("created", ""),
+        d.get("notes", {}),
+        d.get("fiducials"),
         units,
     )
 

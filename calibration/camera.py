@@ -135,14 +135,14 @@ class Camera:
     def is_pinhole(self) -> bool:
         return not np.any(self.dist)
 
-    def with_c2w(self, c2w: np.ndarray) -> "Camera":
+    def with_c2w(self, c2w: np.ndarray) -> Camera:
         return replace(self, c2w=np.asarray(c2w, dtype=np.float64))
 
-    def pinhole(self) -> "Camera":
+    def pinhole(self) -> Camera:
         """The same camera with its distortion removed (what `undistort_image` produces)."""
         return replace(self, dist=np.zeros(0))
 
-    def scaled(self, width: int, height: int) -> "Camera":
+    def scaled(self, width: int, height: int) -> Camera:
         """The camera of the same view resampled to `width` x `height` pixels."""
         sx, sy = width / self.width, height / self.height
         k = self.K.copy()
@@ -184,11 +184,11 @@ class Camera:
         }
 
     @staticmethod
-    def from_dict(d: dict) -> "Camera":
+    def from_dict(d: dict) -> Camera:
         return Camera(np.array(d["K"]), int(d["width"]), int(d["height"]), np.array(d.get("dist", [])), np.array(d.get("c2w", np.eye(4))))
 
     @staticmethod
-    def from_fov(fov_x: float, width: int, height: int, c2w: np.ndarray | None = None, fov_y: float | None = None) -> "Camera":
+    def from_fov(fov_x: float, width: int, height: int, c2w: np.ndarray | None = None, fov_y: float | None = None) -> Camera:
         """Pinhole camera from horizontal field of view (radians), centred principal point (Blender NeRF-synthetic)."""
         fx = 0.5 * width / np.tan(0.5 * fov_x)
         fy = fx if fov_y is None else 0.5 * height / np.tan(0.5 * fov_y)

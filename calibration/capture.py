@@ -16,15 +16,25 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
 
 from calibration.camera import Camera, c2w_opencv_to_opengl, c2w_opengl_to_opencv, undistort_image
-from calibration.fileio import MAX_IMAGE_PIXELS, ImageTooLarge, atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, image_header_size, sha256_bytes, sha256_file
+from calibration.fileio import (
+    MAX_IMAGE_PIXELS,
+    ImageTooLarge,
+    atomic_write_bytes,
+    atomic_write_json,
+    encode_png,
+    fsync_dir,
+    image_header_size,
+    sha256_bytes,
+    sha256_file,
+)
 from calibration.guard import PathOutside, contained
 from calibration.so3 import project_to_so3
 from calibration.units import UNIT_TO_M
@@ -211,7 +221,9 @@ def _pose(matrix, where: str) -> np.ndarray:
     return c2w_opengl_to_opencv(m)
 
 
-def read_capture(path: str | os.PathLike, *, verify: bool = True, allow_missing: bool = False, max_pixels: int = MAX_IMAGE_PIXELS) -> Capture:
+def read_capture(
+    path: str | os.PathLike, *, verify: bool = True, allow_missing: bool = False, max_pixels: int = MAX_IMAGE_PIXELS
+) -> Capture:
     """Read a capture directory (or a transforms.json path).
 
     verify: check every sha256 the manifest records. allow_missing: frames whose image file is
@@ -495,7 +507,9 @@ def capture_fingerprint(capture: Capture) -> str:
     return sha256_bytes(json.dumps(capture_document(capture.frames, capture.meta), sort_keys=True).encode())
 
 
-def load_views(capture: Capture, indices: Sequence[int] | None = None, *, with_masks: bool = True) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
+def load_views(
+    capture: Capture, indices: Sequence[int] | None = None, *, with_masks: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, list[Camera]]:
     """Undistorted images [V, H, W, 3] float32, masks [V, H, W] bool (None without masks, or not
     `with_masks`) and pinhole cameras, each file decoded once: what a caller decodes here it hands
     forward (to `capture_masks`, `reconstruct`) instead of decoding it again.

@@ -84,7 +84,16 @@ def fiducial_drift(camera: Camera, image: np.ndarray, fiducials: dict, *, mode: 
     k_cv[:2, 2] -= 0.5
     vm = camera.viewmat
     rvec0 = cv2.Rodrigues(vm[:3, :3])[0]
-    ok, rvec, tvec = cv2.solvePnP(obj, img - 0.5, k_cv, camera.dist, rvec0.copy(), vm[:3, 3].copy().reshape(3, 1), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj,
+        img - 0.5,
+        k_cv,
+        camera.dist,
+        rvec0.copy(),
+        vm[:3, 3].copy().reshape(3, 1),
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
     if not ok:
         return None
     if mode == THOROUGH:
@@ -120,7 +129,9 @@ def rotation_from_rays(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return u @ np.diag([1, 1, np.sign(np.linalg.det(u @ vt))]) @ vt
 
 
-def background_drift(camera: Camera, reference: np.ndarray, image: np.ndarray, *, mode: str = CHEAP, min_matches: int = 30) -> DriftEstimate | None:
+def background_drift(
+    camera: Camera, reference: np.ndarray, image: np.ndarray, *, mode: str = CHEAP, min_matches: int = 30
+) -> DriftEstimate | None:
     """Camera rotation since `reference` (its empty-rig frame at calibration) from matched features; None when too few match.
 
     The rotation R maps reference rays to current rays (b = R a); the camera turned by R^T.

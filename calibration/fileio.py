@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 # The largest image decoded by default: a 12 MP sensor (4056x3040) four times over. rig.toml's
 # [limits] max_image_pixels changes it for a rig (rig.config); its bound stays under PIL's own bomb limit.
 MAX_IMAGE_PIXELS = 50_000_000

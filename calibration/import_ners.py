@@ -66,9 +66,16 @@ def import_ners_mvmc(src: str | Path, out: str | Path, *, cameras: str = "camera
             raise CaptureError(f"{ann['filename']}: mask is {mask.shape[1]}x{mask.shape[0]} but the image is {w}x{h}")
         cam = ann[cameras]
         name = Path(ann["filename"]).stem
-        frames.append(FrameData(name, img, pytorch3d_camera(np.array(cam["R"]), np.array(cam["T"]), float(cam["fov"]), w, h), name, None, mask))
+        frames.append(
+            FrameData(name, img, pytorch3d_camera(np.array(cam["R"]), np.array(cam["T"]), float(cam["fov"]), w, h), name, None, mask)
+        )
     source = "optimized" if cameras == "camera_optimized" else "rough"
-    meta = {"rig_id": f"ners-mvmc-{doc['id']}", "calibration_id": f"ners:{cameras}", "pose_source": source, "object": doc.get("car_model", "")}
+    meta = {
+        "rig_id": f"ners-mvmc-{doc['id']}",
+        "calibration_id": f"ners:{cameras}",
+        "pose_source": source,
+        "object": doc.get("car_model", ""),
+    }
     return write_capture(out, frames, meta=meta)
 
 

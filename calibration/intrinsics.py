@@ -83,9 +83,7 @@ def calibrate_intrinsics(
     """
     views, rejected = usable_views(detections)
     if len(views) < MIN_VIEWS:
-        raise CalibrationError(
-            f"camera '{camera_name}' has {len(views)} usable board views; intrinsics need at least {MIN_VIEWS}"
-        )
+        raise CalibrationError(f"camera '{camera_name}' has {len(views)} usable board views; intrinsics need at least {MIN_VIEWS}")
     names = list(views)
     obj = [views[n].object_points.astype(np.float32) for n in names]
     img = [(views[n].uv - 0.5).astype(np.float32) for n in names]

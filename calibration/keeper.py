@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import json
 import os
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
 from calibration.calibfile import CalibrationDoc, CalibrationStore, now_iso
 from calibration.capture import Capture, read_image
@@ -40,7 +40,7 @@ class KeeperConfig:
     auto_correct: bool = True
 
     @staticmethod
-    def from_toml(path: str | os.PathLike) -> "KeeperConfig":
+    def from_toml(path: str | os.PathLike) -> KeeperConfig:
         """Read the [calibration.keeper] table of a TOML file (missing keys keep their defaults)."""
         try:
             data = tomllib.loads(Path(path).read_text())
@@ -107,7 +107,12 @@ def assess(
         ref = references.get(name)
         at_ref = current.with_c2w(ref[1]) if ref is not None else current
         est: DriftEstimate | None = camera_drift(
-            at_ref, image, reference=None if ref is None else ref[0], fiducials=calibration.fiducials, mode=mode, translation_tol_mm=cfg.translation_tol_mm
+            at_ref,
+            image,
+            reference=None if ref is None else ref[0],
+            fiducials=calibration.fiducials,
+            mode=mode,
+            translation_tol_mm=cfg.translation_tol_mm,
         )
         if est is None:
             out[name] = CameraCheck(UNKNOWN)
@@ -174,7 +179,10 @@ class Keeper:
             raise ValueError(f"none of the cameras {sorted(frames)} is in {self.calibration_path}")
         for n in names:
             atomic_write_png(self.dir / "reference" / f"{n}.png", frames[n])
-        atomic_write_json(self.dir / "reference.json", {"calibration_version": calib.version, "created": now_iso(), "c2r": {n: calib.cameras[n].c2w for n in names}})
+        atomic_write_json(
+            self.dir / "reference.json",
+            {"calibration_version": calib.version, "created": now_iso(), "c2r": {n: calib.cameras[n].c2w for n in names}},
+        )
         return names
 
     # checks ---------------------------------------------------------------------------------
@@ -205,12 +213,27 @@ class Keeper:
         refs = self.references()
         if not refs and calib.fiducials is None:
             self.set_reference(images)
-            return self._record({"time": now_iso(), "capture": capture, "mode": mode, "calibration_version": calib.version, "status": OK, "action": "reference set", "cameras": {}})
+            return self._record(
+                {
+                    "time": now_iso(),
+                    "capture": capture,
+                    "mode": mode,
+                    "calibration_version": calib.version,
+                    "status": OK,
+                    "action": "reference set",
+                    "cameras": {},
+                }
+            )
         result = assess(calib, images, refs, self.config, mode=mode)
         action = "none"
         status = result.status
         if status == RECALIBRATE or alarm is not None:
-            alarm = alarm or {"since": now_iso(), "calibration_version": calib.version, "cameras": result.drifted(RECALIBRATE), "flagged_captures": []}
+            alarm = alarm or {
+                "since": now_iso(),
+                "calibration_version": calib.version,
+                "cameras": result.drifted(RECALIBRATE),
+                "flagged_captures": [],
+            }
             if capture:
                 alarm["flagged_captures"].append(capture)
             atomic_write_json(self.dir / "alarm.json", alarm)
@@ -222,7 +245,15 @@ class Keeper:
             new = self.store.commit(new, force=True)
             action = f"corrected {', '.join(result.drifted(WARN))} as calibration version {new.version}"
         return self._record(
-            {"time": now_iso(), "capture": capture, "mode": mode, "calibration_version": calib.version, "status": status, "action": action, "cameras": {n: asdict(c) for n, c in result.cameras.items()}}
+            {
+                "time": now_iso(),
+                "capture": capture,
+                "mode": mode,
+                "calibration_version": calib.version,
+                "status": status,
+                "action": action,
+                "cameras": {n: asdict(c) for n, c in result.cameras.items()},
+            }
         )
 
 
@@ -257,4 +288,3 @@ def plot_history(records: list[dict], path: str | os.PathLike, cfg: KeeperConfig
     plt.close(fig)
 
     return atomic_write_bytes(path, buf.getvalue())
-

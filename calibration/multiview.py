@@ -19,7 +19,14 @@ from scipy.sparse import csr_matrix
 
 from calibration.board import BoardDetection
 from calibration.camera import Camera, invert_rigid
-from calibration.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics, cross_validation_px, outlier_views, usable_views
+from calibration.intrinsics import (
+    CalibrationError,
+    IntrinsicsResult,
+    calibrate_intrinsics,
+    cross_validation_px,
+    outlier_views,
+    usable_views,
+)
 from calibration.so3 import axis_angle_to_matrix, geodesic_angle_deg, project_to_so3
 
 
@@ -167,7 +174,9 @@ def _jacobian(x: np.ndarray, p: _Problem, intr0: np.ndarray, groups: np.ndarray,
     return csr_matrix((np.concatenate(data), (np.concatenate(ri), np.concatenate(ci))), shape=(2 * len(p.cam), len(x)))
 
 
-def levenberg_marquardt(fun, jac, x0: np.ndarray, *, huber_px: float = 2.0, max_iter: int = 50, tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
+def levenberg_marquardt(
+    fun, jac, x0: np.ndarray, *, huber_px: float = 2.0, max_iter: int = 50, tol: float = 1e-10
+) -> tuple[np.ndarray, np.ndarray]:
     """Minimise the Huber cost of residuals `fun(x)` [R] (pairs of pixel residuals) with sparse `jac(x)` [R, P].
 
     Normal equations on a P x P system (P is small: poses and intrinsics), IRLS weights per point.
@@ -251,7 +260,16 @@ def bundle_adjust(
             uv.append(det.uv - 0.5)
     if num_dist not in (0, 4, 5):
         raise ValueError(f"rig calibration supports 0, 4 or 5 distortion coefficients, got {num_dist}")
-    prob = _Problem(np.concatenate(ci), np.concatenate(fi), np.concatenate(xyz), np.concatenate(uv), len(names), len(frames), refine_intrinsics, 4 + num_dist)
+    prob = _Problem(
+        np.concatenate(ci),
+        np.concatenate(fi),
+        np.concatenate(xyz),
+        np.concatenate(uv),
+        len(names),
+        len(frames),
+        refine_intrinsics,
+        4 + num_dist,
+    )
     intr0 = np.stack([_intr_vector(cameras[n]) for n in names])
     x0 = []
     for n in names[1:]:
@@ -361,7 +379,9 @@ def calibrate_rig(
         coverage={n: intr[n].coverage for n in names},
         rejected={n: usable[n][1] for n in names},
         outliers={n: outlier_views(per_image[n]) for n in names},
-        intrinsics_cv_px={n: cross_validation_px(detections[n], image_sizes[n], num_dist=num_dist) if cross_validate else None for n in names},
+        intrinsics_cv_px={
+            n: cross_validation_px(detections[n], image_sizes[n], num_dist=num_dist) if cross_validate else None for n in names
+        },
         extrinsics_cv=extr_cv,
         board_to_rig=board,
         single_camera_frames=tuple(sorted(f for f, k in counts.items() if k == 1)),
@@ -383,7 +403,9 @@ def _extrinsics_cross_validation(
         viewmats = {n: invert_rigid(cams[n].c2w) for n in names}
         for f in half:
             n = next(n for n in names if f in sub[n])
-            ok, rvec, tvec = cv2.solvePnP(sub[n][f].object_points, sub[n][f].uv - 0.5, cams[n].K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]), cams[n].dist)
+            ok, rvec, tvec = cv2.solvePnP(
+                sub[n][f].object_points, sub[n][f].uv - 0.5, cams[n].K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]), cams[n].dist
+            )
             b2c = np.eye(4)
             b2c[:3, :3] = cv2.Rodrigues(rvec)[0]
             b2c[:3, 3] = tvec.reshape(3)

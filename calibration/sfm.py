@@ -99,14 +99,24 @@ def sfm_calibrate(
             reader = pycolmap.ImageReaderOptions()
             reader.camera_model = "PINHOLE"
             reader.camera_params = f"{k[0, 0]},{k[1, 1]},{k[0, 2]},{k[1, 2]}"
-            pycolmap.extract_features(db, img_dir, image_names=[f"{n}.png"], camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+            pycolmap.extract_features(
+                db,
+                img_dir,
+                image_names=[f"{n}.png"],
+                camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = 2
         pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         (root / "sparse").mkdir()
         recs = pycolmap.incremental_mapping(db, img_dir, root / "sparse", _mapping_options(pycolmap, len(names)))
         if not recs:
-            raise SfMError(f"SfM found no initial image pair among {len(names)} images; the views overlap too little for a board-free calibration")
+            raise SfMError(
+                f"SfM found no initial image pair among {len(names)} images; the views overlap too little for a board-free calibration"
+            )
         rec = max(recs.values(), key=lambda r: r.num_reg_images())
         poses = {}
         for image in rec.images.values():
@@ -118,7 +128,9 @@ def sfm_calibrate(
         points = int(rec.num_points3D())
     missing = [n for n in names if n not in poses]
     if missing:
-        raise SfMError(f"SfM registered {len(poses)}/{len(names)} images; {', '.join(missing)} could not be placed (too few matches); use a board")
+        raise SfMError(
+            f"SfM registered {len(poses)}/{len(names)} images; {', '.join(missing)} could not be placed (too few matches); use a board"
+        )
     if error > max_reprojection_px:
         raise SfMError(f"SfM reprojection error is {error:.2f} px (limit {max_reprojection_px} px); the result is not trustworthy")
     sim, rms = None, None

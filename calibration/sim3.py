@@ -44,11 +44,11 @@ class Sim3:
         object.__setattr__(self, "scale", s)
 
     @staticmethod
-    def identity() -> "Sim3":
+    def identity() -> Sim3:
         return Sim3(1.0, np.eye(3), np.zeros(3))
 
     @staticmethod
-    def from_matrix(m: np.ndarray) -> "Sim3":
+    def from_matrix(m: np.ndarray) -> Sim3:
         """From a 4x4 [[s R, t], [0, 1]]; raises on reflections, shear or a non-affine last row."""
         m = np.asarray(m, dtype=np.float64)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
@@ -63,7 +63,7 @@ class Sim3:
         return Sim3(s, sr / s, m[:3, 3])
 
     @staticmethod
-    def from_dict(d: dict) -> "Sim3":
+    def from_dict(d: dict) -> Sim3:
         """From {"scale", "rotation" (3x3 nested list), "translation"} as written to gt.json/twin.json."""
         return Sim3(float(d["scale"]), np.array(d["rotation"], dtype=np.float64), np.array(d["translation"], dtype=np.float64))
 
@@ -77,7 +77,7 @@ class Sim3:
         m[:3, 3] = self.translation
         return m
 
-    def __matmul__(self, other: "Sim3") -> "Sim3":
+    def __matmul__(self, other: Sim3) -> Sim3:
         """Composition: (self @ other)(x) = self(other(x))."""
         return Sim3(
             self.scale * other.scale,
@@ -85,7 +85,7 @@ class Sim3:
             self.scale * (self.rotation @ other.translation) + self.translation,
         )
 
-    def inverse(self) -> "Sim3":
+    def inverse(self) -> Sim3:
         r_inv = self.rotation.T
         return Sim3(1.0 / self.scale, r_inv, -(r_inv @ self.translation) / self.scale)
 
@@ -105,7 +105,7 @@ class Sim3:
         out[..., :3, 3] = self.apply(c2w[..., :3, 3])
         return out
 
-    def rotation_deg_to(self, other: "Sim3") -> float:
+    def rotation_deg_to(self, other: Sim3) -> float:
         """Geodesic angle between the two rotations, degrees."""
         return float(geodesic_angle_deg(self.rotation, other.rotation))
 

@@ -125,7 +125,9 @@ def _window(camera: Camera, p2c: np.ndarray, width_m: float, height_m: float, s:
     return max(lo[0], 0), max(lo[1], 0), min(hi[0], w), min(hi[1], h)
 
 
-def sensor(image: np.ndarray, rng: np.random.Generator, *, noise: float = 0.01, blur_sigma: float = 0.0, gain: float = 1.0, offset: float = 0.0) -> np.ndarray:
+def sensor(
+    image: np.ndarray, rng: np.random.Generator, *, noise: float = 0.01, blur_sigma: float = 0.0, gain: float = 1.0, offset: float = 0.0
+) -> np.ndarray:
     """Optics and sensor: Gaussian blur, exposure gain/offset, read noise; uint8 [H, W]."""
     img = image.astype(np.float32)
     if blur_sigma > 0:
@@ -134,7 +136,16 @@ def sensor(image: np.ndarray, rng: np.random.Generator, *, noise: float = 0.01, 
     return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def ring_rig(num_cameras: int, *, radius: float = 0.8, arc_deg: float = 100.0, width: int = 640, height: int = 480, focal: float = 700.0, height_m: float = 0.25) -> list[Camera]:
+def ring_rig(
+    num_cameras: int,
+    *,
+    radius: float = 0.8,
+    arc_deg: float = 100.0,
+    width: int = 640,
+    height: int = 480,
+    focal: float = 700.0,
+    height_m: float = 0.25,
+) -> list[Camera]:
     """Cameras on an arc around the origin (z up), all looking at it; rig frame = world frame."""
     k = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
     cams = []
@@ -144,7 +155,9 @@ def ring_rig(num_cameras: int, *, radius: float = 0.8, arc_deg: float = 100.0, w
     return cams
 
 
-def random_board_poses(spec: BoardSpec, count: int, rng: np.random.Generator, *, max_tilt_deg: float = 35.0, spread_m: float = 0.12) -> list[np.ndarray]:
+def random_board_poses(
+    spec: BoardSpec, count: int, rng: np.random.Generator, *, max_tilt_deg: float = 35.0, spread_m: float = 0.12
+) -> list[np.ndarray]:
     """Board-to-world poses near the origin facing the ring rig (board normal towards -y), tilted at random."""
     from calibration.so3 import axis_angle_to_matrix
 
@@ -163,8 +176,9 @@ def random_board_poses(spec: BoardSpec, count: int, rng: np.random.Generator, *,
     return poses
 
 
-
-def close_up_board_poses(camera: Camera, spec: BoardSpec, count: int, rng: np.random.Generator, *, fill: float = 0.7, max_tilt_deg: float = 40.0) -> list[np.ndarray]:
+def close_up_board_poses(
+    camera: Camera, spec: BoardSpec, count: int, rng: np.random.Generator, *, fill: float = 0.7, max_tilt_deg: float = 40.0
+) -> list[np.ndarray]:
     """Board-to-world poses close to one camera, the board filling ~`fill` of the image width, tilted at random.
 
     These are the views that pin a camera's intrinsics (principal point and distortion need the
@@ -227,7 +241,14 @@ def _frame(x_axis, y_axis, origin) -> np.ndarray:
 
 
 def rig_frame_scene(
-    rng: np.random.Generator, *, half_x: float = 1.0, half_y: float = 1.0, z_lo: float = -0.5, z_hi: float = 1.0, fiducials: bool = True, marker_m: float = 0.1
+    rng: np.random.Generator,
+    *,
+    half_x: float = 1.0,
+    half_y: float = 1.0,
+    z_lo: float = -0.5,
+    z_hi: float = 1.0,
+    fiducials: bool = True,
+    marker_m: float = 0.1,
 ) -> tuple[list[TexturedPlane], dict | None]:
     """The static surroundings of a ring rig: the inside of a box with textured walls, and
     optionally ArUco fiducials (DICT_4X4_50) on the far wall and the floor.

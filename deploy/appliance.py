@@ -23,15 +23,12 @@ from deploy.kiosk_state import Alarm, ApplianceState, CameraStatus, Progress, Ve
 REPO = Path(__file__).resolve().parents[1]
 
 
-def kiosk_pipeline_config(library_dir: str | Path, preset: str, inspection=None, registration=None):
-    """The kiosk's `PipelineConfig`: rig.toml's [inspection] (`inspection`) and [registration] (`registration`, a
-    RegistrationConfig; None: its defaults) for every capture, twins exported as ply and glb."""
-    from deploy.steps import PipelineConfig
+def kiosk_pipeline_config(library_dir: str | Path, preset: str, rig=None, rig_toml: Path | None = None):
+    """The kiosk's `PipelineConfig`: the line's rig.toml (`rig`, parsed; None: the defaults) as the service reads it,
+    twins exported as ply and glb."""
+    from deploy.steps import pipeline_config
 
-    return PipelineConfig(str(library_dir), preset, export_formats=("ply", "glb"),
-                          inspection_tolerance_mm=inspection.tolerance_mm if inspection else None,
-                          inspection_max_unseen_pct=inspection.max_unseen_pct if inspection else None,
-                          **({"registration": registration} if registration is not None else {}))
+    return pipeline_config(library_dir, preset, rig=rig, rig_toml=rig_toml, export_formats=("ply", "glb"))
 
 
 class Appliance:
@@ -58,9 +55,9 @@ class Appliance:
         rig_id: str = "rig",
         owns_dir: bool = False,
         closers=(),
-        inspection=None,
         spill=None,
-        registration=None,
+        rig_config=None,
+        rig_toml: Path | None = None,
     ) -> None:
         from deploy.service import PipelineService
         from deploy.steps import make_step_runner
@@ -94,13 +91,21 @@ class Appliance:
         self._import_note = f"imported {len(imported)} capture(s) the read-only store could not take last time; " if imported else ""
         first = self.drivers[0].camera
         settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
-        self.acquisition = Acquisition(self.drivers, store, rig_id=rig_id, calibration_id=self._calibration_id(),
-                                       calibration_uncertainty=self._calibration_uncertainty(), settings=settings,
-                                       units=self.keeper.store.load().units,
-                                       backgrounds=dict(backgrounds or {}), spill=spill)
-        cfg = kiosk_pipeline_config(library_dir, preset, inspection, registration)
-        self.service = PipelineService(store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4,
-                                       on_event=self._on_service_event)
+        self.acquisition = Acquisition(
+            self.drivers,
+            store,
+            rig_id=rig_id,
+            calibration_id=self._calibration_id(),
+            calibration_uncertainty=self._calibration_uncertainty(),
+            settings=settings,
+            units=self.keeper.store.load().units,
+            backgrounds=dict(backgrounds or {}),
+            spill=spill,
+        )
+        cfg = kiosk_pipeline_config(library_dir, preset, rig_config, rig_toml)
+        self.service = PipelineService(
+            store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4, on_event=self._on_service_event
+        )
         self._threads = [
             threading.Thread(target=self._acquire, name="kiosk-acquisition", daemon=True),
             threading.Thread(target=self._serve, name="kiosk-service", daemon=True),
@@ -114,19 +119,19 @@ class Appliance:
             self._message = "ready: press t to take a capture, w to start watching the line"
 
     @classmethod
-    def from_config(cls, config_path: str | Path, library_dir: str | Path, work_dir: str | Path, *, preset: str = "cpu",
-                    interval_s: float = 20.0) -> "Appliance":
+    def from_config(
+        cls, config_path: str | Path, library_dir: str | Path, work_dir: str | Path, *, preset: str = "cpu", interval_s: float = 20.0
+    ) -> Appliance:
         """The real rig of a `rig.toml` (its cameras, trigger, store, calibration, [inspection] and [registration])."""
         from calibration.keeper import Keeper
-        from deploy.steps import registration_config
         from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
         from rig.config import load_config
         from rig.store import Spill, default_spill_dir, lock_store
 
         cfg = load_config(config_path)
-        registration = registration_config(Path(config_path), loaded=cfg)
+        kiosk_pipeline_config(library_dir, preset, cfg, Path(config_path))  # a bad [registration] refuses here, before the rig opens
         if cfg.calibration is None:
-            raise ValueError(f"{config_path}: the kiosk needs the rig's calibration (set calibration = \"calibration.json\")")
+            raise ValueError(f'{config_path}: the kiosk needs the rig\'s calibration (set calibration = "calibration.json")')
         lock = lock_store(cfg.storage.root, "kiosk")  # one writer per store: a `rig watch` on it refuses the kiosk, and back
         calibration = load_rig_calibration(cfg.calibration).cameras
         drivers = build_cameras(cfg, calibration)
@@ -135,13 +140,33 @@ class Appliance:
         work = Path(work_dir)
         work.mkdir(parents=True, exist_ok=True)
         spill = Spill(cfg.storage.spill or default_spill_dir(), store.root)
-        return cls(drivers, trigger, store, Keeper(cfg.calibration), Path(library_dir), work, preset=preset, interval_s=interval_s,
-                   rig_id=cfg.rig_id, closers=[trigger.stop, lock.release], inspection=cfg.inspection, spill=spill,
-                   registration=registration)
+        return cls(
+            drivers,
+            trigger,
+            store,
+            Keeper(cfg.calibration),
+            Path(library_dir),
+            work,
+            preset=preset,
+            interval_s=interval_s,
+            rig_id=cfg.rig_id,
+            closers=[trigger.stop, lock.release],
+            spill=spill,
+            rig_config=cfg,
+            rig_toml=Path(config_path),
+        )
 
     @classmethod
-    def simulated(cls, work_dir: str | Path | None = None, *, views: int = 8, size: tuple[int, int] = (320, 240),
-                  preset: str = "preview", interval_s: float = 20.0, library_meshes: str | Path | None = None) -> "Appliance":
+    def simulated(
+        cls,
+        work_dir: str | Path | None = None,
+        *,
+        views: int = 8,
+        size: tuple[int, int] = (320, 240),
+        preset: str = "preview",
+        interval_s: float = 20.0,
+        library_meshes: str | Path | None = None,
+    ) -> Appliance:
         """The whole appliance on the synthetic rig: the bundled sample's part on a simulated conveyor,
         a software trigger, and the textured rig frame around the cameras as the keeper's reference."""
         from calibration.calibfile import CalibrationDoc, CalibrationStore
@@ -171,8 +196,22 @@ class Appliance:
         keeper.set_reference(monitor())
         store = CaptureStore(work / "store", min_free_bytes=256 << 20)
         # The simulated rig keeps its spill in its own work directory, not in the user's state directory.
-        app = cls(drivers, SoftwareTrigger(), store, keeper, lib_dir, work, preset=preset, interval_s=interval_s, monitor_views=monitor,
-                  rig=rig, rig_id="simulated-rig", owns_dir=owns, closers=[rig.close], spill=Spill(work / "spill", store.root))
+        app = cls(
+            drivers,
+            SoftwareTrigger(),
+            store,
+            keeper,
+            lib_dir,
+            work,
+            preset=preset,
+            interval_s=interval_s,
+            monitor_views=monitor,
+            rig=rig,
+            rig_id="simulated-rig",
+            owns_dir=owns,
+            closers=[rig.close],
+            spill=Spill(work / "spill", store.root),
+        )
         if not app.acquisition.backgrounds:
             app.take_background()  # the simulated belt starts empty
             app._message = "ready: press t to take a capture, w to start watching the line"
@@ -280,7 +319,9 @@ class Appliance:
         for d in self.drivers:
             c = checks.get(d.camera_id, {})
             h = d.health()
-            cams.append(CameraStatus(d.camera_id, h.ok, c.get("status", "—"), c.get("rotation_deg"), c.get("effect_px"), "" if h.ok else h.detail))
+            cams.append(
+                CameraStatus(d.camera_id, h.ok, c.get("status", "—"), c.get("rotation_deg"), c.get("effect_px"), "" if h.ok else h.detail)
+            )
         alarms = [a for a in (drift_alarm(c) for c in cams) if a]
         if note and not any(c.calibration == RECALIBRATE for c in cams):
             alarms.append(Alarm(f"keeper:{note}", f"Calibration keeper {note}."))
@@ -300,8 +341,16 @@ class Appliance:
             grade, advice = grade_twin(reg["score"], rec["fit_iou"])
             preview = Path(rec["twin"]) / "renders"
             first = sorted(preview.glob("*.png"))
-            verdict = Verdict(job.capture_id, rec["model_id"], reg["score"], rec["fit_iou"], grade, advice, str(first[0]) if first else "",
-                              rec.get("inspection", {}).get("line", ""))
+            verdict = Verdict(
+                job.capture_id,
+                rec["model_id"],
+                reg["score"],
+                rec["fit_iou"],
+                grade,
+                advice,
+                str(first[0]) if first else "",
+                rec.get("inspection", {}).get("line", ""),
+            )
         queued = tuple(j.capture_id for j in self.service.jobs.jobs("queued"))
         return ApplianceState(
             watching=self._watching.is_set(),
@@ -372,4 +421,3 @@ class Appliance:
             close()
         if self._own_dir:
             shutil.rmtree(self.dir, ignore_errors=True)
-

@@ -8,9 +8,9 @@ with a result: done with its outputs, or failed with the error after Ray's retri
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
-
+from typing import Any
 
 # Ray's switch for clusters of several nodes (`ray_constants.ENABLE_RAY_CLUSTERS_ENV_VAR`); off, a node is loopback-only.
 _SINGLE_NODE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"

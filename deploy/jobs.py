@@ -17,10 +17,10 @@ import json
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 STEPS: tuple[str, ...] = ("register", "reconstruct", "export")
 
@@ -130,13 +130,19 @@ class JobStore:
         spent; a job whose step has had `max_attempts` is given up, saying so. Returns those jobs."""
         try:
             with self._tx() as db:
-                died = db.execute("SELECT s.job_id, s.step, j.attempts FROM steps s JOIN jobs j ON j.id = s.job_id WHERE s.status='running'").fetchall()
+                died = db.execute(
+                    "SELECT s.job_id, s.step, j.attempts FROM steps s JOIN jobs j ON j.id = s.job_id WHERE s.status='running'"
+                ).fetchall()
                 now = time.time()
                 for job_id, step, attempts in died:
                     given_up = attempts >= self.max_attempts
-                    why = f"{step}: the service died during {step} (attempt {attempts} of {self.max_attempts})" + ("; given up" if given_up else "")
+                    why = f"{step}: the service died during {step} (attempt {attempts} of {self.max_attempts})" + (
+                        "; given up" if given_up else ""
+                    )
                     db.execute("UPDATE steps SET status='pending', started=NULL WHERE job_id=? AND step=?", (job_id, step))
-                    db.execute("UPDATE jobs SET status=?, error=?, updated=? WHERE id=?", ("failed" if given_up else "queued", why, now, job_id))
+                    db.execute(
+                        "UPDATE jobs SET status=?, error=?, updated=? WHERE id=?", ("failed" if given_up else "queued", why, now, job_id)
+                    )
                 db.execute("UPDATE jobs SET status='queued', updated=? WHERE status='running'", (now,))
             return [self.get(job_id) for job_id, _, _ in died]
         except (sqlite3.Error, OSError) as e:

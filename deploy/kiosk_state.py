@@ -83,11 +83,16 @@ def drift_alarm(camera: CameraStatus) -> Alarm | None:
     """The alarm an operator sees for a camera whose calibration drifted."""
     if camera.calibration == "RECALIBRATE":
         deg = f"{camera.drift_deg:.1f}°" if camera.drift_deg is not None else "too far"
-        return Alarm(f"drift:{camera.name}", f"Camera {camera.name} moved {deg} — stop the line and run a calibration (cadsplat calibrate board).")
+        return Alarm(
+            f"drift:{camera.name}", f"Camera {camera.name} moved {deg} — stop the line and run a calibration (cadsplat calibrate board)."
+        )
     if camera.calibration == "WARN":
         deg = f"{camera.drift_deg:.1f}°" if camera.drift_deg is not None else "a little"
         return Alarm(f"drift:{camera.name}", f"Camera {camera.name} moved {deg} — run calibration check.")
     if not camera.online:
         why = f" ({camera.detail})" if camera.detail else ""
-        return Alarm(f"offline:{camera.name}", f"Camera {camera.name} is not answering{why} — captures are refused until it is back; check its cable and power.")
+        return Alarm(
+            f"offline:{camera.name}",
+            f"Camera {camera.name} is not answering{why} — captures are refused until it is back; check its cable and power.",
+        )
     return None

@@ -18,9 +18,10 @@ import signal
 import sqlite3
 import threading
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Protocol
 
 from calibration.guard import ProcessLock, hold_lock
 from deploy.jobs import STEPS, Job, JobStore, JobStoreError, is_disk_full

@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calibration.capture import Capture, read_capture
-from calibration.fileio import atomic_write_bytes, atomic_write_json
+from calibration.fileio import MAX_IMAGE_PIXELS, atomic_write_bytes, atomic_write_json
 from deploy.jobs import Job
 
 if TYPE_CHECKING:
@@ -52,6 +53,22 @@ class PipelineConfig:
     inspection_tolerance_mm: float | None = None  # set: every twin is inspected against its CAD (rig.toml [inspection])
     inspection_max_unseen_pct: float | None = None
     registration: RegistrationConfig = field(default_factory=_default_registration)
+    max_image_pixels: int = MAX_IMAGE_PIXELS  # rig.toml [limits]: an image declaring more is refused undecoded
+
+
+def pipeline_config(
+    library: str | Path, preset: str = "cpu", *, rig: RigConfig | None = None, rig_toml: Path | None = None, **given
+) -> PipelineConfig:
+    """The one `PipelineConfig` of a line: rig.toml's [registration], [inspection] and [limits] (`rig`, as the caller
+    parsed `rig_toml`), with what the caller states in `given` (command-line flags; None: rig.toml's value) over them."""
+    stated = {k: v for k, v in given.items() if v is not None}
+    if rig is not None:
+        if rig.inspection is not None:
+            stated.setdefault("inspection_tolerance_mm", rig.inspection.tolerance_mm)
+            stated.setdefault("inspection_max_unseen_pct", rig.inspection.max_unseen_pct)
+        stated.setdefault("registration", registration_config(rig_toml, loaded=rig))
+        stated.setdefault("max_image_pixels", rig.max_image_pixels)
+    return PipelineConfig(str(library), preset, **stated)
 
 
 def registration_config(rig_toml: Path | None, *, loaded: RigConfig | None = None) -> RegistrationConfig:
@@ -93,7 +110,7 @@ def register_step(capture_path: Path, work: Path, cfg: PipelineConfig, decoded: 
     from reconstruction.registration import register_views, registration_document
     from reconstruction.views import capture_views
 
-    capture = read_capture(capture_path)
+    capture = read_capture(capture_path, max_pixels=cfg.max_image_pixels)
     views = capture_views(capture)
     library = load_library(cfg.library)
     reg = register_views(views, library, cfg.registration, seed=cfg.seed)
@@ -125,8 +142,9 @@ def fit_iou(twin: Twin, capture: Capture, masks: np.ndarray, renders: dict[str, 
     return float(np.mean(scores))
 
 
-def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progress: Progress | None = None,
-                     decoded: Decoded | None = None) -> dict:
+def reconstruct_step(
+    capture_path: Path, work: Path, cfg: PipelineConfig, progress: Progress | None = None, decoded: Decoded | None = None
+) -> dict:
     """The twin of the capture from the register step's masks and registration (used as given) into work/twin. The views
     the register step decoded and the twin trained here stay in memory (`decoded`): nothing is decoded or loaded again."""
     from reconstruction.registration import RegistrationResult
@@ -140,7 +158,7 @@ def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progre
     else:
         with np.load(work / MASKS_NPZ) as npz:
             masks = npz["masks"]
-        capture = read_capture(capture_path)
+        capture = read_capture(capture_path, max_pixels=cfg.max_image_pixels)
     renders = None
     if (twin_dir / "twin.json").exists():
         twin = load_twin(twin_dir)
@@ -149,34 +167,64 @@ def reconstruct_step(capture_path: Path, work: Path, cfg: PipelineConfig, progre
         from reconstruction.pipeline import reconstruct_capture
         from reconstruction.views import capture_views
 
-        reg = RegistrationResult.from_dict(json.loads((work / REGISTRATION_JSON).read_text())["registration"], capture=capture,
-                                           library=load_library(cfg.library), where=str(work / REGISTRATION_JSON))
-        rec = reconstruct_capture(views if carried else capture_views(capture, masks=masks), cfg.library, twin_dir, registration=reg,
-                                  preset=cfg.preset, seed=cfg.seed, progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None)
+        reg = RegistrationResult.from_dict(
+            json.loads((work / REGISTRATION_JSON).read_text())["registration"],
+            capture=capture,
+            library=load_library(cfg.library),
+            where=str(work / REGISTRATION_JSON),
+        )
+        rec = reconstruct_capture(
+            views if carried else capture_views(capture, masks=masks),
+            cfg.library,
+            twin_dir,
+            registration=reg,
+            preset=cfg.preset,
+            seed=cfg.seed,
+            progress=(lambda stage, i, n, _loss: progress(stage, i, n)) if progress else None,
+        )
         twin, renders = rec.twin, rec.renders
     if decoded is not None:
         decoded.capture_path, decoded.views, decoded.twin = str(capture_path), None, twin
-    summary = {"twin": str(twin_dir), "model_id": twin.model_id, "fit_iou": fit_iou(twin, capture, masks, renders),
-               "total_s": float(twin.timings_s.get("total", 0.0))}
+    summary = {
+        "twin": str(twin_dir),
+        "model_id": twin.model_id,
+        "fit_iou": fit_iou(twin, capture, masks, renders),
+        "total_s": float(twin.timings_s.get("total", 0.0)),
+    }
     if cfg.inspection_tolerance_mm is not None:
-        summary["inspection"] = inspect_step(work, cfg)
+        summary["inspection"] = inspect_step(work, cfg, twin)
     return summary
 
 
-def inspect_step(work: Path, cfg: PipelineConfig) -> dict:
-    """`cadsplat inspect` of the job's twin into work/inspection (kept if already there): the verdict for the job record."""
-    from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT, INSPECTION_JSON, inspect_twin_dir
+def inspect_step(work: Path, cfg: PipelineConfig, twin: Twin | None = None) -> dict:
+    """`cadsplat inspect` of the job's twin into work/inspection (kept if already there): the verdict for the job record.
+    `twin`: the job's twin as the reconstruct step holds it; read from work/twin otherwise."""
+    from deploy.inspection_report import DEFAULT_MAX_UNSEEN_PCT, INSPECTION_JSON, inspect_twin_dir, write_inspection
 
     report = work / "inspection"
     if (report / INSPECTION_JSON).exists():
         doc = json.loads((report / INSPECTION_JSON).read_text())
     else:
         unseen = DEFAULT_MAX_UNSEEN_PCT if cfg.inspection_max_unseen_pct is None else cfg.inspection_max_unseen_pct
-        doc = inspect_twin_dir(work / "twin", report, tolerance_mm=cfg.inspection_tolerance_mm, max_unseen_pct=unseen, turntable=12)
+        settings = {"tolerance_mm": cfg.inspection_tolerance_mm, "max_unseen_pct": unseen, "turntable": 12}
+        doc = (
+            inspect_twin_dir(work / "twin", report, **settings)
+            if twin is None
+            else write_inspection(twin, report, twin_label=str(work / "twin"), **settings)
+        )
     v = doc["verdict"]
-    return {"status": v["status"], "line": v["line"], "exit_code": v["exit_code"], "part": v["part"], "deviation_mm": v["deviation_mm"],
-            "at_mm": v["at_mm"], "unseen_pct": v["unseen_pct"], "out_of_view_pct": v.get("out_of_view_pct"),
-            "tolerance_mm": v["tolerance_mm"], "report": str(report)}
+    return {
+        "status": v["status"],
+        "line": v["line"],
+        "exit_code": v["exit_code"],
+        "part": v["part"],
+        "deviation_mm": v["deviation_mm"],
+        "at_mm": v["at_mm"],
+        "unseen_pct": v["unseen_pct"],
+        "out_of_view_pct": v.get("out_of_view_pct"),
+        "tolerance_mm": v["tolerance_mm"],
+        "report": str(report),
+    }
 
 
 def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str, list[dict]]:
@@ -192,7 +240,9 @@ def inspection_history(jobs: list[Job], model_id: str | None = None) -> dict[str
     return out
 
 
-def export_step(work: Path, cfg: PipelineConfig) -> dict:
+def export_step(work: Path, cfg: PipelineConfig, twin: Twin | None = None) -> dict:
+    """The job's twin in each of `cfg.export_formats` under work/export (kept if already there). `twin`: the job's twin as
+    the reconstruct step holds it; read and verified from work/twin otherwise."""
     from simulation.export import write_export
 
     twin_dir = work / "twin"
@@ -201,7 +251,7 @@ def export_step(work: Path, cfg: PipelineConfig) -> dict:
         target = work / "export" / (f"twin.{fmt}" if fmt in ("ply", "glb") else fmt)
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
-            write_export(fmt, twin_dir, target)
+            write_export(fmt, twin_dir, target, twin=twin)
         outputs[fmt] = str(target)
     return outputs
 
@@ -218,7 +268,8 @@ def make_step_runner(cfg: PipelineConfig, progress: Progress | None = None):
         if step == "reconstruct":
             return reconstruct_step(capture, work_dir, cfg, progress, decoded)
         if step == "export":
-            return export_step(work_dir, cfg)
+            held = decoded.twin if decoded.capture_path == str(capture) else None
+            return export_step(work_dir, cfg, held)
         raise ValueError(f"unknown pipeline step {step!r}")
 
     return run
@@ -235,5 +286,5 @@ def process_capture(capture_path: str, work_dir: str, cfg: PipelineConfig) -> di
     decoded = Decoded()
     reg = register_step(Path(capture_path), work, cfg, decoded)
     rec = reconstruct_step(Path(capture_path), work, cfg, decoded=decoded)
-    exp = export_step(work, cfg)
+    exp = export_step(work, cfg, decoded.twin)
     return {"register": reg, "reconstruct": rec, "export": exp}

@@ -35,9 +35,18 @@ WEB_DIR = Path(__file__).resolve().parent / "web"
 VENDOR_DIR = WEB_DIR / "vendor"
 COOKIE = "cadsplat_view"
 # Served types the page needs; module scripts are refused by browsers under any other type than JavaScript.
-CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8",
-                 ".json": "application/json", ".png": "image/png", ".glb": "model/gltf-binary", ".ply": "application/octet-stream",
-                 ".spz": "application/octet-stream", ".csv": "text/csv; charset=utf-8", ".txt": "text/plain; charset=utf-8"}
+CONTENT_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8",
+    ".json": "application/json",
+    ".png": "image/png",
+    ".glb": "model/gltf-binary",
+    ".ply": "application/octet-stream",
+    ".spz": "application/octet-stream",
+    ".csv": "text/csv; charset=utf-8",
+    ".txt": "text/plain; charset=utf-8",
+}
 
 
 @dataclass(frozen=True)

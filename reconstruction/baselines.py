@@ -30,8 +30,8 @@ from calibration.camera import Camera
 from calibration.sim3 import Sim3
 from calibration.so3 import quat_to_matrix
 from reconstruction.adam import Adam
-from reconstruction.losses import composite, photometric_loss
 from reconstruction.gaussians import EPS2D_3DGS, Gaussians
+from reconstruction.losses import composite, photometric_loss
 from reconstruction.render import num_sh_bases, rasterize
 from reconstruction.splats import SH_C0
 from reconstruction.twin import Twin, TwinCamera
@@ -161,15 +161,20 @@ class VanillaConfig:
     lr_shN: float = 2.5e-3 / 20
     max_gaussians: int = 1_000_000  # a guard for CPU memory, never reached by the recipe's objects
 
-    def scaled(self, iterations: int, init_points: int | None = None) -> "VanillaConfig":
+    def scaled(self, iterations: int, init_points: int | None = None) -> VanillaConfig:
         f = iterations / self.iterations
 
         def s(x: int) -> int:
             return max(1, int(round(x * f)))
 
         return replace(
-            self, iterations=iterations, sh_interval=s(self.sh_interval), refine_start=s(self.refine_start),
-            refine_stop=s(self.refine_stop), refine_every=s(self.refine_every), reset_every=s(self.reset_every),
+            self,
+            iterations=iterations,
+            sh_interval=s(self.sh_interval),
+            refine_start=s(self.refine_start),
+            refine_stop=s(self.refine_stop),
+            refine_every=s(self.refine_every),
+            reset_every=s(self.reset_every),
             init_points=self.init_points if init_points is None else init_points,
         )
 
@@ -198,8 +203,14 @@ class GaussianParams(nn.Module):
 
 
 def _adam(params: GaussianParams, cfg: VanillaConfig, scene_scale: float) -> Adam:
-    lrs = {"means": cfg.lr_means * scene_scale, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
-           "opacity_logits": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
+    lrs = {
+        "means": cfg.lr_means * scene_scale,
+        "log_scales": cfg.lr_scales,
+        "quats": cfg.lr_quats,
+        "opacity_logits": cfg.lr_opacities,
+        "sh0": cfg.lr_sh0,
+        "shN": cfg.lr_shN,
+    }
     return Adam([{"name": k, "params": [getattr(params, k)], "lr": lrs[k]} for k in GaussianParams.NAMES], eps=1e-15)
 
 
@@ -223,8 +234,14 @@ def _update_params(params: GaussianParams, opt: Adam, keep: torch.Tensor, new: d
 
 @torch.no_grad()
 def densify_and_prune(
-    params: GaussianParams, opt: Adam, grad2d_mean: torch.Tensor, cfg: VanillaConfig, scene_scale: float,
-    *, prune_large: bool, gen: torch.Generator,
+    params: GaussianParams,
+    opt: Adam,
+    grad2d_mean: torch.Tensor,
+    cfg: VanillaConfig,
+    scene_scale: float,
+    *,
+    prune_large: bool,
+    gen: torch.Generator,
 ) -> dict[str, int]:
     """One refinement step: clone, split, prune. grad2d_mean: [N] mean view-space positional gradient
     norm (in NDC units, as Inria's threshold expects). Returns how many were cloned/split/pruned."""
@@ -329,8 +346,18 @@ def train_vanilla_3dgs(
         bg = torch.rand(1, 3, generator=gen)
         sh = torch.cat([params.sh0, params.shN], 1)[:, : num_sh_bases(degree)]
         rgb, _, meta = rasterize(
-            params.means, params.quats, torch.exp(params.log_scales), torch.sigmoid(params.opacity_logits), sh,
-            viewmats[v : v + 1], Ks[v : v + 1], w, h, sh_degree=degree, backgrounds=bg, eps2d=cfg.eps2d,
+            params.means,
+            params.quats,
+            torch.exp(params.log_scales),
+            torch.sigmoid(params.opacity_logits),
+            sh,
+            viewmats[v : v + 1],
+            Ks[v : v + 1],
+            w,
+            h,
+            sh_degree=degree,
+            backgrounds=bg,
+            eps2d=cfg.eps2d,
         )
         meta["means2d"].retain_grad()
         loss = photometric_loss(rgb, composite(imgs[v : v + 1], msks[v : v + 1], bg), cfg.lambda_dssim)
@@ -346,8 +373,13 @@ def train_vanilla_3dgs(
         opt.step()
         if it < cfg.refine_stop and it > cfg.refine_start and it % cfg.refine_every == 0:
             stats = densify_and_prune(
-                params, opt, grad_accum / grad_count.clamp_min(1), cfg, scene_scale,
-                prune_large=it > cfg.reset_every, gen=gen,
+                params,
+                opt,
+                grad_accum / grad_count.clamp_min(1),
+                cfg,
+                scene_scale,
+                prune_large=it > cfg.reset_every,
+                gen=gen,
             )
             for k, val in stats.items():
                 events[k] += val
@@ -371,12 +403,23 @@ def vanilla_twin(result: VanillaResult, cameras: Sequence[Camera], names: Sequen
     n = len(result.gaussians)
     cams = [TwinCamera(f"images/{name}.png", name, c.K, c.width, c.height, c.c2w) for name, c in zip(names, cameras)]
     return Twin(
-        model_id="vanilla-3dgs", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(),
-        cameras=cams, preset="vanilla-3dgs", choices={"config": {"value": asdict(result.config), "why": "the original 3DGS recipe, schedule scaled to the iteration count"}},
+        model_id="vanilla-3dgs",
+        sim3_rig_to_object_init=Sim3.identity(),
+        sim3_rig_to_object=Sim3.identity(),
+        cameras=cams,
+        preset="vanilla-3dgs",
+        choices={"config": {"value": asdict(result.config), "why": "the original 3DGS recipe, schedule scaled to the iteration count"}},
         timings_s={"train": result.wall_s, "total": result.wall_s},
-        losses={"photo": {"rgb": float(np.mean(result.losses[-20:]))}, "events": result.events,
-                "num_gaussians": [list(x) for x in result.num_gaussians]},
-        gaussians=result.gaussians, means_canonical=result.gaussians.means, face_index=np.full(n, -1),
-        barycentrics=np.zeros((n, 3), np.float32), part_label=np.zeros(n, np.int64), part_names=["object"],
+        losses={
+            "photo": {"rgb": float(np.mean(result.losses[-20:]))},
+            "events": result.events,
+            "num_gaussians": [list(x) for x in result.num_gaussians],
+        },
+        gaussians=result.gaussians,
+        means_canonical=result.gaussians.means,
+        face_index=np.full(n, -1),
+        barycentrics=np.zeros((n, 3), np.float32),
+        part_label=np.zeros(n, np.int64),
+        part_names=["object"],
         pose_mode="none",
     )

@@ -102,8 +102,9 @@ def similarity_basis(points: torch.Tensor, with_scale: bool = True) -> torch.Ten
     return cols.reshape(p * 3, -1)
 
 
-def normal_similarity_basis(points: np.ndarray, normals: np.ndarray, center: np.ndarray, radius: float,
-                            with_scale: bool = True) -> np.ndarray:
+def normal_similarity_basis(
+    points: np.ndarray, normals: np.ndarray, center: np.ndarray, radius: float, with_scale: bool = True
+) -> np.ndarray:
     """[P, 7] (or [P, 6] without scale) normal components n . b of the infinitesimal similarities at points
     [P, 3] with unit normals [P, 3]: the moves along the normals (in units of `radius`) that a pose makes."""
     x = (np.asarray(points, np.float64) - np.asarray(center, np.float64)) / float(radius)
@@ -216,8 +217,15 @@ def blend_anchors(rows: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> tor
 class DeformationField(nn.Module):
     """Offsets Δμ [N, 3] for the fixed canonical means [N, 3] it was built on (object frame, metres)."""
 
-    def __init__(self, means_canonical: np.ndarray, config: FieldConfig = FieldConfig(), *, seed: int = 0,
-                 center: np.ndarray | None = None, radius: float | None = None):
+    def __init__(
+        self,
+        means_canonical: np.ndarray,
+        config: FieldConfig = FieldConfig(),
+        *,
+        seed: int = 0,
+        center: np.ndarray | None = None,
+        radius: float | None = None,
+    ):
         super().__init__()
         self.config = config
         pts = np.asarray(means_canonical, np.float64)

@@ -225,13 +225,9 @@ def evaluate_views(
     return out
 
 
-def registration_report(
-    c2w_est: np.ndarray, c2w_gt: np.ndarray, symmetries: Sequence[np.ndarray] | None = None
-) -> dict:
+def registration_report(c2w_est: np.ndarray, c2w_gt: np.ndarray, symmetries: Sequence[np.ndarray] | None = None) -> dict:
     """Registration errors of training cameras (object-frame c2w [N, 4, 4], estimated vs truth) as JSON-ready numbers."""
-    err = registration_errors(
-        np.linalg.inv(np.asarray(c2w_est, np.float64)), np.linalg.inv(np.asarray(c2w_gt, np.float64)), symmetries
-    )
+    err = registration_errors(np.linalg.inv(np.asarray(c2w_est, np.float64)), np.linalg.inv(np.asarray(c2w_gt, np.float64)), symmetries)
     return {
         "rotation_deg_median": err["rotation_deg_median"],
         "center_pct_median": err["center_pct_median"],
@@ -386,8 +382,21 @@ def run_protocol(
     t0 = time.perf_counter()
     rec = None
     if not (reuse and os.path.exists(os.path.join(out, "twin.json"))):
-        rec = reconstruct_capture(capture, library, out, preset=preset, views=views, pose_mode=pose_mode, seed=seed, progress=progress,
-                          log=log, overwrite=overwrite, init=init, ablations=ablations, overrides=overrides)
+        rec = reconstruct_capture(
+            capture,
+            library,
+            out,
+            preset=preset,
+            views=views,
+            pose_mode=pose_mode,
+            seed=seed,
+            progress=progress,
+            log=log,
+            overwrite=overwrite,
+            init=init,
+            ablations=ablations,
+            overrides=overrides,
+        )
     twin = load_twin(out) if rec is None else rec.twin
     trained_s = time.perf_counter() - t0
 
@@ -398,18 +407,31 @@ def run_protocol(
     images, masks, cams = load_views(held, idx)
     if heldout_progress:
         heldout_progress(0, len(idx))
-    report = evaluate_twin(twin, cams, images, masks, names=[held.frames[i].camera_id for i in idx], refine_steps=refine_steps,
-                           gt=gt, symmetries=symmetries, progress=heldout_progress)
+    report = evaluate_twin(
+        twin,
+        cams,
+        images,
+        masks,
+        names=[held.frames[i].camera_id for i in idx],
+        refine_steps=refine_steps,
+        gt=gt,
+        symmetries=symmetries,
+        progress=heldout_progress,
+    )
     evaluate_s = time.perf_counter() - t0
     reg_init = reg_refined = reg_raw = None
     if gt is not None:
         train_c2w = np.stack([f.camera.c2w for f in read_capture(capture).frames])
-        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]),
-                                       symmetries)
+        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]), symmetries)
         reg_refined = report["registration"]
         reg_raw = registration_report(*gt_train_poses(twin.cameras, gt)[:2])
     return ProtocolResult(
-        twin=twin, registration=None if rec is None else rec.registration, heldout_views=idx, report=report,
-        reg_init=reg_init, reg_refined=reg_refined, reg_raw=reg_raw,
+        twin=twin,
+        registration=None if rec is None else rec.registration,
+        heldout_views=idx,
+        report=report,
+        reg_init=reg_init,
+        reg_refined=reg_refined,
+        reg_raw=reg_raw,
         timings_s={"reconstruct": float(twin.timings_s.get("total", trained_s)), "evaluate": evaluate_s},
     )

@@ -65,7 +65,7 @@ class Gaussians:
         return round(self.sh.shape[1] ** 0.5) - 1
 
     @staticmethod
-    def from_arrays(means, quats, log_scales, opacity_logits, sh, eps2d: float = EPS2D_3DGS) -> "Gaussians":
+    def from_arrays(means, quats, log_scales, opacity_logits, sh, eps2d: float = EPS2D_3DGS) -> Gaussians:
         """float32 numpy copies of array-likes (a twin read from disk, a trained model's detached state)."""
 
         def f32(a) -> np.ndarray:
@@ -84,12 +84,13 @@ class Gaussians:
 
         return t(self.means), t(self.quats), torch.exp(t(self.log_scales)), torch.sigmoid(t(self.opacity_logits)), t(self.sh)
 
-    def subset(self, index: Array) -> "Gaussians":
+    def subset(self, index: Array) -> Gaussians:
         """The Gaussians selected by `index` ([M] int or [N] bool)."""
-        return Gaussians(self.means[index], self.quats[index], self.log_scales[index], self.opacity_logits[index], self.sh[index],
-                         self.eps2d)
+        return Gaussians(
+            self.means[index], self.quats[index], self.log_scales[index], self.opacity_logits[index], self.sh[index], self.eps2d
+        )
 
-    def with_sh_degree(self, degree: int) -> "Gaussians":
+    def with_sh_degree(self, degree: int) -> Gaussians:
         """SH cut to or zero-padded up to `degree` (a degree-0 twin read by a viewer that expects degree 3)."""
         k = num_sh_bases(degree)
         sh = np.asarray(self.sh)
@@ -97,7 +98,7 @@ class Gaussians:
         out[:, : min(k, sh.shape[1])] = sh[:, :k]
         return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, out, self.eps2d)
 
-    def transformed(self, sim3: Sim3 | np.ndarray) -> "Gaussians":
+    def transformed(self, sim3: Sim3 | np.ndarray) -> Gaussians:
         """The Gaussians moved by a Sim(3) (or a rigid [4, 4]): means s R x + t, orientations R q,
         scales times s, and the SH turned with the body so every view sees the colour it saw before."""
         t = sim3 if isinstance(sim3, Sim3) else Sim3.from_matrix(np.asarray(sim3, np.float64))
@@ -105,21 +106,23 @@ class Gaussians:
         quats = (turn * Rotation.from_quat(np.asarray(self.quats, np.float64), scalar_first=True)).as_quat(scalar_first=True)
         sh = np.einsum("ij,njc->nic", sh_rotation(t.rotation, self.sh_degree), np.asarray(self.sh, np.float64))
         return Gaussians(
-            t.apply(self.means).astype(np.float32), quats.astype(np.float32),
+            t.apply(self.means).astype(np.float32),
+            quats.astype(np.float32),
             (np.asarray(self.log_scales, np.float64) + np.log(t.scale)).astype(np.float32),
-            np.asarray(self.opacity_logits, np.float32), sh.astype(np.float32), self.eps2d,
+            np.asarray(self.opacity_logits, np.float32),
+            sh.astype(np.float32),
+            self.eps2d,
         )
 
     @staticmethod
-    def concatenate(sets: Sequence["Gaussians"]) -> "Gaussians":
+    def concatenate(sets: Sequence[Gaussians]) -> Gaussians:
         """One set of several (SH padded to the highest degree among them). One render draws with one dilation: the
         smallest eps2d among them, so that the bare-mesh splats a simulation adds (never fitted, 3DGS's default) do
         not blur a twin fitted with less; a set fitted with more then draws a little thinner."""
         degree = max(g.sh_degree for g in sets)
         sets = [g.with_sh_degree(degree) for g in sets]
         cat = lambda name: np.concatenate([np.asarray(getattr(g, name), np.float32) for g in sets])  # noqa: E731
-        return Gaussians(cat("means"), cat("quats"), cat("log_scales"), cat("opacity_logits"), cat("sh"),
-                         min(g.eps2d for g in sets))
+        return Gaussians(cat("means"), cat("quats"), cat("log_scales"), cat("opacity_logits"), cat("sh"), min(g.eps2d for g in sets))
 
 
 def sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:
@@ -150,7 +153,7 @@ def camera_batch(cameras: Camera | Sequence[Camera]) -> tuple[torch.Tensor, torc
     sizes = {(c.width, c.height) for c in cams}
     if len(sizes) != 1:
         raise ValueError(f"cameras of one render must share an image size, got {sorted(sizes)}")
-    (width, height), = sizes
+    ((width, height),) = sizes
     viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32)
     Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32)
     return viewmats, Ks, width, height
@@ -174,8 +177,18 @@ def render(
     viewmats = torch.as_tensor(viewmats, dtype=torch.float32)
     bg = None if background is None else torch.as_tensor(background, dtype=torch.float32).expand(len(viewmats), 3)
     rgb, alpha, _ = rasterize(
-        means, quats, scales, opacities, sh, viewmats, torch.as_tensor(Ks, dtype=torch.float32), width, height,
-        sh_degree=gaussians.sh_degree, backgrounds=bg, eps2d=gaussians.eps2d,
+        means,
+        quats,
+        scales,
+        opacities,
+        sh,
+        viewmats,
+        torch.as_tensor(Ks, dtype=torch.float32),
+        width,
+        height,
+        sh_degree=gaussians.sh_degree,
+        backgrounds=bg,
+        eps2d=gaussians.eps2d,
     )
     return rgb, alpha[..., 0]
 

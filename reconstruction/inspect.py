@@ -65,6 +65,7 @@ _NEAR = 1e-6
 
 # ---------------------------------------------------------------------------------------- geometry
 
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals [V, 3] of `vertices` [V, 3], `faces` [F, 3], turned outward.
 
@@ -145,8 +146,14 @@ def line_deviation(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray
     points [P, 3], normals [P, 3] unit. Positive: the surface lies outside, along the normal.
     """
     out = np.empty(len(points))
-    _line_hits(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(normals, np.float64),
-               np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64), float(max_distance), out)
+    _line_hits(
+        np.ascontiguousarray(points, np.float64),
+        np.ascontiguousarray(normals, np.float64),
+        np.ascontiguousarray(vertices, np.float64),
+        np.ascontiguousarray(faces, np.int64),
+        float(max_distance),
+        out,
+    )
     return out
 
 
@@ -163,6 +170,7 @@ def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 # ---------------------------------------------------------------------------------------- visibility
 
+
 @dataclass(frozen=True)
 class Visibility:
     """Which cameras see each vertex: `seen` [C, V] bool, `views` [V] count, `best_angle_deg` [V] (the smallest
@@ -176,8 +184,15 @@ class Visibility:
     footprint: np.ndarray  # [C, V] a pixel's size at the point in each camera (units of the points per pixel)
 
 
-def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                     cameras: Sequence[Camera], *, max_angle_deg: float = MAX_ANGLE_DEG) -> Visibility:
+def point_visibility(
+    points: np.ndarray,
+    normals: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cameras: Sequence[Camera],
+    *,
+    max_angle_deg: float = MAX_ANGLE_DEG,
+) -> Visibility:
     """Visibility from `cameras` of `points` [P, 3] with unit `normals` [P, 3] lying on the mesh (`vertices`
     [V, 3], `faces` [F, 3]) that may hide them.
 
@@ -218,6 +233,7 @@ def point_visibility(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
 
 # ---------------------------------------------------------------------------------------- uncertainty
 
+
 def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, sigma_px: float = SIGMA_PX) -> np.ndarray:
     """1-sigma [V] of each point's place along its normal from the views that see it (units of `footprint`); NaN unseen.
 
@@ -233,8 +249,9 @@ def projection_sigma(seen: np.ndarray, cos: np.ndarray, footprint: np.ndarray, s
     return np.where(info > 0, sigma_px / np.sqrt(np.maximum(info, 1e-300)), np.nan)
 
 
-def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarray, valid: np.ndarray,
-                       k: int = RESIDUAL_NEIGHBOURS) -> np.ndarray:
+def local_fit_residual(
+    points: np.ndarray, normals: np.ndarray, values: np.ndarray, valid: np.ndarray, k: int = RESIDUAL_NEIGHBOURS
+) -> np.ndarray:
     """RMS residual [P] of a quadric fit (value = a + b u + c w + d u^2 + e uw + f w^2 over the tangent plane) of
     `values` [P] on each valid
     point's k nearest valid neighbours on its own side of the surface (points [P, 3], unit normals [P, 3], valid [P]
@@ -268,7 +285,7 @@ def local_fit_residual(points: np.ndarray, normals: np.ndarray, values: np.ndarr
     coef = np.einsum("nij,nj->ni", np.linalg.pinv(wd), y * weight)
     resid = (y - np.einsum("nkj,nj->nk", design, coef)) * weight
     dof = weight.sum(1) - 6
-    out[idx] = np.where(dof >= 1, np.sqrt((resid ** 2).sum(1) / np.maximum(dof, 1)), np.nan)
+    out[idx] = np.where(dof >= 1, np.sqrt((resid**2).sum(1) / np.maximum(dof, 1)), np.nan)
     return out
 
 
@@ -278,6 +295,7 @@ def expanded_uncertainty(sigma_projection: np.ndarray, residual: np.ndarray, k: 
 
 
 # ---------------------------------------------------------------------------------------- inspection
+
 
 @dataclass(frozen=True)
 class Inspection:
@@ -324,10 +342,19 @@ class Inspection:
         return 0.0 if total <= 0 else float(100.0 * self.area_mm2[m & ~self.seen & (self.in_view == 0)].sum() / total)
 
 
-def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: np.ndarray, part_names: Sequence[str],
-                   deformed_vertices: np.ndarray, deformed_faces: np.ndarray, cameras: Sequence[Camera], *,
-                   masks: Sequence[np.ndarray] | None = None, mm_per_unit: float = MM_PER_M,
-                   max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
+def inspect_meshes(
+    cad_vertices: np.ndarray,
+    cad_faces: np.ndarray,
+    face_part: np.ndarray,
+    part_names: Sequence[str],
+    deformed_vertices: np.ndarray,
+    deformed_faces: np.ndarray,
+    cameras: Sequence[Camera],
+    *,
+    masks: Sequence[np.ndarray] | None = None,
+    mm_per_unit: float = MM_PER_M,
+    max_angle_deg: float = MAX_ANGLE_DEG,
+) -> Inspection:
     """Deviation of the deformed surface from the CAD and its visibility from `cameras` (object frame).
 
     The CAD mesh (`cad_vertices` [V, 3], `cad_faces` [F, 3], `face_part` [F]) and the deformed mesh are in the
@@ -370,7 +397,7 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
     # A seen vertex without enough neighbours on its side of the surface takes the map's typical residual.
     typical = float(np.nanmedian(residual)) if np.isfinite(residual).any() else 0.0
     residual = np.where(seen & ~np.isfinite(residual), typical, residual)
-    residual = np.where(np.isfinite(rim_residual), np.sqrt(residual ** 2 + rim_residual ** 2), residual)
+    residual = np.where(np.isfinite(rim_residual), np.sqrt(residual**2 + rim_residual**2), residual)
     footprint = np.nanmedian(np.where(vis.seen, vis.footprint, np.nan)[:, seen], 0) if seen.any() else np.zeros(0)
     footprint_all = np.full(len(cad_v), np.nan)
     footprint_all[seen] = footprint
@@ -389,18 +416,34 @@ def inspect_meshes(cad_vertices: np.ndarray, cad_faces: np.ndarray, face_part: n
     )
 
 
-def inspect_twin(twin: Twin, masks: Sequence[np.ndarray] | None = None, *, cad: MeshParts | None = None,
-                 deformed: MeshParts | None = None, max_angle_deg: float = MAX_ANGLE_DEG) -> Inspection:
+def inspect_twin(
+    twin: Twin,
+    masks: Sequence[np.ndarray] | None = None,
+    *,
+    cad: MeshParts | None = None,
+    deformed: MeshParts | None = None,
+    max_angle_deg: float = MAX_ANGLE_DEG,
+) -> Inspection:
     """`inspect_meshes` on a loaded twin: its CAD and deformed meshes (metres; `cad`, `deformed` when already read
     from it) from its trained cameras, refined by the capture's `masks` (one [H, W] bool per twin camera, in
     `twin.cameras` order, at the capture's resolution) when given."""
     cad = twin.load_mesh_cad() if cad is None else cad
     deformed = twin.load_mesh_deformed() if deformed is None else deformed
-    return inspect_meshes(cad.vertices, cad.faces, cad.face_part, cad.part_names, deformed.vertices, deformed.faces,
-                          [c.camera for c in twin.cameras], masks=masks, max_angle_deg=max_angle_deg)
+    return inspect_meshes(
+        cad.vertices,
+        cad.faces,
+        cad.face_part,
+        cad.part_names,
+        deformed.vertices,
+        deformed.faces,
+        [c.camera for c in twin.cameras],
+        masks=masks,
+        max_angle_deg=max_angle_deg,
+    )
 
 
 # ---------------------------------------------------------------------------------------- report
+
 
 @dataclass(frozen=True)
 class PartReport:
@@ -446,8 +489,11 @@ def part_reports(insp: Inspection, tolerance_mm: float) -> list[PartReport]:
             worst, worst_at = float(d[i]), tuple(float(x) for x in insp.vertices_mm[s][i])
             mean, p95 = float(d.mean()), float(np.percentile(np.abs(d), 95))
             bad = 100.0 * float(insp.area_mm2[s][np.abs(d) > tolerance_mm].sum()) / max(area, 1e-300)
-        out.append(PartReport(name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad,
-                              insp.out_of_view_pct(m)))
+        out.append(
+            PartReport(
+                name, int(m.sum()), area, insp.unseen_pct(m), single, views, angle, worst, worst_at, mean, p95, bad, insp.out_of_view_pct(m)
+            )
+        )
     return out
 
 
@@ -462,13 +508,20 @@ class NamedVertex:
     at_mm: tuple[float, float, float]
 
     def to_dict(self) -> dict:
-        return {"vertex": self.vertex, "part": self.part, "deviation_mm": self.deviation_mm, "uncertainty_mm": self.uncertainty_mm,
-                "at_mm": list(self.at_mm)}
+        return {
+            "vertex": self.vertex,
+            "part": self.part,
+            "deviation_mm": self.deviation_mm,
+            "uncertainty_mm": self.uncertainty_mm,
+            "at_mm": list(self.at_mm),
+        }
 
     def text(self) -> str:
         x, y, z = self.at_mm
-        return (f"vertex {self.vertex} of part '{self.part}' {self.deviation_mm:+.2f} +-{self.uncertainty_mm:.2f} mm "
-                f"at ({x:.1f}, {y:.1f}, {z:.1f}) mm")
+        return (
+            f"vertex {self.vertex} of part '{self.part}' {self.deviation_mm:+.2f} +-{self.uncertainty_mm:.2f} mm "
+            f"at ({x:.1f}, {y:.1f}, {z:.1f}) mm"
+        )
 
 
 @dataclass(frozen=True)
@@ -522,8 +575,13 @@ def tolerance_calls(deviation_mm: np.ndarray, uncertainty_mm: np.ndarray, tolera
 
 
 def _named(insp: Inspection, i: int, u: np.ndarray) -> NamedVertex:
-    return NamedVertex(int(i), insp.part_names[insp.part[i]] if insp.part[i] >= 0 else None, float(insp.deviation_mm[i]), float(u[i]),
-                       tuple(float(x) for x in insp.vertices_mm[i]))
+    return NamedVertex(
+        int(i),
+        insp.part_names[insp.part[i]] if insp.part[i] >= 0 else None,
+        float(insp.deviation_mm[i]),
+        float(u[i]),
+        tuple(float(x) for x in insp.vertices_mm[i]),
+    )
 
 
 def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Verdict:
@@ -544,7 +602,9 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
     out &= seen
     straddle &= seen
     area = max(float(insp.area_mm2.sum()), 1e-300)
-    straddling = tuple(_named(insp, i, u) for i in np.flatnonzero(straddle)[np.argsort(-np.abs(insp.deviation_mm[straddle]), kind="stable")])
+    straddling = tuple(
+        _named(insp, i, u) for i in np.flatnonzero(straddle)[np.argsort(-np.abs(insp.deviation_mm[straddle]), kind="stable")]
+    )
     worst = part = at = unc = None
     if seen.any():
         # The worst vertex: among those certainly out when any is, else among all seen.
@@ -563,19 +623,41 @@ def verdict(insp: Inspection, tolerance_mm: float, max_unseen_pct: float) -> Ver
             line += f"; {_beside(out_pct, 0.0, 0)} % of the surface out of tolerance beyond its uncertainty"
     elif worst is None or unseen > max_unseen_pct:
         status, reason, code = "UNCERTAIN", "unseen", EXIT_CODES["UNCERTAIN"]
-        seen_part = "" if worst is None else f"; seen surface within tolerance, max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})"
+        seen_part = (
+            "" if worst is None else f"; seen surface within tolerance, max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})"
+        )
         line = f"UNCERTAIN {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}{seen_part}"
     elif straddling:
         status, reason, code = "UNCERTAIN", "near tolerance", EXIT_NEAR_TOLERANCE
         named = "; ".join(v.text() for v in straddling[:NAMED_VERTICES])
         more = f"; and {len(straddling) - NAMED_VERTICES} more" if len(straddling) > NAMED_VERTICES else ""
-        line = (f"UNCERTAIN {len(straddling)} seen vertices ({_beside(straddling_pct, 0.0, 1)} % of the surface) lie within their "
-                f"uncertainty of the {tol} tolerance: {named}{more}")
+        line = (
+            f"UNCERTAIN {len(straddling)} seen vertices ({_beside(straddling_pct, 0.0, 1)} % of the surface) lie within their "
+            f"uncertainty of the {tol} tolerance: {named}{more}"
+        )
     else:
         status, reason, code = "PASS", None, EXIT_CODES["PASS"]
-        line = f"PASS max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})" + (f", {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else "")
-    return Verdict(status, line, code, float(tolerance_mm), float(max_unseen_pct), unseen, None if worst is None else abs(worst), part, worst, at,
-                   out_of_view, reason, unc if insp.uncertainty_mm is not None else None, straddling, straddling_pct, out_pct)
+        line = f"PASS max {_beside(abs(worst), tolerance_mm, 1)}{pm} mm (tolerance {tol})" + (
+            f", {_beside(unseen, max_unseen_pct)} % of the surface unseen{why}" if unseen >= 0.5 else ""
+        )
+    return Verdict(
+        status,
+        line,
+        code,
+        float(tolerance_mm),
+        float(max_unseen_pct),
+        unseen,
+        None if worst is None else abs(worst),
+        part,
+        worst,
+        at,
+        out_of_view,
+        reason,
+        unc if insp.uncertainty_mm is not None else None,
+        straddling,
+        straddling_pct,
+        out_pct,
+    )
 
 
 # ---------------------------------------------------------------------------------------- pictures

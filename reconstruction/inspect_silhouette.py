@@ -39,14 +39,18 @@ def bilinear(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
     h, w = field.shape
     x = np.clip(uv[:, 0] - 0.5, 0.0, w - 1.0)
     y = np.clip(uv[:, 1] - 0.5, 0.0, h - 1.0)
-    x0, y0 = np.minimum(np.floor(x).astype(np.int64), w - 2 if w > 1 else 0), np.minimum(np.floor(y).astype(np.int64), h - 2 if h > 1 else 0)
+    x0, y0 = (
+        np.minimum(np.floor(x).astype(np.int64), w - 2 if w > 1 else 0),
+        np.minimum(np.floor(y).astype(np.int64), h - 2 if h > 1 else 0),
+    )
     fx, fy = x - x0, y - y0
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    return (field[y0, x0] * (1 - fx) * (1 - fy) + field[y0, x1] * fx * (1 - fy) + field[y1, x0] * (1 - fx) * fy + field[y1, x1] * fx * fy)
+    return field[y0, x0] * (1 - fx) * (1 - fy) + field[y0, x1] * fx * (1 - fy) + field[y1, x0] * (1 - fx) * fy + field[y1, x1] * fx * fy
 
 
-def rim_offsets(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, camera: Camera, mask: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+def rim_offsets(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, camera: Camera, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(vertex indices [M], signed move along the normal [M], units of the vertices) that would bring the rendered
     outline of the mesh (`vertices` [V, 3], `faces` [F, 3], unit `normals` [V, 3]) onto the `mask` [H, W] bool at its
     rim vertices in `camera` (rescaled to the mask's size). Positive: the surface should move out."""
@@ -74,8 +78,15 @@ def rim_offsets(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, ca
     return rim, s * footprint / np.maximum(sin, 1e-6)
 
 
-def spread_on_mesh(num_vertices: int, faces: np.ndarray, normals: np.ndarray, index: np.ndarray, value: np.ndarray,
-                   smoothing: float = SMOOTHING, pull: float = PULL) -> np.ndarray:
+def spread_on_mesh(
+    num_vertices: int,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    index: np.ndarray,
+    value: np.ndarray,
+    smoothing: float = SMOOTHING,
+    pull: float = PULL,
+) -> np.ndarray:
     """field [V]: measurements `value` [M] at vertices `index` [M] (faces [F, 3], unit normals [V, 3]) spread over the mesh by
     min sum (x_i - value)^2 + smoothing sum_edges w_ab (x_a - x_b)^2 + pull sum_v x_v^2, w_ab = max(n_a . n_b, 0)^2:
     the measured offsets where they are, fading to no correction a few edges away."""
@@ -86,15 +97,17 @@ def spread_on_mesh(num_vertices: int, faces: np.ndarray, normals: np.ndarray, in
     edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
     a, b = edges[:, 0], edges[:, 1]
     w = smoothing * np.maximum(np.einsum("ij,ij->i", normals[a], normals[b]), 0.0) ** 2
-    lap = sp.coo_matrix((np.concatenate([w, w, -w, -w]), (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))),
-                        shape=(num_vertices, num_vertices))
+    lap = sp.coo_matrix(
+        (np.concatenate([w, w, -w, -w]), (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))), shape=(num_vertices, num_vertices)
+    )
     counts = np.bincount(index, minlength=num_vertices).astype(np.float64)
     sums = np.bincount(index, weights=value, minlength=num_vertices)
     return np.asarray(spsolve((lap + sp.diags(counts + pull)).tocsc(), sums))
 
 
-def silhouette_correction(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, cameras: Sequence[Camera],
-                          masks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, int]:
+def silhouette_correction(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, int]:
     """(correction [V] along the normals, units of the vertices (0 far from every rim); rim residual [V], the RMS of the measured offsets left after the correction at each measured vertex, NaN elsewhere;
     number of rim measurements) of the mesh (`vertices` [V, 3] as photographed, `faces` [F, 3], unit `normals`
     [V, 3]) against `masks` (one [H, W] bool per camera, any resolution)."""
@@ -111,5 +124,5 @@ def silhouette_correction(vertices: np.ndarray, faces: np.ndarray, normals: np.n
     field = spread_on_mesh(n, faces, normals, index, value)
     left = value - field[index]
     counts = np.bincount(index, minlength=n)
-    rms = np.sqrt(np.bincount(index, weights=left ** 2, minlength=n) / np.maximum(counts, 1))
+    rms = np.sqrt(np.bincount(index, weights=left**2, minlength=n) / np.maximum(counts, 1))
     return field, np.where(counts > 0, rms, np.nan), int(index.size)

@@ -29,7 +29,17 @@ from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_fil
 from calibration.guard import PathOutside, contained
 from calibration.units import UNIT_TO_M
 from reconstruction.mesh_io import MeshError, read_mesh_parts, unit_of
-from reconstruction.silhouette_index import GridSpec, SilhouetteIndex, consolidate, model_frame, open_index, read_shard, render_model_views, shard_key, write_shard
+from reconstruction.silhouette_index import (
+    GridSpec,
+    SilhouetteIndex,
+    consolidate,
+    model_frame,
+    open_index,
+    read_shard,
+    render_model_views,
+    shard_key,
+    write_shard,
+)
 
 MESH_EXTS = (".obj", ".stl", ".ply", ".glb")
 CAD_ONLY_EXTS = (".step", ".stp")
@@ -154,7 +164,9 @@ def model_id_of(path: Path, mesh_dir: Path) -> str:
     return path.relative_to(mesh_dir).with_suffix("").as_posix()
 
 
-def build_library(mesh_dir, out_dir, *, unit: str = "m", workers: int | None = None, progress: bool = True, grid: GridSpec | None = None, log=print) -> Library:
+def build_library(
+    mesh_dir, out_dir, *, unit: str = "m", workers: int | None = None, progress: bool = True, grid: GridSpec | None = None, log=print
+) -> Library:
     """Build (or update) the library at `out_dir` from every mesh under `mesh_dir`.
 
     Models whose shard already exists (same bytes, unit and grid) are not re-rendered. Bad meshes are
@@ -257,7 +269,12 @@ def _previous_entries(out_dir: Path) -> dict:
     except json.JSONDecodeError:
         return {}
     return {
-        m["sha256"] + str(out_dir / m["shard"]): {"ok": True, "parts": m.get("part_names", []), "components": m.get("components", 1), "extent": m["extent_m"]}
+        m["sha256"] + str(out_dir / m["shard"]): {
+            "ok": True,
+            "parts": m.get("part_names", []),
+            "components": m.get("components", 1),
+            "extent": m["extent_m"],
+        }
         for m in doc.get("models", [])
     }
 
@@ -315,7 +332,9 @@ def load_library(path) -> Library:
         if not m.mesh_path.is_file():
             raise LibraryError(f"{m.mesh_path}: mesh of {m.id} is missing; rebuild the library")
         if sha256_file(m.mesh_path) != m.sha256:
-            raise LibraryError(f"{m.mesh_path}: the mesh of model {m.id} is not the one the library was built from (sha256 differs); rebuild the library")
+            raise LibraryError(
+                f"{m.mesh_path}: the mesh of model {m.id} is not the one the library was built from (sha256 differs); rebuild the library"
+            )
     try:
         grid = GridSpec(**doc["grid"])
     except TypeError as e:
@@ -336,12 +355,24 @@ def _model_entry(m, i: int, root: Path, doc_path: Path) -> ModelEntry:
     extent = m.get("extent_m")
     if not (isinstance(extent, list) and len(extent) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in extent)):
         raise LibraryError(f"{where}.extent_m must be a list of 3 numbers, got {extent!r}")
-    if not isinstance(m.get("part_names", []), list) or isinstance(m.get("components", 1), bool) or not isinstance(m.get("components", 1), int):
+    if (
+        not isinstance(m.get("part_names", []), list)
+        or isinstance(m.get("components", 1), bool)
+        or not isinstance(m.get("components", 1), int)
+    ):
         raise LibraryError(f"{where}: part_names must be a list and components an integer")
     try:
         mesh_path = contained(root, m["file"], what=f"{where}.file")
         shard = contained(root, m["shard"], what=f"{where}.shard")
     except PathOutside as e:
         raise LibraryError(str(e)) from None
-    return ModelEntry(m["id"], mesh_path, m["unit"], m["sha256"], tuple(str(n) for n in m.get("part_names", [])), int(m.get("components", 1)),
-                      tuple(float(x) for x in extent), shard)
+    return ModelEntry(
+        m["id"],
+        mesh_path,
+        m["unit"],
+        m["sha256"],
+        tuple(str(n) for n in m.get("part_names", [])),
+        int(m.get("components", 1)),
+        tuple(float(x) for x in extent),
+        shard,
+    )

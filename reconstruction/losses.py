@@ -85,8 +85,7 @@ class _SilhouetteLosses(torch.autograd.Function):
         return torch.from_numpy(grad).reshape(ctx.shape), None, None
 
 
-def silhouette_losses(alpha: torch.Tensor, mask: torch.Tensor,
-                      valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def silhouette_losses(alpha: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(L_mask, L_fill) of rendered alpha [C, H, W] or [C, H, W, 1] against mask [C, H, W] (or [..., 1]).
 
     L_mask = mean |A - M| over pixels (eq. mask); with valid [C, H, W] bool, over the pixels each photograph has
@@ -96,8 +95,13 @@ def silhouette_losses(alpha: torch.Tensor, mask: torch.Tensor,
     of it) stay at alpha 0.5-0.9, and a render composited on white shows them washed out.
     """
     m = _hw(mask).to(alpha.dtype)
-    fused = (alpha.dtype == torch.float32 and alpha.device.type == "cpu" and not m.requires_grad
-             and m.shape == _hw(alpha).shape and (valid is None or valid.shape == m.shape))
+    fused = (
+        alpha.dtype == torch.float32
+        and alpha.device.type == "cpu"
+        and not m.requires_grad
+        and m.shape == _hw(alpha).shape
+        and (valid is None or valid.shape == m.shape)
+    )
     if fused:
         return _SilhouetteLosses.apply(alpha, m, valid)
     # Anything else (a GPU, float64, a mask to differentiate or one that broadcasts) through torch ops.
@@ -177,8 +181,14 @@ def support_windows(support: torch.Tensor, margin: int) -> tuple[torch.Tensor, i
     return torch.from_numpy(corners), wh, ww
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2,
-                     support: torch.Tensor | None = None, window: int = 11, valid: torch.Tensor | None = None) -> torch.Tensor:
+def photometric_loss(
+    render: torch.Tensor,
+    target: torch.Tensor,
+    lambda_dssim: float = 0.2,
+    support: torch.Tensor | None = None,
+    window: int = 11,
+    valid: torch.Tensor | None = None,
+) -> torch.Tensor:
     """L_rgb = (1 - λ) L1 + λ D-SSIM, D-SSIM = 1 - SSIM (3DGS), means over every pixel of [C, H, W, 3].
 
     support [C, H, W] bool, optional: the pixels outside which render and target are the same colour

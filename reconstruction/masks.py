@@ -25,7 +25,9 @@ import numpy as np
 from calibration.capture import Capture, CaptureError, on_canvas
 
 
-def subtract_background(image: np.ndarray, background: np.ndarray, *, min_diff: float = 0.08, noise_k: float = 6.0, min_area_frac: float = 0.002) -> np.ndarray:
+def subtract_background(
+    image: np.ndarray, background: np.ndarray, *, min_diff: float = 0.08, noise_k: float = 6.0, min_area_frac: float = 0.002
+) -> np.ndarray:
     """Foreground bool [H, W] of RGB float `image` [H, W, 3] against the empty-rig `background` [H, W, 3].
 
     A pixel is foreground when its colour distance exceeds max(min_diff, noise_k * MAD of the
@@ -62,16 +64,25 @@ class MaskQuality:
     problem: str = ""
 
 
-def mask_quality(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, min_cover: float = 0.0005,
-                 max_cover: float = 0.9, max_shift: float = 0.06) -> MaskQuality:
+def mask_quality(
+    image: np.ndarray,
+    background: np.ndarray,
+    mask: np.ndarray,
+    *,
+    min_cover: float = 0.0005,
+    max_cover: float = 0.9,
+    max_shift: float = 0.06,
+) -> MaskQuality:
     """Quality of the mask [H, W] `subtract_background(image [H, W, 3], background [H, W, 3])` returned."""
     diff = np.linalg.norm(image.astype(np.float32) - background.astype(np.float32), axis=-1)
     shift = float(np.median(diff))
     cover = float(np.mean(mask))
     problem = ""
     if shift > max_shift:
-        problem = (f"the whole frame differs from the empty-rig reference (median colour change {shift:.2f}): the lighting or "
-                   "exposure changed since it was taken; take a new reference with the belt empty")
+        problem = (
+            f"the whole frame differs from the empty-rig reference (median colour change {shift:.2f}): the lighting or "
+            "exposure changed since it was taken; take a new reference with the belt empty"
+        )
     elif cover > max_cover:
         problem = f"{100 * cover:.0f}% of the frame differs from the empty-rig reference, far more than a part covers"
     elif cover < min_cover:
@@ -81,8 +92,9 @@ def mask_quality(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *,
     return MaskQuality(cover, shift, score, problem)
 
 
-def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | None = None,
-                  indices: Sequence[int] | None = None) -> tuple[np.ndarray, str]:
+def capture_masks(
+    capture: Capture, images: np.ndarray | Sequence[np.ndarray] | None = None, indices: Sequence[int] | None = None
+) -> tuple[np.ndarray, str]:
     """Undistorted bool masks [V, H, W] of the views `indices` (default all) and where they came from
     ("masks" or "background").
 
@@ -110,8 +122,10 @@ def capture_masks(capture: Capture, images: np.ndarray | Sequence[np.ndarray] | 
             decoded[frame.camera_id] = capture.background(frame.camera_id)
         background = decoded[frame.camera_id]
         if image.shape != background.shape:
-            raise CaptureError(f"{capture.root}: the background frame of {frame.camera_id} is {background.shape[1]}x{background.shape[0]}, "
-                               f"its image {image.shape[1]}x{image.shape[0]}")
+            raise CaptureError(
+                f"{capture.root}: the background frame of {frame.camera_id} is {background.shape[1]}x{background.shape[0]}, "
+                f"its image {image.shape[1]}x{image.shape[0]}"
+            )
         mask = subtract_background(image, background)
         quality = mask_quality(image, background, mask)
         if quality.problem:

@@ -94,10 +94,7 @@ def lanczos_resize(img: Array, size: int = CROP_SIZE) -> np.ndarray:
     metric; Lanczos rings past [0, 1] at hard edges, which no display shows, hence the clip.
     """
     img = _numpy(img)
-    channels = [
-        np.asarray(Image.fromarray(img[..., c]).resize((size, size), Image.Resampling.LANCZOS))
-        for c in range(img.shape[2])
-    ]
+    channels = [np.asarray(Image.fromarray(img[..., c]).resize((size, size), Image.Resampling.LANCZOS)) for c in range(img.shape[2])]
     return np.clip(np.stack(channels, axis=-1), 0.0, 1.0)
 
 
@@ -193,9 +190,7 @@ def image_metrics(pred_rgb: Array, pred_alpha: Array, gt_rgb: Array, gt_mask: Ar
     mask = _numpy(gt_mask, bool)
     alpha = _numpy(pred_alpha)
     if pred.shape != gt.shape or pred.shape[:2] != mask.shape or alpha.shape != mask.shape:
-        raise ValueError(
-            f"shapes disagree: pred_rgb {pred.shape}, pred_alpha {alpha.shape}, gt_rgb {gt.shape}, gt_mask {mask.shape}"
-        )
+        raise ValueError(f"shapes disagree: pred_rgb {pred.shape}, pred_alpha {alpha.shape}, gt_rgb {gt.shape}, gt_mask {mask.shape}")
 
     box = crop_box(mask)
     crop_pred = lanczos_resize(crop_square(pred, *box))

@@ -165,8 +165,9 @@ class _SampleColors(torch.autograd.Function):
         n_views = viewmats.shape[0]
         v_points_per_view = np.empty((n_views, points.shape[0], 3))
         v_views = np.empty((n_views, 3, 4))
-        parallel_for(_sample_backward, n_views, ctx.imgs, points, viewmats, Ks, grad.detach().contiguous().numpy(),
-                     v_points_per_view, v_views)
+        parallel_for(
+            _sample_backward, n_views, ctx.imgs, points, viewmats, Ks, grad.detach().contiguous().numpy(), v_points_per_view, v_views
+        )
         v_points = v_points_per_view.sum(0)
         v_viewmats = np.zeros_like(viewmats)
         v_viewmats[:, :3, :] = v_views

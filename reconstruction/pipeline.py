@@ -77,8 +77,10 @@ class FileCheckpoint:
                 warnings.simplefilter("ignore")  # torch warns about a foreign pickle protocol before refusing it
                 payload = torch.load(self.path, map_location="cpu", weights_only=True)
         except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, OSError) as e:
-            raise CheckpointError(f"{self.path} is not a checkpoint this engine wrote (it does not load as tensors and plain values: "
-                                  f"{type(e).__name__}); it was not loaded; remove it to start training over") from None
+            raise CheckpointError(
+                f"{self.path} is not a checkpoint this engine wrote (it does not load as tensors and plain values: "
+                f"{type(e).__name__}); it was not loaded; remove it to start training over"
+            ) from None
         return payload if isinstance(payload, dict) else None
 
     def save(self, payload: dict) -> None:
@@ -129,9 +131,17 @@ def sphere_registration(masks: np.ndarray, cams: Sequence) -> tuple[Registration
     mesh = sphere_mesh_for_views(cams, masks)
     parts = MeshParts(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.zeros(len(mesh.faces), np.int64), ["sphere"])
     ious = Scorer(masks, list(cams), REFINE_PX)(parts.vertices, parts.faces, Sim3.identity())
-    reg = RegistrationResult(model_id="sphere", sim3_rig_to_object=Sim3.identity(), per_view_iou=ious, score=float(ious.mean()),
-                             alternatives=[], ambiguity=None, timings_s={"total": time.perf_counter() - t}, truncated_views=[],
-                             scale_observable=True)
+    reg = RegistrationResult(
+        model_id="sphere",
+        sim3_rig_to_object=Sim3.identity(),
+        per_view_iou=ious,
+        score=float(ious.mean()),
+        alternatives=[],
+        ambiguity=None,
+        timings_s={"total": time.perf_counter() - t},
+        truncated_views=[],
+        scale_observable=True,
+    )
     return reg, parts
 
 
@@ -143,9 +153,17 @@ def start_pose(registration: RegistrationResult, parts: MeshParts) -> tuple[Sim3
     return (registration.sim3_rig_to_object if metric is None else metric_sim3(registration.sim3_rig_to_object, metric, centre)), centre
 
 
-def configure(preset: str, views: CaptureViews, registration: RegistrationResult, parts: MeshParts, *, init: str = "cad",
-              pose_mode: str | None = None, ablations: Sequence[str] = (), overrides: Mapping[str, Any] | None = None
-              ) -> tuple[Preset, ConfigInputs]:
+def configure(
+    preset: str,
+    views: CaptureViews,
+    registration: RegistrationResult,
+    parts: MeshParts,
+    *,
+    init: str = "cad",
+    pose_mode: str | None = None,
+    ablations: Sequence[str] = (),
+    overrides: Mapping[str, Any] | None = None,
+) -> tuple[Preset, ConfigInputs]:
     """The configuration of one reconstruction, resolved from what the views and the registration say
     (scene statistics at the start pose, calibration provenance and metric scale) and the caller's word."""
     sim3, centre = start_pose(registration, parts)
@@ -153,8 +171,14 @@ def configure(preset: str, views: CaptureViews, registration: RegistrationResult
     meta = views.capture.meta
     centre_rig = registration.sim3_rig_to_object.inverse().apply(centre[None])[0]
     inputs = ConfigInputs(
-        stats=stats, metric=registration.rig_metres_per_unit is not None, init=init, pose_source=meta.get("pose_source"),
-        calibration_id=meta.get("calibration_id"), pose_mode=pose_mode, ablations=tuple(ablations), overrides=dict(overrides or {}),
+        stats=stats,
+        metric=registration.rig_metres_per_unit is not None,
+        init=init,
+        pose_source=meta.get("pose_source"),
+        calibration_id=meta.get("calibration_id"),
+        pose_mode=pose_mode,
+        ablations=tuple(ablations),
+        overrides=dict(overrides or {}),
         calibration_error_px=calibration_error_px(meta, views.cameras, centre_rig),
     )
     return resolve_config(preset, inputs), inputs
@@ -162,8 +186,13 @@ def configure(preset: str, views: CaptureViews, registration: RegistrationResult
 
 def inputs_from_dict(doc: Mapping[str, Any]) -> ConfigInputs:
     """`ConfigInputs` as twin.json records them (`asdict`)."""
-    return ConfigInputs(**{**doc, "stats": SceneStats(**{**doc["stats"], "foreground_px": tuple(doc["stats"]["foreground_px"])}),
-                           "ablations": tuple(doc["ablations"])})
+    return ConfigInputs(
+        **{
+            **doc,
+            "stats": SceneStats(**{**doc["stats"], "foreground_px": tuple(doc["stats"]["foreground_px"])}),
+            "ablations": tuple(doc["ablations"]),
+        }
+    )
 
 
 def _initial_splats(parts: MeshParts, views: CaptureViews, c2w: np.ndarray, config: Preset, seed: int) -> CanonicalSplats:
@@ -172,50 +201,102 @@ def _initial_splats(parts: MeshParts, views: CaptureViews, c2w: np.ndarray, conf
     viewmats = np.stack([np.linalg.inv(c) for c in c2w])
     probe = init_splats(parts.vertices, parts.faces, config.num_splats, sh_degree=config.sh_degree, face_part=parts.face_part, seed=seed)
     rgb = project_colors(probe.means, probe.normals, views.images, views.masks, viewmats, Ks)
-    return init_splats(parts.vertices, parts.faces, config.num_splats, sh_degree=config.sh_degree, face_part=parts.face_part, rgb=rgb,
-                       opacity=config.init_opacity, seed=seed)
+    return init_splats(
+        parts.vertices,
+        parts.faces,
+        config.num_splats,
+        sh_degree=config.sh_degree,
+        face_part=parts.face_part,
+        rgb=rgb,
+        opacity=config.init_opacity,
+        seed=seed,
+    )
 
 
-def _deformed_surface(parts: MeshParts, model: SplatModel, gaussians: Gaussians, cameras: list, masks: np.ndarray) -> tuple[MeshParts, dict]:
+def _deformed_surface(
+    parts: MeshParts, model: SplatModel, gaussians: Gaussians, cameras: list, masks: np.ndarray
+) -> tuple[MeshParts, dict]:
     """The CAD mesh moved as the splats moved, out to their alpha-1/2 rim, then by the step the masks ask for."""
-    surface, _ = untangle(parts.vertices, silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, gaussians),
-                          parts.faces)
+    surface, _ = untangle(
+        parts.vertices, silhouette_surface(parts.vertices + model.offsets_at(parts.vertices), parts.faces, gaussians), parts.faces
+    )
     # The splats' rim blends past their own alpha-1/2 radius: the masks set the last, uniform step, measured on
     # the surface as it will be written (untangling smooths folded faces' moves, outwards or in).
     step = mask_overlap_offset(surface, parts.faces, cameras, masks, bracket=0.02 * float(model.field.radius))
     surface, untangled = untangle(parts.vertices, offset_along_normals(surface, parts.faces, step), parts.faces)
-    choice = {"value": "alpha 1/2, then the masks' overlap", "mask_step_mm": round(1000.0 * step, 3), "untangled_vertices": int(np.sum(untangled)),
-              "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
-                     "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
-                     "then by the step at which its silhouettes best overlap the masks (surface.mask_overlap_offset); "
-                     "then, wherever a face came to cross another, the move smoothed over its neighbours, and pulled back "
-                     "towards the CAD where smoothing leaves a fold (surface.untangle)"}
+    choice = {
+        "value": "alpha 1/2, then the masks' overlap",
+        "mask_step_mm": round(1000.0 * step, 3),
+        "untangled_vertices": int(np.sum(untangled)),
+        "why": "the deformed mesh moved out along its normals by the splats' median reach to alpha 1/2 "
+        "(surface.silhouette_surface): the fit leaves their centres that far inside the object; "
+        "then by the step at which its silhouettes best overlap the masks (surface.mask_overlap_offset); "
+        "then, wherever a face came to cross another, the move smoothed over its neighbours, and pulled back "
+        "towards the CAD where smoothing leaves a fold (surface.untangle)",
+    }
     return MeshParts(surface, parts.faces, parts.face_part, parts.part_names), choice
 
 
 def _outcomes(views: CaptureViews, registration: RegistrationResult, result: TrainResult, config: Preset, source: str) -> dict:
     """What the run found (twin.json `choices` beside the configuration's reasons)."""
     metric = registration.rig_metres_per_unit
-    scale = ({"value": float(registration.sim3_rig_to_object.scale), "why": "the rig frame has no metric scale: the registration's "
-              "silhouette scale; the deformation field carries no uniform scaling"} if metric is None else
-             {"value": metric, "why": "metric rig: the calibration's scale, fixed; a part whose size departs from its CAD model shows as a deformation"})
+    scale = (
+        {
+            "value": float(registration.sim3_rig_to_object.scale),
+            "why": "the rig frame has no metric scale: the registration's "
+            "silhouette scale; the deformation field carries no uniform scaling",
+        }
+        if metric is None
+        else {
+            "value": metric,
+            "why": "metric rig: the calibration's scale, fixed; a part whose size departs from its CAD model shows as a deformation",
+        }
+    )
     return {
         "scale": scale,
-        "masks": {"value": views.mask_source, "why": "computed once before reconstruct and handed to it" if views.mask_source == "given"
-                  else "capture masks when present, else background subtraction"},
-        "sh_init": {"value": "projected", "why": "SH DC from the training images projected at the registered poses "
-                    "(facing views, inside masks, z-buffered); neutral grey where no view sees a splat"},
-        "stage2_start": {"value": result.stage2_start.get("start"), "why": "Stage II starts from whichever of the Stage-I pose+field and the "
-                         "registration gives the lower Stage-II loss on the training views", **result.stage2_start},
-        "iterations": {"value": result.iterations, "why": "stages stop at their cap or when the loss plateaus" if config.plateau else "fixed schedule"},
-        "registration": {"value": registration.to_dict(), "source": source, "why": "silhouette consensus registration (paper 3.2)"
-                         + (", computed once before reconstruct and handed to it" if source == "given" else "")},
+        "masks": {
+            "value": views.mask_source,
+            "why": "computed once before reconstruct and handed to it"
+            if views.mask_source == "given"
+            else "capture masks when present, else background subtraction",
+        },
+        "sh_init": {
+            "value": "projected",
+            "why": "SH DC from the training images projected at the registered poses "
+            "(facing views, inside masks, z-buffered); neutral grey where no view sees a splat",
+        },
+        "stage2_start": {
+            "value": result.stage2_start.get("start"),
+            "why": "Stage II starts from whichever of the Stage-I pose+field and the "
+            "registration gives the lower Stage-II loss on the training views",
+            **result.stage2_start,
+        },
+        "iterations": {
+            "value": result.iterations,
+            "why": "stages stop at their cap or when the loss plateaus" if config.plateau else "fixed schedule",
+        },
+        "registration": {
+            "value": registration.to_dict(),
+            "source": source,
+            "why": "silhouette consensus registration (paper 3.2)"
+            + (", computed once before reconstruct and handed to it" if source == "given" else ""),
+        },
     }
 
 
-def reconstruct(views: CaptureViews, registration: RegistrationResult, parts: MeshParts, config: Preset, *, seed: int = 0,
-                inputs: ConfigInputs | None = None, registration_source: str = "computed", progress: ProgressFn | None = None,
-                checkpoint: CheckpointStore | None = None, timings_s: Mapping[str, float] | None = None) -> Reconstruction:
+def reconstruct(
+    views: CaptureViews,
+    registration: RegistrationResult,
+    parts: MeshParts,
+    config: Preset,
+    *,
+    seed: int = 0,
+    inputs: ConfigInputs | None = None,
+    registration_source: str = "computed",
+    progress: ProgressFn | None = None,
+    checkpoint: CheckpointStore | None = None,
+    timings_s: Mapping[str, float] | None = None,
+) -> Reconstruction:
     """The twin of `views` (training views of one capture) registered by `registration` to the mesh `parts`
     (object frame, metres), trained with `config`; nothing is read or written (`checkpoint`, when given, is
     the caller's store). `inputs`: what `config` was resolved from (recorded, and its reasons generated, in
@@ -227,24 +308,46 @@ def reconstruct(views: CaptureViews, registration: RegistrationResult, parts: Me
     c2w_init = sim3_start.apply_to_c2w(np.stack([c.c2w for c in views.cameras]))
     splats = _initial_splats(parts, views, c2w_init, config, seed)
     timings["init"] = time.perf_counter() - t
-    result = train(Views(views.images, views.masks, np.stack([c.K for c in views.cameras]), c2w_init, views.sizes), splats, config,
-                   seed=seed, progress=progress, checkpoint=checkpoint)
+    result = train(
+        Views(views.images, views.masks, np.stack([c.K for c in views.cameras]), c2w_init, views.sizes),
+        splats,
+        config,
+        seed=seed,
+        progress=progress,
+        checkpoint=checkpoint,
+    )
     timings.update({f"train_{stage}": secs for stage, secs in result.timings_s.items()})
     t = time.perf_counter()
     model = result.model
     with torch.no_grad():
         means, c2w, sh = model.means().numpy(), model.pose(torch.tensor(c2w_init)).numpy(), model.sh().numpy()
     frames = views.capture.frames
-    cameras = [TwinCamera(frames[i].file_path, frames[i].camera_id, cam.K, cam.width, cam.height, c2w[j])
-               for j, (i, cam) in enumerate(zip(views.indices, views.cameras))]
-    choices = {**(reasons(config, inputs) if inputs is not None else {}), **_outcomes(views, registration, result, config, registration_source)}
+    cameras = [
+        TwinCamera(frames[i].file_path, frames[i].camera_id, cam.K, cam.width, cam.height, c2w[j])
+        for j, (i, cam) in enumerate(zip(views.indices, views.cameras))
+    ]
+    choices = {
+        **(reasons(config, inputs) if inputs is not None else {}),
+        **_outcomes(views, registration, result, config, registration_source),
+    }
     twin = Twin(
-        model_id=registration.model_id, sim3_rig_to_object_init=registration.sim3_rig_to_object,
-        sim3_rig_to_object=model.pose.delta_sim3() @ sim3_start, cameras=cameras, preset=config.name, choices=choices, timings_s=timings,
+        model_id=registration.model_id,
+        sim3_rig_to_object_init=registration.sim3_rig_to_object,
+        sim3_rig_to_object=model.pose.delta_sim3() @ sim3_start,
+        cameras=cameras,
+        preset=config.name,
+        choices=choices,
+        timings_s=timings,
         losses={**result.losses, "skipped_nonfinite_steps": result.skipped_steps},
         gaussians=Gaussians.from_arrays(means, splats.gaussians.quats, model.log_scales, model.opacity_logits, sh, config.eps2d),
-        means_canonical=splats.means, face_index=splats.face_index, barycentrics=splats.barycentrics, part_label=splats.part_label,
-        part_names=parts.part_names, pose_mode=config.pose_mode, versions=software_versions(), config=config.to_dict(),
+        means_canonical=splats.means,
+        face_index=splats.face_index,
+        barycentrics=splats.barycentrics,
+        part_label=splats.part_label,
+        part_names=parts.part_names,
+        pose_mode=config.pose_mode,
+        versions=software_versions(),
+        config=config.to_dict(),
         training={"seed": seed, "views": list(views.indices), "inputs": None if inputs is None else asdict(inputs)},
     )
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0] for c in cameras}
@@ -270,9 +373,18 @@ class Prepared:
     timings_s: dict[str, float]
 
 
-def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: str | os.PathLike | None, *,
-            indices: Sequence[int] | None = None, registration: RegistrationResult | None = None, model_id: str | None = None,
-            init: str = "cad", seed: int = 0, registration_config: RegistrationConfig | None = None, log: Log | None = None) -> Prepared:
+def prepare(
+    capture: str | os.PathLike | Capture | CaptureViews,
+    library_path: str | os.PathLike | None,
+    *,
+    indices: Sequence[int] | None = None,
+    registration: RegistrationResult | None = None,
+    model_id: str | None = None,
+    init: str = "cad",
+    seed: int = 0,
+    registration_config: RegistrationConfig | None = None,
+    log: Log | None = None,
+) -> Prepared:
     """Read the capture (unless its views are given, decoded once before) and register it: through `register_views`
     under `registration_config` (rig.toml's [registration]; `model_id`: that model only), as `registration` gives
     (of every capture view), or to the generic sphere."""
@@ -284,7 +396,9 @@ def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: s
     if init not in ("cad", "sphere"):
         raise ValueError(f"unknown init {init!r}; choose cad or sphere")
     if registration is not None and (init != "cad" or (model_id is not None and model_id != registration.model_id)):
-        raise ValueError(f"a given registration (of {registration.model_id!r}) replaces registering; it takes neither --init sphere nor another --model")
+        raise ValueError(
+            f"a given registration (of {registration.model_id!r}) replaces registering; it takes neither --init sphere nor another --model"
+        )
     if isinstance(capture, CaptureViews):
         views = capture if indices is None else capture.subset([capture.indices.index(i) for i in indices])
     else:
@@ -309,12 +423,23 @@ def prepare(capture: str | os.PathLike | Capture | CaptureViews, library_path: s
     return Prepared(views, reg, parts, "given" if registration is not None else "computed", timings)
 
 
-def _train_and_save(prep: Prepared, config: Preset, inputs: ConfigInputs | None, out: Path, *, seed: int, progress: ProgressFn | None,
-                    overwrite: bool) -> Reconstruction:
+def _train_and_save(
+    prep: Prepared, config: Preset, inputs: ConfigInputs | None, out: Path, *, seed: int, progress: ProgressFn | None, overwrite: bool
+) -> Reconstruction:
     checkpoint = FileCheckpoint(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    rec = reconstruct(prep.views, prep.registration, prep.parts, config, seed=seed, inputs=inputs, registration_source=prep.source,
-                      progress=progress, checkpoint=checkpoint, timings_s=prep.timings_s)
+    rec = reconstruct(
+        prep.views,
+        prep.registration,
+        prep.parts,
+        config,
+        seed=seed,
+        inputs=inputs,
+        registration_source=prep.source,
+        progress=progress,
+        checkpoint=checkpoint,
+        timings_s=prep.timings_s,
+    )
     save_reconstruction(rec, out, overwrite=overwrite)
     checkpoint.remove()
     return rec
@@ -353,16 +478,33 @@ def reconstruct_capture(
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists; choose another --out or remove it")
     check_replaceable(out, overwrite)
-    prep = prepare(capture, library_path, indices=views, registration=registration, model_id=model_id, init=init, seed=seed,
-                   registration_config=registration_config, log=log)
-    config, inputs = configure(preset, prep.views, prep.registration, prep.parts, init=init, pose_mode=pose_mode, ablations=ablations,
-                               overrides=overrides)
+    prep = prepare(
+        capture,
+        library_path,
+        indices=views,
+        registration=registration,
+        model_id=model_id,
+        init=init,
+        seed=seed,
+        registration_config=registration_config,
+        log=log,
+    )
+    config, inputs = configure(
+        preset, prep.views, prep.registration, prep.parts, init=init, pose_mode=pose_mode, ablations=ablations, overrides=overrides
+    )
     return _train_and_save(prep, config, inputs, out, seed=seed, progress=progress, overwrite=overwrite)
 
 
-def retrain_like(twin: Twin, capture: str | os.PathLike | Capture | CaptureViews, library_path: str | os.PathLike | None,
-                 out_dir: str | os.PathLike, *, progress: ProgressFn | None = None, log: Log | None = None, overwrite: bool = False
-                 ) -> Reconstruction:
+def retrain_like(
+    twin: Twin,
+    capture: str | os.PathLike | Capture | CaptureViews,
+    library_path: str | os.PathLike | None,
+    out_dir: str | os.PathLike,
+    *,
+    progress: ProgressFn | None = None,
+    log: Log | None = None,
+    overwrite: bool = False,
+) -> Reconstruction:
     """Train `twin` again from its own record: its resolved configuration, seed, training views and registration
     (twin.json `config`, `training`, `choices.registration`), on the capture it was trained from."""
     if not twin.config or "views" not in twin.training:
@@ -380,7 +522,9 @@ def retrain_like(twin: Twin, capture: str | os.PathLike | Capture | CaptureViews
             raise ValueError("--library is required to train a CAD-anchored twin again")
         library = load_library(library_path)
         capture = read_capture(capture) if isinstance(capture, (str, os.PathLike)) else capture
-        registration = RegistrationResult.from_dict(twin.choices["registration"]["value"], library=library, where=f"{twin.root}'s registration")
+        registration = RegistrationResult.from_dict(
+            twin.choices["registration"]["value"], library=library, where=f"{twin.root}'s registration"
+        )
     seed = int(twin.training["seed"])
     prep = prepare(capture, library_path, indices=twin.training["views"], registration=registration, init=init, seed=seed, log=log)
     return _train_and_save(prep, config, inputs, out, seed=seed, progress=progress, overwrite=overwrite)

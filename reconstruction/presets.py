@@ -92,9 +92,14 @@ class LearningRates:
 
 
 PAPER_RATES = LearningRates(
-    pose=StageRates.constant(5e-4), pose_camera=StageRates.constant(5e-4), deformation=StageRates.constant(1.6e-5),
-    displacement=StageRates.constant(0.0), scales=StageRates.constant(5e-3), opacities=StageRates.constant(5e-2),
-    sh0=StageRates.constant(2.5e-3), shN=StageRates.constant(1.25e-4),
+    pose=StageRates.constant(5e-4),
+    pose_camera=StageRates.constant(5e-4),
+    deformation=StageRates.constant(1.6e-5),
+    displacement=StageRates.constant(0.0),
+    scales=StageRates.constant(5e-3),
+    opacities=StageRates.constant(5e-2),
+    sh0=StageRates.constant(2.5e-3),
+    shN=StageRates.constant(1.25e-4),
 )
 
 
@@ -132,7 +137,9 @@ class Preset:
     eps2d: float = EPS2D_3DGS  # screen-space variance (px^2) added to every splat in training and in the twin's renders
     shn_decay: float = 0.0  # Stage II: decoupled weight decay of the higher SH bands (per unit of their rate)
     max_scale_growth: float | None = None  # each splat's scales are clamped to this multiple of its initial largest one (None: unbounded)
-    max_normal_growth: float | None = None  # each disk's normal axis (its thickness) is clamped to this multiple of its start (None: only max_scale_growth)
+    max_normal_growth: float | None = (
+        None  # each disk's normal axis (its thickness) is clamped to this multiple of its start (None: only max_scale_growth)
+    )
     pose_mode: str = "global"  # "global": one Sim(3) for the rig; "per_camera": plus an SE(3) residual per camera
     plateau_rel_tol: tuple[float, float, float] = (0.01, 0.01, 0.003)  # per stage: the relative gain under which a window plateaus
     plateau_window: tuple[int, int] = (20, 12)  # (fewest iterations, windows per stage cap): single-view losses are noisy
@@ -147,13 +154,25 @@ class Preset:
         unknown = sorted(set(doc) - {f.name for f in fields(Preset)})
         if unknown:
             raise ValueError(f"the recorded configuration has a field this engine does not know ({unknown[0]!r})")
-        return Preset(**{**doc, "field": FieldConfig(**doc["field"]), "lr": LearningRates.from_dict(doc["lr"]),
-                         "plateau_rel_tol": tuple(doc["plateau_rel_tol"]), "plateau_window": tuple(doc["plateau_window"])})
+        return Preset(
+            **{
+                **doc,
+                "field": FieldConfig(**doc["field"]),
+                "lr": LearningRates.from_dict(doc["lr"]),
+                "plateau_rel_tol": tuple(doc["plateau_rel_tol"]),
+                "plateau_window": tuple(doc["plateau_window"]),
+            }
+        )
 
 
 PAPER = Preset(
-    name="paper", num_splats=600_000, sh_degree=3, field=FieldConfig(8, 256, 10, None),
-    iters_pose=3000, iters_deform=3000, iters_photo=24_000,
+    name="paper",
+    num_splats=600_000,
+    sh_degree=3,
+    field=FieldConfig(8, 256, 10, None),
+    iters_pose=3000,
+    iters_deform=3000,
+    iters_photo=24_000,
 )
 
 
@@ -237,9 +256,13 @@ def sized_rates(preview: bool) -> LearningRates:
     (docs/presets.md#learning-rates)."""
     pose = 2e-3
     return LearningRates(
-        pose=StageRates(pose, pose, 0.0), pose_camera=StageRates(0.0, 3e-5, 3e-5),
-        deformation=StageRates.constant(2e-4 if preview else 1e-4), displacement=StageRates.constant(0.0 if preview else 1e-3),
-        scales=StageRates.constant(1e-2), opacities=StageRates.constant(2e-2), sh0=StageRates.constant(4e-2),
+        pose=StageRates(pose, pose, 0.0),
+        pose_camera=StageRates(0.0, 3e-5, 3e-5),
+        deformation=StageRates.constant(2e-4 if preview else 1e-4),
+        displacement=StageRates.constant(0.0 if preview else 1e-3),
+        scales=StageRates.constant(1e-2),
+        opacities=StageRates.constant(2e-2),
+        sh0=StageRates.constant(4e-2),
         shN=StageRates.constant(4e-3),
     )
 
@@ -257,20 +280,48 @@ def resolve_preset(name: str, stats: SceneStats) -> Preset:
     # Fewer than 5 views leave the finest of the paper's 10 bands unconstrained (docs/presets.md#bands).
     bands = 6 if not preview and stats.num_views < 5 else 10
     # The field carries no rigid motion: the pose does (docs/presets.md#deformation).
-    fc = FieldConfig(depth=4 if preview else 6, width=64 if preview else 128, bands=bands, num_anchors=int(min(n, 512 if preview else 2048)),
-                     anchor_k=4, project_similarity=True)
+    fc = FieldConfig(
+        depth=4 if preview else 6,
+        width=64 if preview else 128,
+        bands=bands,
+        num_anchors=int(min(n, 512 if preview else 2048)),
+        anchor_k=4,
+        project_similarity=True,
+    )
     # Stage II: 200 iterations with 8 or more views, 150 with fewer (docs/presets.md#iterations).
     iters = (20, 40, 50) if preview else (60, 100, 200 if stats.num_views >= 8 else 150)
     return Preset(
-        name=name, num_splats=n, sh_degree=0 if preview else sh_degree_for(stats), field=fc, iters_pose=iters[0],
-        iters_deform=iters[1], iters_photo=iters[2], plateau=not preview, dropout_p0=0.0, dropout_anneal=0, lr=sized_rates(preview),
+        name=name,
+        num_splats=n,
+        sh_degree=0 if preview else sh_degree_for(stats),
+        field=fc,
+        iters_pose=iters[0],
+        iters_deform=iters[1],
+        iters_photo=iters[2],
+        plateau=not preview,
+        dropout_p0=0.0,
+        dropout_anneal=0,
+        lr=sized_rates(preview),
         # lambda_SH scaled by N / 600k keeps the paper's smoothing per unit of surface (docs/presets.md#lambda-sh).
-        lambda_sh=min(1.0, n / PAPER.num_splats), refine_steps=50 if preview else 100, image_scale=scale, mask_scale=scale,
-        checkpoint_every=50, views_per_iter=0, plateau_window=(10, 15), init_opacity=0.9, pose_lr_final=0.1, pose_scale=False,
-        lambda_fill=1.5 if preview else 0.0, lambda_consistency=1.0, consistency_blur_px=1.0,
-        lambda_displacement=0.0 if preview else LAMBDA_DISPLACEMENT, lambda_dssim=0.6 if preview else 0.2,
-        eps2d=EPS2D_3DGS if preview else EPS2D_PIXEL, max_scale_growth=2.0,
-        max_normal_growth=1.0 if not preview and stats.num_views < 5 else None, shn_decay=0.0 if preview else 1.0,
+        lambda_sh=min(1.0, n / PAPER.num_splats),
+        refine_steps=50 if preview else 100,
+        image_scale=scale,
+        mask_scale=scale,
+        checkpoint_every=50,
+        views_per_iter=0,
+        plateau_window=(10, 15),
+        init_opacity=0.9,
+        pose_lr_final=0.1,
+        pose_scale=False,
+        lambda_fill=1.5 if preview else 0.0,
+        lambda_consistency=1.0,
+        consistency_blur_px=1.0,
+        lambda_displacement=0.0 if preview else LAMBDA_DISPLACEMENT,
+        lambda_dssim=0.6 if preview else 0.2,
+        eps2d=EPS2D_3DGS if preview else EPS2D_PIXEL,
+        max_scale_growth=2.0,
+        max_normal_growth=1.0 if not preview and stats.num_views < 5 else None,
+        shn_decay=0.0 if preview else 1.0,
     )
 
 
@@ -374,20 +425,36 @@ def _sizing_reasons(cfg: Preset, stats: SceneStats) -> dict:
     if cfg.name == "preview":
         sh_why = "preview: diffuse colour only"
     else:
-        sh_why = {0: "cannot constrain view dependence", 1: "constrain only linear view dependence",
-                  2: "constrain low-order view dependence; degree 3's 21 more coefficients per splat would be left to the SH regulariser"}[cfg.sh_degree]
+        sh_why = {
+            0: "cannot constrain view dependence",
+            1: "constrain only linear view dependence",
+            2: "constrain low-order view dependence; degree 3's 21 more coefficients per splat would be left to the SH regulariser",
+        }[cfg.sh_degree]
         sh_why = f"{stats.num_views} views spanning {stats.coverage_deg:.0f} deg {sh_why}"
     return {
-        "image_scale": _choice(round(cfg.image_scale, 4), f"Stage II renders {long_side} px images at <= {round(cfg.image_scale * long_side)} px on the long side"),
-        "mask_scale": _choice(round(cfg.mask_scale, 4), f"Stage I silhouettes at <= {round(cfg.mask_scale * long_side)} px on the long side"),
-        "num_splats": _choice(cfg.num_splats, f"{per_px} splat per foreground pixel over {stats.num_views} views at training scale "
-                                              f"({fg} px), clipped to [{floor}, {cap}]"),
+        "image_scale": _choice(
+            round(cfg.image_scale, 4),
+            f"Stage II renders {long_side} px images at <= {round(cfg.image_scale * long_side)} px on the long side",
+        ),
+        "mask_scale": _choice(
+            round(cfg.mask_scale, 4), f"Stage I silhouettes at <= {round(cfg.mask_scale * long_side)} px on the long side"
+        ),
+        "num_splats": _choice(
+            cfg.num_splats,
+            f"{per_px} splat per foreground pixel over {stats.num_views} views at training scale ({fg} px), clipped to [{floor}, {cap}]",
+        ),
         "sh_degree": _choice(cfg.sh_degree, sh_why),
-        "deformation": _choice(asdict(fc), f"MLP {fc.depth}x{fc.width} evaluated at {fc.num_anchors} farthest-point anchors and blended to "
-                                           f"the {cfg.num_splats} splats; its rigid (and, without a metric rig, similarity) component "
-                                           f"projected out{few}"),
-        "lambda_sh": _choice(round(cfg.lambda_sh, 5), f"paper's 1.0 scaled by {cfg.num_splats} / 600k splats: the same smoothing per unit "
-                                                      f"of surface, over each splat's {cfg.sh_neighbours} nearest less those across a thin wall"),
+        "deformation": _choice(
+            asdict(fc),
+            f"MLP {fc.depth}x{fc.width} evaluated at {fc.num_anchors} farthest-point anchors and blended to "
+            f"the {cfg.num_splats} splats; its rigid (and, without a metric rig, similarity) component "
+            f"projected out{few}",
+        ),
+        "lambda_sh": _choice(
+            round(cfg.lambda_sh, 5),
+            f"paper's 1.0 scaled by {cfg.num_splats} / 600k splats: the same smoothing per unit "
+            f"of surface, over each splat's {cfg.sh_neighbours} nearest less those across a thin wall",
+        ),
     }
 
 
@@ -397,16 +464,21 @@ def _schedule_reasons(cfg: Preset, inputs: ConfigInputs) -> dict:
     if cfg.name == "preview":
         why = "fixed short schedule for a first look"
     else:
-        why = (f"caps; each stage stops earlier once its loss plateaus; Stage II {cfg.iters_photo}: "
-               + ("8 or more views keep gaining past 150" if inputs.stats.num_views >= 8 else "fewer than 8 views gain nothing past 150"))
+        why = f"caps; each stage stops earlier once its loss plateaus; Stage II {cfg.iters_photo}: " + (
+            "8 or more views keep gaining past 150" if inputs.stats.num_views >= 8 else "fewer than 8 views gain nothing past 150"
+        )
     if inputs.init == "sphere":
-        why += (f"; the pose + deformation stage {SPHERE_DEFORM_FACTOR}x longer from a sphere, which the field must carve into the object")
-    rates = ("the rig's pose at a rate decaying to "
-             f"{cfg.pose_lr_final:g}x over each stage (translation in object radii); the other groups at a constant rate; "
-             "0 holds a group in a stage")
+        why += f"; the pose + deformation stage {SPHERE_DEFORM_FACTOR}x longer from a sphere, which the field must carve into the object"
+    rates = (
+        "the rig's pose at a rate decaying to "
+        f"{cfg.pose_lr_final:g}x over each stage (translation in object radii); the other groups at a constant rate; "
+        "0 holds a group in a stage"
+    )
     if cfg.pose_mode == "per_camera" and inputs.coarse_poses:
-        rates += (f"; poses rough or stated to be off by more than {PER_CAMERA_ABOVE_PX:g} px: per-camera residuals at the rig's rate "
-                  "in the second Stage-I stage, held in Stage II")
+        rates += (
+            f"; poses rough or stated to be off by more than {PER_CAMERA_ABOVE_PX:g} px: per-camera residuals at the rig's rate "
+            "in the second Stage-I stage, held in Stage II"
+        )
     return {"iteration_caps": _choice(caps, why), "learning_rates": _choice(asdict(cfg.lr), rates)}
 
 
@@ -417,55 +489,97 @@ def _pose_mode_reason(cfg: Preset, inputs: ConfigInputs) -> str:
     if inputs.rough_poses:
         return f"capture poses are marked pose_source={inputs.pose_source!r}: each view gets its own SE(3) correction"
     if px is not None and px > PER_CAMERA_ABOVE_PX:
-        return (f"rig calibration {inputs.calibration_id!r} is good to {px:.1f} px per camera at the object; one global correction "
-                f"cannot remove per-camera errors above {PER_CAMERA_ABOVE_PX:g} px, so each view gets its own SE(3) correction")
+        return (
+            f"rig calibration {inputs.calibration_id!r} is good to {px:.1f} px per camera at the object; one global correction "
+            f"cannot remove per-camera errors above {PER_CAMERA_ABOVE_PX:g} px, so each view gets its own SE(3) correction"
+        )
     if inputs.calibration_id:
         good = f" (good to {px:.2f} px at the object)" if px is not None else ""
         return f"rig calibration {inputs.calibration_id!r}{good}: one global Sim(3) correction for all cameras"
-    return ("no calibration is named, so its accuracy is unknown: the rig's Sim(3) correction, and per camera a "
-            "small SE(3) residual learnt from the photographs")
+    return (
+        "no calibration is named, so its accuracy is unknown: the rig's Sim(3) correction, and per camera a "
+        "small SE(3) residual learnt from the photographs"
+    )
 
 
 def _loss_reasons(cfg: Preset) -> dict:
     """Why the losses, the splats' bounds and their dilation are what they are (read from `cfg`)."""
     preview = cfg.name == "preview"
     out = {
-        "pose_scale": _choice(cfg.pose_scale, "the global correction learns rotation and translation; the registration fixes the scale"
-                              if not cfg.pose_scale else "the global correction learns its scale"),
-        "lambda_fill": _choice(cfg.lambda_fill, "alpha pushed to saturate inside the mask so the object's rim renders opaque"
-                               if cfg.lambda_fill else "off: full-size Stage II fits the rim; the fill term spilled past it"),
-        "lambda_dssim": _choice(cfg.lambda_dssim, "preview: SSIM carries more of the short fit's photometric loss" if preview
-                                else "the paper's (3DGS's) share of SSIM in the photometric loss"),
-        "eps2d": _choice(cfg.eps2d, f"preview: 3DGS's {EPS2D_3DGS} px^2; its short fit left smaller splats' silhouettes thin" if preview else
-                         f"each splat drawn {cfg.eps2d} px^2 wider, about a pixel's own footprint (1/12 px^2), in training and "
-                         f"in every render of the twin; 3DGS's {EPS2D_3DGS} blurred every edge"),
-        "max_scale_growth": _choice(cfg.max_scale_growth, f"a splat's scales stay within {cfg.max_scale_growth:g}x its initial largest one, "
-                                    "the spacing to its nearest splats: larger ones cover what their neighbours own"),
-        "max_normal_growth": _choice(cfg.max_normal_growth, "few views hardly see a disk edge-on: its thickness stays at most where it started"
-                                     if cfg.max_normal_growth is not None else "off: the disks' thickness learns up to the scale bound"),
-        "shn_decay": _choice(cfg.shn_decay, "the higher SH bands decay towards no view dependence unless the photographs hold them up"
-                             if cfg.shn_decay else "off"),
-        "lambda_consistency": _choice(cfg.lambda_consistency, "Stage I adds multi-view photo-consistency of the surface: silhouettes "
-                                      "alone leave the surface inside the outline free"),
-        "views_per_iter": _choice("all" if cfg.views_per_iter <= 0 else cfg.views_per_iter, "every training view in every iteration: "
-                                  "batched views render cheaper and the full-batch loss makes the plateau test exact"),
+        "pose_scale": _choice(
+            cfg.pose_scale,
+            "the global correction learns rotation and translation; the registration fixes the scale"
+            if not cfg.pose_scale
+            else "the global correction learns its scale",
+        ),
+        "lambda_fill": _choice(
+            cfg.lambda_fill,
+            "alpha pushed to saturate inside the mask so the object's rim renders opaque"
+            if cfg.lambda_fill
+            else "off: full-size Stage II fits the rim; the fill term spilled past it",
+        ),
+        "lambda_dssim": _choice(
+            cfg.lambda_dssim,
+            "preview: SSIM carries more of the short fit's photometric loss"
+            if preview
+            else "the paper's (3DGS's) share of SSIM in the photometric loss",
+        ),
+        "eps2d": _choice(
+            cfg.eps2d,
+            f"preview: 3DGS's {EPS2D_3DGS} px^2; its short fit left smaller splats' silhouettes thin"
+            if preview
+            else f"each splat drawn {cfg.eps2d} px^2 wider, about a pixel's own footprint (1/12 px^2), in training and "
+            f"in every render of the twin; 3DGS's {EPS2D_3DGS} blurred every edge",
+        ),
+        "max_scale_growth": _choice(
+            cfg.max_scale_growth,
+            f"a splat's scales stay within {cfg.max_scale_growth:g}x its initial largest one, "
+            "the spacing to its nearest splats: larger ones cover what their neighbours own",
+        ),
+        "max_normal_growth": _choice(
+            cfg.max_normal_growth,
+            "few views hardly see a disk edge-on: its thickness stays at most where it started"
+            if cfg.max_normal_growth is not None
+            else "off: the disks' thickness learns up to the scale bound",
+        ),
+        "shn_decay": _choice(
+            cfg.shn_decay,
+            "the higher SH bands decay towards no view dependence unless the photographs hold them up" if cfg.shn_decay else "off",
+        ),
+        "lambda_consistency": _choice(
+            cfg.lambda_consistency,
+            "Stage I adds multi-view photo-consistency of the surface: silhouettes alone leave the surface inside the outline free",
+        ),
+        "views_per_iter": _choice(
+            "all" if cfg.views_per_iter <= 0 else cfg.views_per_iter,
+            "every training view in every iteration: batched views render cheaper and the full-batch loss makes the plateau test exact",
+        ),
         "init_opacity": _choice(cfg.init_opacity, "one surface layer near-opaque, so back faces do not bleed through"),
-        "dropout": _choice({"p0": cfg.dropout_p0, "anneal_iters": cfg.dropout_anneal}, "off: it regularises 600k splats over 24k "
-                           "iterations, not a few thousand seen by all views each step"),
+        "dropout": _choice(
+            {"p0": cfg.dropout_p0, "anneal_iters": cfg.dropout_anneal},
+            "off: it regularises 600k splats over 24k iterations, not a few thousand seen by all views each step",
+        ),
     }
     if cfg.lr.displacement.photo:
-        out["displacement"] = _choice({"lr": cfg.lr.displacement.photo, "lambda": cfg.lambda_displacement},
-                                      "each splat also moves along its CAD normal (smoothed over its neighbours): the field is too smooth "
-                                      "to follow what the CAD's decimation took away")
+        out["displacement"] = _choice(
+            {"lr": cfg.lr.displacement.photo, "lambda": cfg.lambda_displacement},
+            "each splat also moves along its CAD normal (smoothed over its neighbours): the field is too smooth "
+            "to follow what the CAD's decimation took away",
+        )
     return out
 
 
 def reasons(cfg: Preset, inputs: ConfigInputs) -> dict:
     """{name: {"value", "why"}} for the resolved configuration `cfg`, each value read from it (twin.json `choices`)."""
-    out: dict = {"preset": _choice(cfg.name, "the paper's hyperparameter table, unchanged" if cfg.name == "paper"
-                                   else "sized from the capture: " + ", ".join(f"{k} {v}" for k, v in
-                                                                                 (("views", inputs.stats.num_views),
-                                                                                  ("coverage deg", round(inputs.stats.coverage_deg)))))}
+    out: dict = {
+        "preset": _choice(
+            cfg.name,
+            "the paper's hyperparameter table, unchanged"
+            if cfg.name == "paper"
+            else "sized from the capture: "
+            + ", ".join(f"{k} {v}" for k, v in (("views", inputs.stats.num_views), ("coverage deg", round(inputs.stats.coverage_deg)))),
+        )
+    }
     if cfg.name != "paper":
         out.update(_sizing_reasons(cfg, inputs.stats))
         out.update(_schedule_reasons(cfg, inputs))
@@ -474,8 +588,10 @@ def reasons(cfg: Preset, inputs: ConfigInputs) -> dict:
         out["iteration_caps"] = _schedule_reasons(cfg, inputs)["iteration_caps"]
     out["pose_mode"] = _choice(cfg.pose_mode, _pose_mode_reason(cfg, inputs))
     if inputs.init == "sphere":
-        out["init"] = _choice("sphere", "paper 4.4.2: no CAD; an icosphere at the optical axes' meeting point, sized so its "
-                              "projections match the masks' areas")
+        out["init"] = _choice(
+            "sphere",
+            "paper 4.4.2: no CAD; an icosphere at the optical axes' meeting point, sized so its projections match the masks' areas",
+        )
     if inputs.ablations:
         out["ablations"] = _choice(list(inputs.ablations), ablation_reason(_before_ablations(cfg.name, inputs), inputs.ablations))
     if inputs.overrides:

@@ -53,8 +53,10 @@ def mask_problems(masks: np.ndarray, gate: MaskGate = MaskGate(), names: list[st
     for i, c in enumerate(mask_cover(masks)):
         view = names[i] if names else f"view {i}"
         if c > gate.max_cover:
-            out.append(f"{view}: the mask covers {100 * c:.0f}% of the image, so it is not an object's silhouette "
-                       "(a wrong mask file or a background difference that changed everywhere)")
+            out.append(
+                f"{view}: the mask covers {100 * c:.0f}% of the image, so it is not an object's silhouette "
+                "(a wrong mask file or a background difference that changed everywhere)"
+            )
         elif c < gate.min_cover:
             out.append(f"{view}: the mask covers none of the image, so the object is not seen")
     return out
@@ -67,29 +69,52 @@ def check_masks(masks: np.ndarray, gate: MaskGate = MaskGate(), names: list[str]
         raise QualityError(f"masks refused: {problems[0]}{more}")
 
 
-def registration_problems(score: float, alternatives: list[tuple[str, float]], masks: np.ndarray, num_models: int,
-                          model_id: str, gate: MaskGate = MaskGate(), *, per_view_iou: np.ndarray | None = None,
-                          names: list[str] | None = None) -> list[str]:
+def registration_problems(
+    score: float,
+    alternatives: list[tuple[str, float]],
+    masks: np.ndarray,
+    num_models: int,
+    model_id: str,
+    gate: MaskGate = MaskGate(),
+    *,
+    per_view_iou: np.ndarray | None = None,
+    names: list[str] | None = None,
+) -> list[str]:
     """Sentences on a registration (best `score`, the other models' best `alternatives`, its IoU in each view
     `per_view_iou` [V] when known, views named by `names`) that cannot be trusted."""
     out = []
     if per_view_iou is not None and score < gate.fit_floor:
         outside = [names[i] if names else f"view {i}" for i in np.flatnonzero(np.asarray(per_view_iou) < gate.fit_floor)]
-        out.append(f"'{model_id}' fits these silhouettes with mean IoU {score:.2f}, below the floor {gate.fit_floor:.2f}: the part lies "
-                   f"outside its mask in {len(outside)} of {len(per_view_iou)} views ({', '.join(outside)})")
+        out.append(
+            f"'{model_id}' fits these silhouettes with mean IoU {score:.2f}, below the floor {gate.fit_floor:.2f}: the part lies "
+            f"outside its mask in {len(outside)} of {len(per_view_iou)} views ({', '.join(outside)})"
+        )
     others = [s for _, s in alternatives]
     if num_models >= 3 and len(others) >= 2 and score - min(others) < gate.alike_spread:
-        out.append(f"every library model fits these silhouettes alike (IoU {score:.3f} for '{model_id}', "
-                   f"{min(others):.3f} for the worst of {len(others) + 1}), so none can be told apart")
+        out.append(
+            f"every library model fits these silhouettes alike (IoU {score:.3f} for '{model_id}', "
+            f"{min(others):.3f} for the worst of {len(others) + 1}), so none can be told apart"
+        )
     fills = [bbox_fill(m) for m in np.asarray(masks, bool) if m.any()]
     if score > gate.perfect_score and fills and min(fills) > gate.featureless_fill:
-        out.append(f"'{model_id}' fits with IoU {score:.3f} silhouettes that are plain rectangles "
-                   f"(each fills {100 * min(fills):.0f}% or more of its bounding box); any box fits them, so the fit proves nothing")
+        out.append(
+            f"'{model_id}' fits with IoU {score:.3f} silhouettes that are plain rectangles "
+            f"(each fills {100 * min(fills):.0f}% or more of its bounding box); any box fits them, so the fit proves nothing"
+        )
     return out
 
 
-def check_registration(score: float, alternatives: list[tuple[str, float]], masks: np.ndarray, num_models: int, model_id: str,
-                       gate: MaskGate = MaskGate(), *, per_view_iou: np.ndarray | None = None, names: list[str] | None = None) -> None:
+def check_registration(
+    score: float,
+    alternatives: list[tuple[str, float]],
+    masks: np.ndarray,
+    num_models: int,
+    model_id: str,
+    gate: MaskGate = MaskGate(),
+    *,
+    per_view_iou: np.ndarray | None = None,
+    names: list[str] | None = None,
+) -> None:
     problems = registration_problems(score, alternatives, masks, num_models, model_id, gate, per_view_iou=per_view_iou, names=names)
     if problems:
         raise QualityError(f"registration refused: {problems[0]}")

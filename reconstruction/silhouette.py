@@ -82,8 +82,9 @@ def fill_triangles(uv: np.ndarray, faces: np.ndarray, ok: np.ndarray, out: np.nd
                 out[v, u] |= (e0 >= 0.0) & (e1 >= 0.0) & (e2 >= 0.0)
 
 
-def render_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, viewmat: np.ndarray, width: int, height: int, *,
-                      winding: int = 0) -> np.ndarray:
+def render_silhouette(
+    vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, viewmat: np.ndarray, width: int, height: int, *, winding: int = 0
+) -> np.ndarray:
     """Silhouette bool [height, width] of the mesh (`vertices` [N, 3], `faces` [F, 3]) seen by a pinhole camera.
 
     `K` [3, 3] (pixel centres at +0.5), `viewmat` [4, 4] world-to-camera (OpenCV axes). Distortion

@@ -53,9 +53,7 @@ def face_areas_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndar
     return np.where(degenerate, 0.0, 0.5 * norm), normals
 
 
-def sample_surface(
-    vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Area-uniform samples on a triangle mesh: points [n, 3], face index [n], barycentrics [n, 3].
 
     Degenerate (zero-area) faces are never drawn; a mesh with no area raises ValueError.

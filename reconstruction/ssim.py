@@ -45,9 +45,19 @@ def _row_pass(line, g, row):
         # a pass per tap loads and stores the whole row 11 times (benchmarks/results/profile.md).
         g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10 = g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10]
         for x in range(w):
-            row[x] = (g0 * line[x] + g1 * line[x + 1] + g2 * line[x + 2] + g3 * line[x + 3] + g4 * line[x + 4]
-                      + g5 * line[x + 5] + g6 * line[x + 6] + g7 * line[x + 7] + g8 * line[x + 8] + g9 * line[x + 9]
-                      + g10 * line[x + 10])
+            row[x] = (
+                g0 * line[x]
+                + g1 * line[x + 1]
+                + g2 * line[x + 2]
+                + g3 * line[x + 3]
+                + g4 * line[x + 4]
+                + g5 * line[x + 5]
+                + g6 * line[x + 6]
+                + g7 * line[x + 7]
+                + g8 * line[x + 8]
+                + g9 * line[x + 9]
+                + g10 * line[x + 10]
+            )
         return
     for x in range(w):
         row[x] = g[0] * line[x]
@@ -68,8 +78,19 @@ def _column_pass(rows, g, dst):
             r0, r1, r2, r3, r4, r5 = rows[y], rows[y + 1], rows[y + 2], rows[y + 3], rows[y + 4], rows[y + 5]
             r6, r7, r8, r9, r10 = rows[y + 6], rows[y + 7], rows[y + 8], rows[y + 9], rows[y + 10]
             for x in range(w):
-                out[x] = (g0 * r0[x] + g1 * r1[x] + g2 * r2[x] + g3 * r3[x] + g4 * r4[x] + g5 * r5[x] + g6 * r6[x]
-                          + g7 * r7[x] + g8 * r8[x] + g9 * r9[x] + g10 * r10[x])
+                out[x] = (
+                    g0 * r0[x]
+                    + g1 * r1[x]
+                    + g2 * r2[x]
+                    + g3 * r3[x]
+                    + g4 * r4[x]
+                    + g5 * r5[x]
+                    + g6 * r6[x]
+                    + g7 * r7[x]
+                    + g8 * r8[x]
+                    + g9 * r9[x]
+                    + g10 * r10[x]
+                )
         return
     for y in range(h):
         out = dst[y]
@@ -249,16 +270,31 @@ def _backward_planes(ctx, grad: torch.Tensor | None, map_weight: float, l1_weigh
     grad = x.new_empty((0, 0, 0)) if grad is None else grad.to(x.dtype).reshape(x.shape).contiguous()
     # The weights in the planes' dtype: a Python float would make numba carry a float32 backward in float64.
     scalar = x.numpy().dtype.type
-    parallel_for(_ssim_backward, len(x), x.numpy(), y.numpy(), g.numpy(), moments.numpy(), grad.numpy(),
-                 scalar(map_weight), scalar(l1_weight), want_x, want_y, gx.numpy(), gy.numpy())
+    parallel_for(
+        _ssim_backward,
+        len(x),
+        x.numpy(),
+        y.numpy(),
+        g.numpy(),
+        moments.numpy(),
+        grad.numpy(),
+        scalar(map_weight),
+        scalar(l1_weight),
+        want_x,
+        want_y,
+        gx.numpy(),
+        gy.numpy(),
+    )
     c, h, w, _ = ctx.layout
     if ctx.windows is None:
         back = lambda t: t.reshape(c, 3, h, w).permute(0, 2, 3, 1)  # noqa: E731
     else:
+
         def back(t: torch.Tensor) -> torch.Tensor:
             out = torch.empty(ctx.layout, dtype=t.dtype)
             parallel_for(_scatter_windows, c, t.numpy(), ctx.windows[0], out.numpy())
             return out
+
     return back(gx) if want_x else None, back(gy) if want_y else None, None
 
 
@@ -297,8 +333,7 @@ class _DSSIMAndL1Sums(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_dssim: torch.Tensor | None, g_l1: torch.Tensor | None):
-        grads = _backward_planes(ctx, None, 0.0 if g_dssim is None else -float(g_dssim),
-                                 0.0 if g_l1 is None else float(g_l1))
+        grads = _backward_planes(ctx, None, 0.0 if g_dssim is None else -float(g_dssim), 0.0 if g_l1 is None else float(g_l1))
         return *grads, None
 
 
@@ -333,8 +368,9 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
     return _SSIMMap.apply(a, b, g) if fused else _ssim_map_torch(a, b, g)
 
 
-def dssim_l1_sums(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
-                  windows: tuple[torch.Tensor, int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def dssim_l1_sums(
+    a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5, windows: tuple[torch.Tensor, int, int] | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(sum of 1 - `ssim_map`, sum |a - b|) of images a, b [C, H, W, 3], differentiable in both: the training loss's
     two terms in one pass each way on CPU.
 

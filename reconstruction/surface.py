@@ -7,6 +7,7 @@ Pure functions on vertex arrays; the faces, and with them the part labels, are t
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,6 +15,9 @@ from calibration.camera import Camera
 from reconstruction.gaussians import Gaussians
 from reconstruction.silhouette import closed_winding, render_silhouette
 from reconstruction.splats import alpha_half_reach
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 
 def offset_along_normals(vertices: np.ndarray, faces: np.ndarray, distance: float) -> np.ndarray:
@@ -41,8 +45,9 @@ def silhouette_surface(vertices: np.ndarray, faces: np.ndarray, gaussians: Gauss
     return offset_along_normals(vertices, faces, float(np.median(alpha_half_reach(gaussians))))
 
 
-def silhouette_overlap(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray, *,
-                       winding: int | None = None) -> float:
+def silhouette_overlap(
+    vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray, *, winding: int | None = None
+) -> float:
     """Intersection over union, pooled over `cameras`, of the mesh's silhouettes (vertices [V, 3], faces [F, 3])
     and `masks` [C, H, W] bool (0 when both are empty); views of mixed sizes sit top-left on the masks' canvas.
     `winding`: the mesh's `closed_winding` (found here when not given)."""
@@ -57,8 +62,9 @@ def silhouette_overlap(vertices: np.ndarray, faces: np.ndarray, cameras: Sequenc
     return inter / max(union, 1)
 
 
-def mask_overlap_offset(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray,
-                        bracket: float, steps: int = 14) -> float:
+def mask_overlap_offset(
+    vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], masks: np.ndarray, bracket: float, steps: int = 14
+) -> float:
     """The distance along the normals (within +-`bracket`, units of the vertices) at which the mesh's
     silhouettes in `cameras` best overlap `masks` [C, H, W] bool: pooled IoU, golden-section search over one
     peak (0.24 % of the bracket after 14 steps; a mesh that needs more gets the bracket's end). The answer is
@@ -116,7 +122,7 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     return out
 
 
-def vertex_neighbour_mean(faces: np.ndarray, n_vertices: int) -> "scipy.sparse.csr_matrix":
+def vertex_neighbour_mean(faces: np.ndarray, n_vertices: int) -> scipy.sparse.csr_matrix:
     """[V, V] sparse row-stochastic matrix: row v averages over the vertices sharing an edge with v (faces [F, 3]);
     a vertex on no edge keeps its own value."""
     import scipy.sparse as sp
@@ -133,8 +139,9 @@ def vertex_neighbour_mean(faces: np.ndarray, n_vertices: int) -> "scipy.sparse.c
     return (sp.diags(1.0 / np.asarray(adjacency.sum(axis=1)).reshape(-1)) @ adjacency).tocsr()
 
 
-def untangle(rest: np.ndarray, moved: np.ndarray, faces: np.ndarray, smooth_rounds: int = 30,
-             pull_rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def untangle(
+    rest: np.ndarray, moved: np.ndarray, faces: np.ndarray, smooth_rounds: int = 30, pull_rounds: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """`moved` [V, 3] with every crossing of two faces that did not cross in `rest` [V, 3] (the same faces
     [F, 3]) undone, the moves kept as far as they can be.
 

@@ -161,7 +161,7 @@ def near_symmetries(
 
     accepted = [s for group in per_axis for s in group]
     for i, first in enumerate(per_axis):
-        for second in per_axis[i + 1:]:
+        for second in per_axis[i + 1 :]:
             for a in first:
                 for b in second:
                     T, dev = fit(a.transform @ b.transform, not (a.continuous or b.continuous))

@@ -33,12 +33,22 @@ from torch import nn
 
 from reconstruction.adam import Adam
 from reconstruction.deformation import DeformationField, idw_weights, normal_similarity_basis
-from reconstruction.losses import (composite, composite_parts, dropout_active, dropout_fraction, mask_l1, neighbour_graph, photometric_loss,
-                                   neighbour_smoothness, sh_neighbour_loss, silhouette_losses)
+from reconstruction.gaussians import Gaussians, render
+from reconstruction.losses import (
+    composite,
+    composite_parts,
+    dropout_active,
+    dropout_fraction,
+    mask_l1,
+    neighbour_graph,
+    neighbour_smoothness,
+    photometric_loss,
+    sh_neighbour_loss,
+    silhouette_losses,
+)
 from reconstruction.photo_consistency import blurred, consistency_loss, sample_colors, visibility_weights
 from reconstruction.pose_correction import PoseCorrection, viewmats_from_c2w
 from reconstruction.presets import Preset
-from reconstruction.gaussians import Gaussians, render
 from reconstruction.render import rasterize
 from reconstruction.splats import CanonicalSplats, point_visibility, project_colors, rgb_to_sh_dc, surface_neighbours
 
@@ -94,8 +104,14 @@ class Views:
         ks = self.Ks.copy()
         ks[:, 0] *= w2 / w
         ks[:, 1] *= h2 / h
-        return ViewBatch(torch.tensor(imgs, dtype=torch.float32), torch.tensor(cov, dtype=torch.float32), valid,
-                         torch.tensor(ks, dtype=torch.float32), w2, h2)
+        return ViewBatch(
+            torch.tensor(imgs, dtype=torch.float32),
+            torch.tensor(cov, dtype=torch.float32),
+            valid,
+            torch.tensor(ks, dtype=torch.float32),
+            w2,
+            h2,
+        )
 
 
 class SplatModel(nn.Module):
@@ -111,12 +127,12 @@ class SplatModel(nn.Module):
         # Fine geometry below the field's resolution: each splat moves along its CAD normal (in object radii).
         self.register_buffer("normals_canonical", torch.tensor(splats.normals, dtype=torch.float32))
         self.displacement = nn.Parameter(torch.zeros(len(g.means), dtype=torch.float32))
-        self.pose = PoseCorrection(num_cameras, pose_mode, pivot=self.field.center.double().numpy(),
-                                   unit=float(self.field.radius))
+        self.pose = PoseCorrection(num_cameras, pose_mode, pivot=self.field.center.double().numpy(), unit=float(self.field.radius))
         # Normal moves that amount to a motion of the pose's (rigid, and with pose_scale similarity) would let
         # the splats and the cameras drift together: that component is projected out, as for the field.
-        basis = normal_similarity_basis(splats.means, splats.normals, self.field.center.double().numpy(),
-                                        float(self.field.radius), with_scale=preset.pose_scale)
+        basis = normal_similarity_basis(
+            splats.means, splats.normals, self.field.center.double().numpy(), float(self.field.radius), with_scale=preset.pose_scale
+        )
         self.register_buffer("displacement_basis", torch.tensor(basis, dtype=torch.float32))
         self.register_buffer("displacement_pinv", torch.tensor(np.linalg.pinv(basis), dtype=torch.float32))
         self.log_scales = nn.Parameter(torch.tensor(g.log_scales, dtype=torch.float32))
@@ -234,7 +250,7 @@ class Plateau:
         w = self.window
         if len(self.history) < 2 * w or len(self.history) % w:
             return False
-        prev = float(np.mean(self.history[-2 * w: -w]))
+        prev = float(np.mean(self.history[-2 * w : -w]))
         cur = float(np.mean(self.history[-w:]))
         return prev - cur < self.rel_tol * max(abs(prev), 1e-12)
 
@@ -300,8 +316,13 @@ def _fingerprint(preset: Preset, splats: CanonicalSplats, views: Views) -> dict:
     # The splats' digest, not only their count: a checkpoint's per-splat rows fit only the splats they were trained
     # on, in their order (an engine that lays them out otherwise, or another draw, must start over).
     layout = hashlib.sha256(np.ascontiguousarray(splats.means, np.float32).tobytes()).hexdigest()
-    return {"preset": preset.to_dict(), "num_splats": len(splats), "splats": layout, "views": int(len(views.images)),
-            "c2w": np.round(views.c2w, 9).tolist()}
+    return {
+        "preset": preset.to_dict(),
+        "num_splats": len(splats),
+        "splats": layout,
+        "views": int(len(views.images)),
+        "c2w": np.round(views.c2w, 9).tolist(),
+    }
 
 
 @torch.no_grad()
@@ -332,12 +353,14 @@ def _stage2_objective(model: SplatModel, splats: CanonicalSplats, views: Views, 
     idx = torch.arange(len(views.images))
     bg = torch.full((len(idx), 3), 0.5)
     rgb, alpha = render(model.gaussians(), model.viewmats(c2w_init, idx), ks, w, h, bg)
-    return float(photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim, valid=valid)
-                 + preset.lambda_mask * mask_l1(alpha, cov, valid))
+    return float(
+        photometric_loss(rgb, composite(imgs, cov, bg), preset.lambda_dssim, valid=valid) + preset.lambda_mask * mask_l1(alpha, cov, valid)
+    )
 
 
-def _choose_stage2_start(model: SplatModel, opt, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data,
-                         preset: Preset) -> dict:
+def _choose_stage2_start(
+    model: SplatModel, opt, splats: CanonicalSplats, views: Views, c2w_init: torch.Tensor, data, preset: Preset
+) -> dict:
     """Stage II starts from the Stage-I pose and field, or from the registration's pose and an identity field when
     that explains the training photographs better: silhouettes of a CAD model that is not the photographed object
     can pull the pose off the texture. Starting from the registration resets the pose correction, zeroes the
@@ -400,7 +423,9 @@ def _silhouette_loss(run: _Run, sel, gaussians: tuple, viewmats: torch.Tensor, p
     return loss, last
 
 
-def _photometric_loss(run: _Run, it: int, idx: torch.Tensor, sel, gaussians: tuple, viewmats: torch.Tensor, targets) -> tuple[torch.Tensor, dict]:
+def _photometric_loss(
+    run: _Run, it: int, idx: torch.Tensor, sel, gaussians: tuple, viewmats: torch.Tensor, targets
+) -> tuple[torch.Tensor, dict]:
     """Stage II: L_rgb on a random-background composite (dropout on the colour render) + λ_mask L_mask + λ_SH L_SH (+ λ_fill L_fill)."""
     preset = run.preset
     _, cov, valid, ks, w, h = run.photo_data
@@ -410,8 +435,21 @@ def _photometric_loss(run: _Run, it: int, idx: torch.Tensor, sel, gaussians: tup
     bg = torch.rand(len(idx), 3, generator=run.gen)
     p = dropout_fraction(it, preset.dropout_anneal, preset.dropout_p0)
     active = dropout_active(len(means), p, run.gen)
-    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, viewmats, ks[sel], w, h,
-                              sh_degree=run.model.sh_degree, backgrounds=bg, active=active, eps2d=preset.eps2d)
+    rgb, alpha, _ = rasterize(
+        means,
+        quats,
+        scales,
+        opac,
+        sh,
+        viewmats,
+        ks[sel],
+        w,
+        h,
+        sh_degree=run.model.sh_degree,
+        backgrounds=bg,
+        active=active,
+        eps2d=preset.eps2d,
+    )
     if active is not None:
         # The silhouette is supervised on every splat: dropout regularises appearance only.
         _, alpha, _ = rasterize(means, quats, scales, opac, torch.zeros(len(means), 0), viewmats, ks[sel], w, h, eps2d=preset.eps2d)
@@ -504,8 +542,7 @@ def _run_stage(run: _Run, si: int, state: TrainState, save: Callable[[], None], 
         it += 1
         hist.append(value)
         state.it = it
-        done = (preset.plateau and math.isfinite(value) and (not plan.photometric or it >= preset.dropout_anneal)
-                and plateau.update(value))
+        done = preset.plateau and math.isfinite(value) and (not plan.photometric or it >= preset.dropout_anneal) and plateau.update(value)
         state.plateau = plateau.history
         state.timings[plan.name] = time.perf_counter() - t0
         if preset.checkpoint_every and it % preset.checkpoint_every == 0:
@@ -528,9 +565,20 @@ def _start(views: Views, splats: CanonicalSplats, preset: Preset, seed: int) -> 
     # stage have no gradient and are skipped. The fused step runs one kernel over every parameter (the same update
     # to rounding); `adam.Adam` is torch's update without torch.optim's class.
     opt = Adam(model.param_groups(), eps=preset.adam_eps, fused=True)
-    run = _Run(model, opt, splats, views, preset, torch.tensor(views.c2w, dtype=torch.float64), views.resized(preset.mask_scale),
-               views.resized(preset.image_scale), neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours)),
-               np.random.default_rng(seed), torch.Generator().manual_seed(seed), v if preset.views_per_iter <= 0 else min(v, preset.views_per_iter))
+    run = _Run(
+        model,
+        opt,
+        splats,
+        views,
+        preset,
+        torch.tensor(views.c2w, dtype=torch.float64),
+        views.resized(preset.mask_scale),
+        views.resized(preset.image_scale),
+        neighbour_graph(surface_neighbours(splats.means, splats.normals, preset.sh_neighbours)),
+        np.random.default_rng(seed),
+        torch.Generator().manual_seed(seed),
+        v if preset.views_per_iter <= 0 else min(v, preset.views_per_iter),
+    )
     if preset.lambda_consistency > 0:
         run.pc_images = blurred(torch.tensor(views.images, dtype=torch.float32), preset.consistency_blur_px)
         run.pc_ks = torch.tensor(views.Ks, dtype=torch.float32)
@@ -567,8 +615,16 @@ def train(
 
     def save() -> None:
         if checkpoint is not None:
-            checkpoint.save({"fingerprint": fp, "model": run.model.state_dict(), "optimizer": run.opt.state_dict(),
-                             "rng": run.rng.bit_generator.state, "torch_rng": run.gen.get_state(), "state": state.to_dict()})
+            checkpoint.save(
+                {
+                    "fingerprint": fp,
+                    "model": run.model.state_dict(),
+                    "optimizer": run.opt.state_dict(),
+                    "rng": run.rng.bit_generator.state,
+                    "torch_rng": run.gen.get_state(),
+                    "state": state.to_dict(),
+                }
+            )
 
     for si in range(state.stage, len(STAGE_PLANS)):
         _run_stage(run, si, state, save, progress)

@@ -35,6 +35,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir
+from calibration.guard import PathOutside, contained
 from calibration.sim3 import Sim3
 from reconstruction.gaussians import EPS2D_3DGS, Gaussians
 from reconstruction.mesh_io import MeshParts, parts_glb_bytes, read_mesh_parts
@@ -78,10 +79,14 @@ class TwinCamera:
         }
 
     @staticmethod
-    def from_dict(d: dict) -> "TwinCamera":
+    def from_dict(d: dict) -> TwinCamera:
         return TwinCamera(
-            d["file_path"], str(d.get("camera_id", Path(d["file_path"]).stem)), np.array(d["K"], np.float64),
-            int(d["width"]), int(d["height"]), np.array(d["c2w_object_opencv"], np.float64),
+            d["file_path"],
+            str(d.get("camera_id", Path(d["file_path"]).stem)),
+            np.array(d["K"], np.float64),
+            int(d["width"]),
+            int(d["height"]),
+            np.array(d["c2w_object_opencv"], np.float64),
         )
 
 
@@ -118,8 +123,10 @@ class Twin:
         self.gaussians = Gaussians.from_arrays(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, g.eps2d)
         n = len(self.gaussians)
         shapes = {
-            "means_canonical": (self.means_canonical, (n, 3)), "face_index": (self.face_index, (n,)),
-            "barycentrics": (self.barycentrics, (n, 3)), "part_label": (self.part_label, (n,)),
+            "means_canonical": (self.means_canonical, (n, 3)),
+            "face_index": (self.face_index, (n,)),
+            "barycentrics": (self.barycentrics, (n, 3)),
+            "part_label": (self.part_label, (n,)),
         }
         for name, (arr, shape) in shapes.items():
             if np.shape(arr) != shape:
@@ -162,6 +169,7 @@ class Twin:
 
 # ---------------------------------------------------------------------------------------- PLY
 
+
 def ply_columns(sh_degree: int) -> list[str]:
     """Column names of the Inria 3DGS PLY for `sh_degree`, in file order."""
     k = (sh_degree + 1) ** 2
@@ -197,8 +205,16 @@ def splats_to_ply_bytes(gaussians: Gaussians) -> bytes:
     padded = np.asarray(g.with_sh_degree(written).sh, np.float32)
     rest = padded[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
     cols = np.concatenate(
-        [g.means, splat_normals(np.asarray(g.quats)), padded[:, 0, :], rest, np.asarray(g.opacity_logits).reshape(n, 1),
-         g.log_scales, g.quats], 1
+        [
+            g.means,
+            splat_normals(np.asarray(g.quats)),
+            padded[:, 0, :],
+            rest,
+            np.asarray(g.opacity_logits).reshape(n, 1),
+            g.log_scales,
+            g.quats,
+        ],
+        1,
     ).astype(np.float32)
     names = ply_columns(written)
     rec = np.empty(n, dtype=[(c, "f4") for c in names])
@@ -274,6 +290,7 @@ def _comment_number(text: str) -> float | str:
 
 # ---------------------------------------------------------------------------------------- twin dir
 
+
 def _twin_document(twin: Twin) -> dict:
     return {
         "format": "cadsplat-twin",
@@ -331,8 +348,12 @@ def save_twin(
         )
         buf = io.BytesIO()
         np.savez_compressed(
-            buf, means_canonical=twin.means_canonical, face_index=twin.face_index, barycentrics=twin.barycentrics,
-            part_label=twin.part_label, part_names=np.array(twin.part_names, dtype=str),
+            buf,
+            means_canonical=twin.means_canonical,
+            face_index=twin.face_index,
+            barycentrics=twin.barycentrics,
+            part_label=twin.part_label,
+            part_names=np.array(twin.part_names, dtype=str),
         )
         digests[CANONICAL_NPZ] = atomic_write_bytes(tmp / CANONICAL_NPZ, buf.getvalue())
         if mesh_cad is not None:
@@ -387,9 +408,13 @@ def verify_twin(root: Path) -> None:
     except (ValueError, KeyError, TypeError, AttributeError):
         raise TwinError(f"{path}: not a readable twin manifest") from None
     for rel, digest in items:
-        if not (root / rel).is_file():
+        try:
+            file = contained(root, rel, what=f"{MANIFEST_JSON} entry")
+        except PathOutside as e:
+            raise TwinError(f"{path}: {e}") from None
+        if not file.is_file():
             raise TwinError(f"{root / rel}: listed in {MANIFEST_JSON} but missing")
-        if sha256_file(root / rel) != digest:
+        if sha256_file(file) != digest:
             raise TwinError(f"{root / rel}: sha256 does not match {MANIFEST_JSON} (file changed or corrupt)")
 
 

@@ -41,7 +41,7 @@ class CaptureViews:
 
     @property
     def names(self) -> list[str]:
-        """"view i (camera id)" for each view, as messages name them."""
+        """ "view i (camera id)" for each view, as messages name them."""
         return [f"view {i} ({self.capture.frames[i].camera_id})" for i in self.indices]
 
     @property
@@ -52,8 +52,15 @@ class CaptureViews:
     def subset(self, positions: Sequence[int]) -> CaptureViews:
         """The views at `positions` (into this object's views, not the capture's frames)."""
         pos = list(positions)
-        return CaptureViews(self.capture, tuple(self.indices[p] for p in pos), self.images[pos], self.masks[pos],
-                            tuple(self.cameras[p] for p in pos), self.metres_per_unit, self.mask_source)
+        return CaptureViews(
+            self.capture,
+            tuple(self.indices[p] for p in pos),
+            self.images[pos],
+            self.masks[pos],
+            tuple(self.cameras[p] for p in pos),
+            self.metres_per_unit,
+            self.mask_source,
+        )
 
 
 def capture_views(capture: Capture, indices: Sequence[int] | None = None, *, masks: np.ndarray | None = None) -> CaptureViews:

@@ -21,9 +21,9 @@ import trimesh
 from calibration.camera import Camera, look_at_c2w
 from reconstruction.deformation import blend_anchors, farthest_point_indices
 from reconstruction.inspect import line_deviation
-from reconstruction.mesh_raster import rasterize_mesh
 from reconstruction.library import build_library
 from reconstruction.losses import neighbour_graph, photometric_loss, sh_neighbour_loss, silhouette_losses
+from reconstruction.mesh_raster import rasterize_mesh
 from reconstruction.photo_consistency import consistency_loss, sample_colors
 from reconstruction.registration import register
 from reconstruction.render.warmup import compile_render_kernels
@@ -75,11 +75,14 @@ def compile_registration_kernels(work: Path) -> None:
     part = _part()
     (work / "meshes").mkdir()
     part.export(work / "meshes" / "part.stl")
-    library = build_library(work / "meshes", work / "library", grid=GridSpec(n_dirs=60), workers=1, progress=False,
-                            log=lambda _message: None)
+    library = build_library(
+        work / "meshes", work / "library", grid=GridSpec(n_dirs=60), workers=1, progress=False, log=lambda _message: None
+    )
     size = (80, 60)
-    cameras = [Camera.from_fov(np.radians(50.0), *size, look_at_c2w(eye, np.zeros(3)))
-               for eye in ([0.3, 0.0, 0.1], [0.0, 0.3, 0.12], [-0.25, -0.15, 0.1])]
+    cameras = [
+        Camera.from_fov(np.radians(50.0), *size, look_at_c2w(eye, np.zeros(3)))
+        for eye in ([0.3, 0.0, 0.1], [0.0, 0.3, 0.12], [-0.25, -0.15, 0.1])
+    ]
     masks = np.stack([render_silhouette(part.vertices, part.faces, c.K, c.viewmat, *size) for c in cameras])
     register(masks, cameras, library)
     rasterize_mesh(np.asarray(part.vertices), np.asarray(part.faces), cameras[0])

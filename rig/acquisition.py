@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -294,7 +295,12 @@ class Acquisition:
     def _hold(self, held: _Held, why: str) -> Outcome:
         self.held.append(held)
         where = f" (a copy is in the spill at {held.spilled})" if self._spill(held) else ""
-        return Outcome("held", held.event, held.capture_id, f"{why}; its frames are kept in memory{where} and written as soon as the store can take them")
+        return Outcome(
+            "held",
+            held.event,
+            held.capture_id,
+            f"{why}; its frames are kept in memory{where} and written as soon as the store can take them",
+        )
 
     def _spill(self, held: _Held) -> bool:
         """Write a held capture to the spill once; False (with `spill_error`) when there is none or it cannot take it."""
@@ -331,8 +337,17 @@ class Acquisition:
                 except OSError:
                     pass  # the store copy verifies: the next import drops the spill copy
             status = "quarantined" if h.quarantine_reason else "committed"
-            out.append(self._count(Outcome(status, h.event, h.capture_id, h.quarantine_reason or "written after the store could take it again",
-                                           self.clock() - h.event.timestamp_ns)))
+            out.append(
+                self._count(
+                    Outcome(
+                        status,
+                        h.event,
+                        h.capture_id,
+                        h.quarantine_reason or "written after the store could take it again",
+                        self.clock() - h.event.timestamp_ns,
+                    )
+                )
+            )
         return out
 
     def _grab_all(self, seq: int) -> tuple[dict[str, Frame], dict[str, str]]:
@@ -372,7 +387,10 @@ class Acquisition:
         for c in self.cameras:
             if isinstance(c, SelfRecovering) and c.reconnecting:
                 why.setdefault(c.health().detail, []).append(c.camera_id)
-        return "; ".join(f"camera{'s' if len(ids) > 1 else ''} {', '.join(ids)} {'are' if len(ids) > 1 else 'is'} down: {detail}" for detail, ids in why.items())
+        return "; ".join(
+            f"camera{'s' if len(ids) > 1 else ''} {', '.join(ids)} {'are' if len(ids) > 1 else 'is'} down: {detail}"
+            for detail, ids in why.items()
+        )
 
     def _count(self, out: Outcome) -> Outcome:
         self.counts[out.status] += 1
@@ -429,10 +447,28 @@ class Acquisition:
         for h in self.held:
             self.counts["held"] -= 1
             if self._spill(h):
-                out.append(self._count(Outcome("spilled", h.event, h.capture_id, f"the store stayed unwritable until the rig stopped; the capture waits "
-                                                f"in the spill at {h.spilled} and goes into the store on its next start (or `cadsplat store import-spill`)")))
+                out.append(
+                    self._count(
+                        Outcome(
+                            "spilled",
+                            h.event,
+                            h.capture_id,
+                            f"the store stayed unwritable until the rig stopped; the capture waits "
+                            f"in the spill at {h.spilled} and goes into the store on its next start (or `cadsplat store import-spill`)",
+                        )
+                    )
+                )
             else:
-                out.append(self._count(Outcome("failed", h.event, h.capture_id, f"the rig stopped before the store could be written and {h.spill_error}; its frames are lost")))
+                out.append(
+                    self._count(
+                        Outcome(
+                            "failed",
+                            h.event,
+                            h.capture_id,
+                            f"the rig stopped before the store could be written and {h.spill_error}; its frames are lost",
+                        )
+                    )
+                )
         self.held.clear()
         return out
 

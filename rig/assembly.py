@@ -14,8 +14,9 @@ import itertools
 import json
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import serial
 
@@ -52,9 +53,13 @@ def load_rig_calibration(path: Path | None) -> RigCalibrationRef:
 DriverFactory = Callable[[CameraConfig, Camera | None, int, int], CameraDriver]
 
 DRIVERS: dict[str, DriverFactory] = {
-    "oak": lambda cfg, calibrated, index, n: OakCamera(cfg.id, cfg.device, socket=cfg.socket, camera=calibrated, fsin_discard=cfg.fsin_discard),
+    "oak": lambda cfg, calibrated, index, n: OakCamera(
+        cfg.id, cfg.device, socket=cfg.socket, camera=calibrated, fsin_discard=cfg.fsin_discard
+    ),
     "replay": lambda cfg, calibrated, index, n: ReplayCamera(cfg.id, cfg.path),
-    "pattern": lambda cfg, calibrated, index, n: PatternCamera(cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height),
+    "pattern": lambda cfg, calibrated, index, n: PatternCamera(
+        cfg.id, index=index, n=n, width=cfg.settings.width, height=cfg.settings.height
+    ),
 }
 
 
@@ -73,7 +78,9 @@ def build_trigger(cfg: TriggerConfig) -> TriggerSource:
     if cfg.kind == "serial":
         return SerialTrigger(cfg.port, baudrate=cfg.baudrate, pattern=cfg.pattern)
     if cfg.kind == "can":
-        return CanTrigger(interface=cfg.interface, channel=cfg.channel, arbitration_id=cfg.arbitration_id, payload_format=cfg.payload_format)
+        return CanTrigger(
+            interface=cfg.interface, channel=cfg.channel, arbitration_id=cfg.arbitration_id, payload_format=cfg.payload_format
+        )
     return SoftwareTrigger()
 
 
@@ -109,7 +116,9 @@ class SimulatedPlc:
             channel = f"cadsplat-sim-{time.monotonic_ns()}"
             self.source: TriggerSource = CanTrigger(interface="virtual", channel=channel)
             self._bus = can.Bus(interface="virtual", channel=channel)
-            self._send = lambda seq: self._bus.send(can.Message(arbitration_id=0x181, data=encode_can_trigger(seq, seq * encoder_per_part), is_extended_id=False))
+            self._send = lambda seq: self._bus.send(
+                can.Message(arbitration_id=0x181, data=encode_can_trigger(seq, seq * encoder_per_part), is_extended_id=False)
+            )
         else:
             port = serial.serial_for_url("loop://", timeout=0.05)
             self.source = SerialTrigger("loop://", open_port=lambda: port)
@@ -117,7 +126,7 @@ class SimulatedPlc:
             self._send = lambda seq: port.write(format_trigger_line(seq, seq * encoder_per_part))
         self._thread = threading.Thread(target=self._run, name="simulated-plc", daemon=True)
 
-    def start(self) -> "SimulatedPlc":
+    def start(self) -> SimulatedPlc:
         self.source.start()
         time.sleep(0.05)  # let the reader open its end before the first trigger
         self._thread.start()
@@ -144,4 +153,3 @@ def simulated_cameras(views: int, width: int, height: int, mesh: Path | None = N
     part = mesh or sample_mesh() or procedural_part()
     rig = SyntheticRig.from_mesh(part, views, width=width, height=height)
     return rig.drivers(), rig
-

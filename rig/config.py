@@ -9,9 +9,10 @@ from __future__ import annotations
 import os
 import re
 import struct
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import tomllib
 
 from calibration.fileio import MAX_IMAGE_PIXELS
 from rig.acquisition import Thresholds
@@ -99,7 +100,11 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     """A validated RigConfig from a parsed TOML document; relative paths are relative to `base`."""
     v = _Validator(name)
     # [simulation] (material, density of exported twins) is read and checked by simulation.asset.rig_simulation_table.
-    v.known(doc, "", {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration", "inspection", "limits"})
+    v.known(
+        doc,
+        "",
+        {"rig_id", "calibration", "cameras", "trigger", "storage", "thresholds", "simulation", "registration", "inspection", "limits"},
+    )
     rig_id = v.string(doc, "rig_id", default="rig")
     calibration = v.string(doc, "calibration", default="")
     cams_doc = doc.get("cameras")
@@ -124,20 +129,40 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
     )
 
 
-def _max_image_pixels(v: "_Validator", d: dict, cameras: tuple[CameraConfig, ...]) -> int:
+def _max_image_pixels(v: _Validator, d: dict, cameras: tuple[CameraConfig, ...]) -> int:
     """[limits] max_image_pixels: at least every camera's frame, and under PIL's own decompression-bomb limit."""
     v.known(d, "limits", {"max_image_pixels"})
     cap = v.integer(d, "limits.max_image_pixels", default=MAX_IMAGE_PIXELS, lo=1_000_000, hi=150_000_000)
     for i, c in enumerate(cameras):
         if c.settings.width * c.settings.height > cap:
-            raise ConfigError(f"{v.name}: limits.max_image_pixels ({cap}) is below cameras[{i}]'s {c.settings.width}x{c.settings.height} frames; raise it")
+            raise ConfigError(
+                f"{v.name}: limits.max_image_pixels ({cap}) is below cameras[{i}]'s {c.settings.width}x{c.settings.height} frames; raise it"
+            )
     return cap
 
 
-def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
+def _camera(v: _Validator, d, key: str, base: Path) -> CameraConfig:
     if not isinstance(d, dict):
         raise ConfigError(f"{v.name}: {key} must be a table")
-    v.known(d, key, {"id", "driver", "device", "socket", "path", "width", "height", "exposure_us", "iso", "white_balance_k", "focus", "sync", "fsin_discard"})
+    v.known(
+        d,
+        key,
+        {
+            "id",
+            "driver",
+            "device",
+            "socket",
+            "path",
+            "width",
+            "height",
+            "exposure_us",
+            "iso",
+            "white_balance_k",
+            "focus",
+            "sync",
+            "fsin_discard",
+        },
+    )
     driver = v.choice(d, f"{key}.driver", CAMERA_DRIVERS, default="oak")
     settings = CameraSettings(
         width=v.integer(d, f"{key}.width", default=640, lo=16, hi=8192),
@@ -149,7 +174,9 @@ def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
         sync=v.choice(d, f"{key}.sync", ("software", "fsin"), default="software"),
     )
     if settings.sync == "fsin" and not settings.locked:
-        raise ConfigError(f"{v.name}: {key}.sync = 'fsin' needs exposure_us, iso and white_balance_k (auto exposure cannot converge in snapshot mode)")
+        raise ConfigError(
+            f"{v.name}: {key}.sync = 'fsin' needs exposure_us, iso and white_balance_k (auto exposure cannot converge in snapshot mode)"
+        )
     device = v.string(d, f"{key}.device", default="")
     if driver == "oak" and not device:
         raise ConfigError(f"{v.name}: {key}.device is required for an OAK camera (its device id; see `cadsplat rig list`)")
@@ -170,7 +197,7 @@ def _camera(v: "_Validator", d, key: str, base: Path) -> CameraConfig:
     )
 
 
-def _trigger(v: "_Validator", d: dict) -> TriggerConfig:
+def _trigger(v: _Validator, d: dict) -> TriggerConfig:
     v.known(d, "trigger", set(TriggerConfig.__dataclass_fields__))
     kind = v.choice(d, "trigger.kind", TRIGGER_KINDS, default="software")
     pattern = v.string(d, "trigger.pattern", default=DEFAULT_SERIAL_PATTERN)
@@ -202,17 +229,19 @@ def _trigger(v: "_Validator", d: dict) -> TriggerConfig:
     )
 
 
-def _storage(v: "_Validator", d: dict, base: Path) -> StorageConfig:
+def _storage(v: _Validator, d: dict, base: Path) -> StorageConfig:
     v.known(d, "storage", {"root", "min_free_gb", "spill"})
     root = base / v.string(d, "storage.root", default="captures")
     spill = v.string(d, "storage.spill", default="")
     spill_dir = base / spill if spill else None
     if spill_dir is not None and Path(os.path.abspath(spill_dir)).is_relative_to(os.path.abspath(root)):
-        raise ConfigError(f"{v.name}: storage.spill must lie outside storage.root (on another filesystem, which stays writable when the store does not)")
+        raise ConfigError(
+            f"{v.name}: storage.spill must lie outside storage.root (on another filesystem, which stays writable when the store does not)"
+        )
     return StorageConfig(root=root, min_free_gb=v.number(d, "storage.min_free_gb", default=1.0, lo=0.0, hi=1e6), spill=spill_dir)
 
 
-def _thresholds(v: "_Validator", d: dict) -> Thresholds:
+def _thresholds(v: _Validator, d: dict) -> Thresholds:
     v.known(d, "thresholds", {"sync_tolerance_ms", "black_level", "saturated_fraction", "grab_timeout_s", "max_trigger_age_s"})
     return Thresholds(
         sync_tolerance_ns=int(v.number(d, "thresholds.sync_tolerance_ms", default=5.0, lo=0.0, hi=10_000.0) * 1e6),
@@ -223,7 +252,7 @@ def _thresholds(v: "_Validator", d: dict) -> Thresholds:
     )
 
 
-def _inspection(v: "_Validator", d: dict) -> InspectionConfig:
+def _inspection(v: _Validator, d: dict) -> InspectionConfig:
     v.known(d, "inspection", {"tolerance_mm", "max_unseen_pct"})
     if "tolerance_mm" not in d:
         raise ConfigError(f"{v.name}: inspection.tolerance_mm is required to inspect twins (or leave [inspection] out)")

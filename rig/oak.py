@@ -55,7 +55,12 @@ def list_oak_devices(dai=None) -> list[dict]:
     """Devices depthai can see: [{"device_id", "name", "state", "platform"}] (empty without any)."""
     dai = dai or import_depthai()
     return [
-        {"device_id": info.getDeviceId(), "name": info.name, "state": _name(info.state), "platform": _XLINK_PLATFORMS.get(_name(info.platform), _name(info.platform))}
+        {
+            "device_id": info.getDeviceId(),
+            "name": info.name,
+            "state": _name(info.state),
+            "platform": _XLINK_PLATFORMS.get(_name(info.platform), _name(info.platform)),
+        }
         for info in dai.Device.getAllConnectedDevices()
     ]
 
@@ -66,11 +71,19 @@ def describe_oak_device(device_id: str, dai=None) -> dict:
     try:
         device = dai.Device(dai.DeviceInfo(device_id))
     except RuntimeError as e:
-        raise CameraError(f"OAK {device_id} cannot be opened to list its cameras ({str(e).splitlines()[0]}); is a rig running on it?") from None
+        raise CameraError(
+            f"OAK {device_id} cannot be opened to list its cameras ({str(e).splitlines()[0]}); is a rig running on it?"
+        ) from None
     try:
         platform = _name(device.getPlatform())
         sockets = [
-            {"socket": _name(f.socket), "sensor": str(f.sensorName), "width": int(f.width), "height": int(f.height), "sync": sync_modes(platform, str(f.sensorName))}
+            {
+                "socket": _name(f.socket),
+                "sensor": str(f.sensorName),
+                "width": int(f.width),
+                "height": int(f.height),
+                "sync": sync_modes(platform, str(f.sensorName)),
+            }
             for f in device.getConnectedCameraFeatures()
         ]
         product = str(device.getProductName())
@@ -115,7 +128,9 @@ def factory_camera(calibration, socket, width: int, height: int, c2w: np.ndarray
 def frame_camera(transformation, c2w: np.ndarray) -> Camera:
     """The camera of a delivered frame: its ImgTransformation's intrinsics and distortion at its size."""
     w, h = transformation.getSize()
-    return Camera(_opencv_k(transformation.getIntrinsicMatrix()), int(w), int(h), opencv_distortion(transformation.getDistortionCoefficients()), c2w)
+    return Camera(
+        _opencv_k(transformation.getIntrinsicMatrix()), int(w), int(h), opencv_distortion(transformation.getDistortionCoefficients()), c2w
+    )
 
 
 def intrinsics_mismatch(expected: Camera, delivered: Camera, tolerance: float = INTRINSICS_TOLERANCE) -> str:
@@ -125,8 +140,10 @@ def intrinsics_mismatch(expected: Camera, delivered: Camera, tolerance: float = 
     pp = max(abs(kd[0, 2] - ke[0, 2]) / delivered.width, abs(kd[1, 2] - ke[1, 2]) / delivered.height)
     if focal <= tolerance and pp <= tolerance:
         return ""
-    return (f"the delivered {delivered.width}x{delivered.height} frames have fx {kd[0, 0]:.1f}, cx {kd[0, 2]:.1f}, cy {kd[1, 2]:.1f} "
-            f"but the rig calibration at that size has fx {ke[0, 0]:.1f}, cx {ke[0, 2]:.1f}, cy {ke[1, 2]:.1f}: recalibrate at this output size")
+    return (
+        f"the delivered {delivered.width}x{delivered.height} frames have fx {kd[0, 0]:.1f}, cx {kd[0, 2]:.1f}, cy {kd[1, 2]:.1f} "
+        f"but the rig calibration at that size has fx {ke[0, 0]:.1f}, cx {ke[0, 2]:.1f}, cy {ke[1, 2]:.1f}: recalibrate at this output size"
+    )
 
 
 def _ns(td: dt.timedelta) -> int:
@@ -144,8 +161,20 @@ class OakCamera:
     belong to this trigger (the trigger message reaches the host after the photo-eye edge).
     """
 
-    def __init__(self, camera_id: str, device_id: str, *, socket: str = "CAM_A", c2w: np.ndarray | None = None, camera: Camera | None = None,
-                 converge_s: float = 1.0, fsin_discard: int = 0, fsin_lookback_s: float = 0.25, dai=None, device_options: dict | None = None) -> None:
+    def __init__(
+        self,
+        camera_id: str,
+        device_id: str,
+        *,
+        socket: str = "CAM_A",
+        c2w: np.ndarray | None = None,
+        camera: Camera | None = None,
+        converge_s: float = 1.0,
+        fsin_discard: int = 0,
+        fsin_lookback_s: float = 0.25,
+        dai=None,
+        device_options: dict | None = None,
+    ) -> None:
         self.camera_id = camera_id
         self.device_id = device_id
         self.socket = socket
@@ -211,7 +240,9 @@ class OakCamera:
         if settings.sync not in ("software", "fsin"):
             raise CameraError(f"{self.camera_id}: sync must be 'software' or 'fsin', got '{settings.sync}'")
         if settings.sync == "fsin" and not settings.locked:
-            raise CameraError(f"{self.camera_id}: sync 'fsin' needs fixed exposure_us, iso and white_balance_k (the sensor only exposes on trigger edges, so auto exposure cannot converge)")
+            raise CameraError(
+                f"{self.camera_id}: sync 'fsin' needs fixed exposure_us, iso and white_balance_k (the sensor only exposes on trigger edges, so auto exposure cannot converge)"
+            )
         spec = SocketSpec(settings.width, settings.height, settings.sync, self.fsin_discard if settings.sync == "fsin" else 0)
         try:
             self._device.configure(self.socket, spec, Control(settings.exposure_us, settings.iso, settings.white_balance_k, settings.focus))
@@ -229,7 +260,9 @@ class OakCamera:
             self._use_frame(self._next_message(5.0, "while starting"))
         elif self._camera is None:
             # No frame before the first trigger: the factory calibration at this size until one arrives.
-            self._camera = factory_camera(self._device.calibration(), getattr(self.dai.CameraBoardSocket, self.socket), settings.width, settings.height, self._c2w)
+            self._camera = factory_camera(
+                self._device.calibration(), getattr(self.dai.CameraBoardSocket, self.socket), settings.width, settings.height, self._c2w
+            )
         if not settings.locked:
             self._settings = self._converge_and_lock(settings)
         return self._settings
@@ -245,8 +278,15 @@ class OakCamera:
         focus = settings.focus
         if focus is None and last.getLensPosition() >= 0:
             focus = int(last.getLensPosition())
-        locked = CameraSettings(settings.width, settings.height, _ns(last.getExposureTime()) // 1000, int(last.getSensitivity()),
-                                int(last.getColorTemperature()), focus, settings.sync)
+        locked = CameraSettings(
+            settings.width,
+            settings.height,
+            _ns(last.getExposureTime()) // 1000,
+            int(last.getSensitivity()),
+            int(last.getColorTemperature()),
+            focus,
+            settings.sync,
+        )
         self._device.send(self.socket, Control(locked.exposure_us, locked.iso, locked.white_balance_k, locked.focus))
         return locked
 

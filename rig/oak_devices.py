@@ -28,9 +28,21 @@ log = logging.getLogger(__name__)
 # Snapshot mode (external trigger) per depthai's frame-sync docs; other sensors free-run (e.g. IMX296, depthai-core #895).
 SNAPSHOT_SENSORS = ("OV9282", "OV9782", "AR0234")
 SHUTTER = {
-    "OV9282": "global-shutter", "OV9782": "global-shutter", "AR0234": "global-shutter", "OV7251": "global-shutter", "IMX296": "global-shutter",
-    "IMX378": "rolling-shutter", "IMX477": "rolling-shutter", "IMX577": "rolling-shutter", "IMX380": "rolling-shutter", "IMX582": "rolling-shutter",
-    "IMX586": "rolling-shutter", "IMX214": "rolling-shutter", "IMX412": "rolling-shutter", "IMX462": "rolling-shutter", "IMX258": "rolling-shutter",
+    "OV9282": "global-shutter",
+    "OV9782": "global-shutter",
+    "AR0234": "global-shutter",
+    "OV7251": "global-shutter",
+    "IMX296": "global-shutter",
+    "IMX378": "rolling-shutter",
+    "IMX477": "rolling-shutter",
+    "IMX577": "rolling-shutter",
+    "IMX380": "rolling-shutter",
+    "IMX582": "rolling-shutter",
+    "IMX586": "rolling-shutter",
+    "IMX214": "rolling-shutter",
+    "IMX412": "rolling-shutter",
+    "IMX462": "rolling-shutter",
+    "IMX258": "rolling-shutter",
 }
 
 
@@ -126,7 +138,9 @@ class OakDevice:
     def attach(self, socket: str, camera_id: str) -> None:
         with self._lock:
             if socket in self.users:
-                raise CameraError(f"{camera_id}: {socket} of OAK {self.device_id} is already camera {self.users[socket]}; one camera per socket")
+                raise CameraError(
+                    f"{camera_id}: {socket} of OAK {self.device_id} is already camera {self.users[socket]}; one camera per socket"
+                )
             if self.reconnecting:
                 self.users[socket] = camera_id
                 return
@@ -286,7 +300,9 @@ class OakDevice:
             if self.platform == "RVC4" and any(s.sync == "fsin" for s in self.specs.values()):
                 ok, why = device.setExternalFrameSyncRole(dai.ExternalFrameSyncRole.SLAVE)
                 if not ok:
-                    raise CameraError(f"{camera_id}: OAK {self.device_id} refused the external frame-sync role SLAVE ({why}); check the M8 sync cable, or use sync = 'software'")
+                    raise CameraError(
+                        f"{camera_id}: OAK {self.device_id} refused the external frame-sync role SLAVE ({why}); check the M8 sync cable, or use sync = 'software'"
+                    )
             pipeline = dai.Pipeline(device)
             link = _Link(device, pipeline)
             for socket, spec in sorted(self.specs.items()):

@@ -123,7 +123,9 @@ class ReferenceStore:
                 rel = f"{cam}.png"
                 digests[rel] = atomic_write_bytes(tmp / rel, encode_png(np.asarray(img)[..., :3]))
                 cameras[cam] = rel
-            atomic_write_json(tmp / REFERENCE_JSON, {"version": version, "created": created, "reason": reason, "cameras": cameras, "sha256": digests})
+            atomic_write_json(
+                tmp / REFERENCE_JSON, {"version": version, "created": created, "reason": reason, "cameras": cameras, "sha256": digests}
+            )
             os.rename(tmp, final)
             fsync_dir(self.root)
         except BaseException:

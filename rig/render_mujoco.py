@@ -17,10 +17,10 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import mujoco
@@ -171,7 +171,7 @@ class SyntheticScene:
         floor_to_object: Sim3 | None = None,
         texture_size: int | None = 1024,
         background_rgb: tuple[float, float, float] = (0.55, 0.57, 0.6),
-    ) -> "SyntheticScene":
+    ) -> SyntheticScene:
         return SyntheticScene(
             load_textured_mesh(mesh_path, texture_size=texture_size),
             backdrop=backdrop,
@@ -245,7 +245,7 @@ class SyntheticScene:
             r.close()
         self._renderers.clear()
 
-    def __enter__(self) -> "SyntheticScene":
+    def __enter__(self) -> SyntheticScene:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -302,8 +302,13 @@ def _build_model(mesh: TexturedMesh, backdrop: bool, floor_to_object: Sim3, back
         material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "object"
         material.rgba = [1, 1, 1, 1]
     spec.worldbody.add_geom(
-        name="object", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="object", material="object",
-        group=_OBJECT_GROUP, contype=0, conaffinity=0,
+        name="object",
+        type=mujoco.mjtGeom.mjGEOM_MESH,
+        meshname="object",
+        material="object",
+        group=_OBJECT_GROUP,
+        contype=0,
+        conaffinity=0,
     )
 
     sky = spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX, width=256, height=256)
@@ -316,12 +321,20 @@ def _build_model(mesh: TexturedMesh, backdrop: bool, floor_to_object: Sim3, back
         belt.mark = mujoco.mjtMark.mjMARK_RANDOM
         belt.random = 0.02
         belt.markrgb = [0.8, 0.8, 0.75]
-        spec.add_material(name="belt", texrepeat=[20, 20], specular=0.1, reflectance=0.0).textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "belt"
+        spec.add_material(name="belt", texrepeat=[20, 20], specular=0.1, reflectance=0.0).textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = (
+            "belt"
+        )
         half = _BACKDROP_EXTENT * max(mesh.radius, 1e-3)
         spec.worldbody.add_geom(
-            name="backdrop", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[half, half, 0.01], material="belt",
-            pos=floor_to_object.translation, quat=matrix_to_quat(floor_to_object.rotation), group=0,
-            contype=0, conaffinity=0,
+            name="backdrop",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[half, half, 0.01],
+            material="belt",
+            pos=floor_to_object.translation,
+            quat=matrix_to_quat(floor_to_object.rotation),
+            group=0,
+            contype=0,
+            conaffinity=0,
         )
     else:
         sky.builtin = mujoco.mjtBuiltin.mjBUILTIN_FLAT

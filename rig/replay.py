@@ -66,7 +66,15 @@ class ReplayCamera:
         if (settings.width, settings.height) != (cam.width, cam.height):
             raise CameraError(f"{self.camera_id}: recordings are {cam.width}x{cam.height}, not {settings.width}x{settings.height}")
         recorded = self._recordings[0].meta.get("camera_settings", {}).get(self.camera_id, {})
-        return CameraSettings(cam.width, cam.height, recorded.get("exposure_us"), recorded.get("iso"), recorded.get("white_balance_k"), recorded.get("focus"), "software")
+        return CameraSettings(
+            cam.width,
+            cam.height,
+            recorded.get("exposure_us"),
+            recorded.get("iso"),
+            recorded.get("white_balance_k"),
+            recorded.get("focus"),
+            "software",
+        )
 
     def arm(self, seq: int) -> None:
         self._seq = seq

@@ -42,9 +42,9 @@ import json
 import os
 import re
 import shutil
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 from calibration.capture import Capture, CaptureError, FrameData, read_capture, write_capture
 from calibration.fileio import atomic_write_bytes, atomic_write_json, fsync_dir
@@ -154,7 +154,12 @@ class CaptureStore:
             persisted = int(json.loads((self.root / STATE).read_text())["next_counter"])
         except (FileNotFoundError, ValueError, KeyError, TypeError):
             pass
-        seen = [int(m.group(1)) for sub in (CAPTURES, QUARANTINE, INCOMING) for p in (self.root / sub).iterdir() if (m := _ID.match(p.name.lstrip(".")))]
+        seen = [
+            int(m.group(1))
+            for sub in (CAPTURES, QUARANTINE, INCOMING)
+            for p in (self.root / sub).iterdir()
+            if (m := _ID.match(p.name.lstrip(".")))
+        ]
         return max([persisted, *(n + 1 for n in seen)])
 
     def reserve_id(self) -> str:
@@ -166,7 +171,9 @@ class CaptureStore:
             self.with_reserve(lambda: atomic_write_json(self.root / STATE, {"next_counter": n + 1}))
         except OSError as e:
             what = "cannot record the capture counter"
-            self.alarm = self._full_alarm(what) if is_enospc(e) else f"STOPPED: {what} ({e.strerror or e}); captures resume when it can be written"
+            self.alarm = (
+                self._full_alarm(what) if is_enospc(e) else f"STOPPED: {what} ({e.strerror or e}); captures resume when it can be written"
+            )
             raise StoreError(self.alarm) from e
         self._next = n + 1
         return f"{n:06d}-{dt.datetime.now(dt.timezone.utc):%Y%m%dT%H%M%SZ}"
@@ -185,8 +192,10 @@ class CaptureStore:
         the reserve of that size is held. Otherwise sets `alarm` ("STOPPED: disk full ...") and returns False."""
         free = self.disk_free()
         if free < self.min_free_bytes:
-            self.alarm = (f"{DISK_FULL}: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; "
-                          "captures resume when space is freed")
+            self.alarm = (
+                f"{DISK_FULL}: {free / 1e9:.2f} GB free, below the {self.min_free_bytes / 1e9:.2f} GB threshold; "
+                "captures resume when space is freed"
+            )
             return False
         try:
             held = need_bytes <= 0 or self._hold_reserve(need_bytes)
@@ -266,7 +275,9 @@ class CaptureStore:
             raise
         return StoredCapture(capture_id, final, "committed")
 
-    def quarantine(self, capture_id: str, reason: str, frames: Sequence[FrameData] = (), meta: dict | None = None, detail: dict | None = None) -> StoredCapture:
+    def quarantine(
+        self, capture_id: str, reason: str, frames: Sequence[FrameData] = (), meta: dict | None = None, detail: dict | None = None
+    ) -> StoredCapture:
         """Keep what there is of a bad capture, with its reason, under quarantine/<id>.
 
         The frames are written when the disk allows; the reason file always is (it is a few
@@ -367,7 +378,7 @@ class CaptureStore:
 
     # ---- the spill ---------------------------------------------------------------------------
 
-    def import_spill(self, spill: "Spill") -> tuple[list[StoredCapture], str]:
+    def import_spill(self, spill: Spill) -> tuple[list[StoredCapture], str]:
         """Move the spilled captures into the store under their ids, oldest first; (what became of each, and one
         sentence when the store could not take them all: the rest wait in the spill).
 
@@ -382,11 +393,13 @@ class CaptureStore:
                 out.append(self._import_one(spill, src, capture_id, damage))
             except (OSError, CaptureError) as e:
                 left = len(spill.entries())
-                return out, (f"could not import spilled capture {capture_id} into {self.root} ({getattr(e, 'strerror', None) or e}); "
-                             f"{left} spilled capture(s) wait in {spill.dir}")
+                return out, (
+                    f"could not import spilled capture {capture_id} into {self.root} ({getattr(e, 'strerror', None) or e}); "
+                    f"{left} spilled capture(s) wait in {spill.dir}"
+                )
         return out, ""
 
-    def _import_one(self, spill: "Spill", src: Path, capture_id: str, damage: str) -> StoredCapture:
+    def _import_one(self, spill: Spill, src: Path, capture_id: str, damage: str) -> StoredCapture:
         cap = None
         if not damage:
             try:
@@ -399,8 +412,14 @@ class CaptureStore:
         final = self.root / CAPTURES / capture_id
         done = None
         if reason:
-            done = next((StoredCapture(capture_id, q, "quarantined", reason) for q in sorted((self.root / QUARANTINE).glob(f"{capture_id}*"))
-                         if _reason_record(q).get("spill") == str(src)), None)
+            done = next(
+                (
+                    StoredCapture(capture_id, q, "quarantined", reason)
+                    for q in sorted((self.root / QUARANTINE).glob(f"{capture_id}*"))
+                    if _reason_record(q).get("spill") == str(src)
+                ),
+                None,
+            )
         elif final.exists():
             try:
                 same = read_capture(final, verify=True).meta.get("sha256") == cap.meta.get("sha256")

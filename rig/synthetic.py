@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -162,7 +162,12 @@ def synth_dataset(
         raise ValueError(f"held-out view count must be >= 0, got {heldout}")
     if width < 8 or height < 8:
         raise ValueError(f"image size {width}x{height} is too small (at least 8x8)")
-    for name, value in (("calib_noise_deg", calib_noise_deg), ("calib_noise_mm", calib_noise_mm), ("noise_std", noise_std), ("lighting_jitter", lighting_jitter)):
+    for name, value in (
+        ("calib_noise_deg", calib_noise_deg),
+        ("calib_noise_mm", calib_noise_mm),
+        ("noise_std", noise_std),
+        ("lighting_jitter", lighting_jitter),
+    ):
         if not (np.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {value}")
     rng = np.random.default_rng(seed)
@@ -181,15 +186,27 @@ def synth_dataset(
         fov_short = 2 * np.arctan(np.tan(np.radians(fov_deg) / 2) * min(width, height) / width)
         radius = mesh.radius / np.sin(_FILL * fov_short / 2) / scale
     if cameras is None:
-        train_rig = ring_rig(views, radius=radius, elevations_deg=elevations_deg, target=target, width=width, height=height, fov_deg=fov_deg)
+        train_rig = ring_rig(
+            views, radius=radius, elevations_deg=elevations_deg, target=target, width=width, height=height, fov_deg=fov_deg
+        )
     else:
         train_rig = list(cameras)
         if not train_rig:
             raise ValueError("explicit camera list is empty")
-    heldout_rig = ring_rig(
-        heldout, radius=radius, elevations_deg=heldout_elevations_deg, target=target,
-        width=train_rig[0].width, height=train_rig[0].height, fov_deg=fov_deg, azimuth_offset_deg=7.0,
-    ) if heldout else []
+    heldout_rig = (
+        ring_rig(
+            heldout,
+            radius=radius,
+            elevations_deg=heldout_elevations_deg,
+            target=target,
+            width=train_rig[0].width,
+            height=train_rig[0].height,
+            fov_deg=fov_deg,
+            azimuth_offset_deg=7.0,
+        )
+        if heldout
+        else []
+    )
 
     recorded, rotvec_deg, shift = perturb_extrinsics(
         np.stack([c.c2w for c in train_rig]), rng, sigma_deg=calib_noise_deg, sigma_translation=calib_noise_mm * 1e-3 / scale
@@ -198,6 +215,7 @@ def synth_dataset(
     heldout_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in heldout_rig]
 
     key_down = sim3.rotation @ np.array([0.3, 0.2, -1.0])  # the rig's ceiling lamp, in the object frame
+
     def lights(n: int) -> list[Light]:
         out = []
         for _ in range(n):
@@ -210,6 +228,7 @@ def synth_dataset(
     train_lights, heldout_lights = lights(len(train_obj)), lights(len(heldout_obj))
     noise_seed = int(rng.integers(2**31))
     with SyntheticScene(mesh, backdrop=backdrop, floor_to_object=sim3) as scene:
+
         def shoot(stage: str, cams: list[Camera], lts: list[Light], seed_offset: int):
             images, masks, bgs = [], [], []
             for i, (cam, lt) in enumerate(zip(cams, lts)):
@@ -250,8 +269,13 @@ def synth_dataset(
         "heldout": len(heldout_rig),
         "sim3_rig_to_object": sim3.to_dict(),
         "object_pose": {"yaw_deg": yaw if rig_to_object is None else None, "offset": offset.tolist() if rig_to_object is None else None},
-        "ring": {"radius_rig": float(radius), "elevations_deg": list(elevations_deg) if cameras is None else None,
-                 "heldout_elevations_deg": list(heldout_elevations_deg), "target_rig": target.tolist(), "fov_deg": fov_deg},
+        "ring": {
+            "radius_rig": float(radius),
+            "elevations_deg": list(elevations_deg) if cameras is None else None,
+            "heldout_elevations_deg": list(heldout_elevations_deg),
+            "target_rig": target.tolist(),
+            "fov_deg": fov_deg,
+        },
         "train_intrinsics": [c.K.tolist() for c in train_rig],
         "train_c2w_object": [c.c2w.tolist() for c in train_obj],
         "heldout_c2w_object": [c.c2w.tolist() for c in heldout_obj],
@@ -262,8 +286,13 @@ def synth_dataset(
             "rotvec_deg": rotvec_deg.tolist(),
             "centre_shift_rig": shift.tolist(),
         },
-        "render": {"backdrop": backdrop, "lighting_jitter": lighting_jitter, "noise_std": noise_std,
-                   "texture_size": texture_size, "renderer": "mujoco"},
+        "render": {
+            "backdrop": backdrop,
+            "lighting_jitter": lighting_jitter,
+            "noise_std": noise_std,
+            "texture_size": texture_size,
+            "renderer": "mujoco",
+        },
     }
     atomic_write_json(out_dir / "gt.json", gt)
     return gt

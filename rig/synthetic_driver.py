@@ -99,7 +99,9 @@ class SyntheticRig:
         return cam.with_c2w(c2w)
 
     @classmethod
-    def from_mesh(cls, mesh, n_views: int, *, width: int = 640, height: int = 480, fov_deg: float = 45.0, elevations_deg=(15.0, 40.0), **kw) -> "SyntheticRig":
+    def from_mesh(
+        cls, mesh, n_views: int, *, width: int = 640, height: int = 480, fov_deg: float = 45.0, elevations_deg=(15.0, 40.0), **kw
+    ) -> SyntheticRig:
         """A ring rig sized to the part. `mesh`: a mesh file path or a `TexturedMesh`."""
         from rig.synthetic import SyntheticScene, load_textured_mesh, ring_rig
 
@@ -108,7 +110,15 @@ class SyntheticRig:
         lo, hi = mesh.bounds
         fov_short = 2 * np.arctan(np.tan(np.radians(fov_deg) / 2) * min(width, height) / width)
         radius = mesh.radius / np.sin(_FILL * fov_short / 2)
-        cameras = ring_rig(n_views, radius=radius, elevations_deg=elevations_deg, target=(0.0, 0.0, (hi[2] - lo[2]) / 2), width=width, height=height, fov_deg=fov_deg)
+        cameras = ring_rig(
+            n_views,
+            radius=radius,
+            elevations_deg=elevations_deg,
+            target=(0.0, 0.0, (hi[2] - lo[2]) / 2),
+            width=width,
+            height=height,
+            fov_deg=fov_deg,
+        )
         return cls(SyntheticScene(mesh, backdrop=False), cameras, **kw)
 
     def sim3_rig_to_object(self, seq: int):
@@ -144,7 +154,7 @@ class SyntheticRig:
         with self._lock:
             return self._render_empty()
 
-    def drivers(self, prefix: str = "cam") -> list["SyntheticCamera"]:
+    def drivers(self, prefix: str = "cam") -> list[SyntheticCamera]:
         return [SyntheticCamera(f"{prefix}{i:02d}", self, i) for i in range(len(self.cameras))]
 
     def close(self) -> None:
@@ -174,9 +184,13 @@ class SyntheticCamera:
     def configure(self, settings: CameraSettings) -> CameraSettings:
         cam = self.camera
         if (settings.width, settings.height) != (cam.width, cam.height):
-            raise CameraError(f"{self.camera_id}: the synthetic rig renders {cam.width}x{cam.height}, not {settings.width}x{settings.height}")
+            raise CameraError(
+                f"{self.camera_id}: the synthetic rig renders {cam.width}x{cam.height}, not {settings.width}x{settings.height}"
+            )
         # A renderer's "exposure" is fixed: report it locked, identical across views.
-        self._settings = CameraSettings(cam.width, cam.height, exposure_us=10_000, iso=100, white_balance_k=5500, focus=settings.focus, sync="software")
+        self._settings = CameraSettings(
+            cam.width, cam.height, exposure_us=10_000, iso=100, white_balance_k=5500, focus=settings.focus, sync="software"
+        )
         return self._settings
 
     def arm(self, seq: int) -> None:
@@ -205,7 +219,9 @@ class PatternCamera:
     `time_ns` is the clock its timestamps come from.
     """
 
-    def __init__(self, camera_id: str, *, index: int = 0, n: int = 1, width: int = 640, height: int = 480, time_ns=time.monotonic_ns) -> None:
+    def __init__(
+        self, camera_id: str, *, index: int = 0, n: int = 1, width: int = 640, height: int = 480, time_ns=time.monotonic_ns
+    ) -> None:
         self.camera_id = camera_id
         self.index = index
         az = 2 * np.pi * index / max(n, 1)
@@ -235,7 +251,15 @@ class PatternCamera:
         if (settings.width, settings.height) != (self._camera.width, self._camera.height):
             self._camera = self._camera.scaled(settings.width, settings.height)
             self.open()
-        self._settings = CameraSettings(settings.width, settings.height, settings.exposure_us or 10_000, settings.iso or 100, settings.white_balance_k or 5500, settings.focus, settings.sync)
+        self._settings = CameraSettings(
+            settings.width,
+            settings.height,
+            settings.exposure_us or 10_000,
+            settings.iso or 100,
+            settings.white_balance_k or 5500,
+            settings.focus,
+            settings.sync,
+        )
         return self._settings
 
     def arm(self, seq: int) -> None:

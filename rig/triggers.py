@@ -15,8 +15,8 @@ import re
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 DEFAULT_SERIAL_PATTERN = r"^TRIG,(?P<seq>\d+),(?P<encoder>-?\d+)$"
 DEFAULT_CAN_FORMAT = "<Ii"  # uint32 seq, int32 encoder count, little-endian
@@ -152,7 +152,7 @@ class TriggerSource:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def start(self) -> "TriggerSource":
+    def start(self) -> TriggerSource:
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"{self.name}-reader", daemon=True)
         self._thread.start()
@@ -197,7 +197,7 @@ class SoftwareTrigger(TriggerSource):
         super().__init__(clock=clock)
         self._seq = 0
 
-    def start(self) -> "SoftwareTrigger":
+    def start(self) -> SoftwareTrigger:
         return self
 
     def fire(self, payload: dict | None = None, *, seq: int | None = None, timestamp_ns: int | None = None) -> TriggerEvent:

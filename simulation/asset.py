@@ -102,7 +102,14 @@ class RepairReport:
 
     @property
     def changed(self) -> bool:
-        return bool(self.vertices_welded or self.faces_removed or self.faces_added or self.faces_flipped or self.pieces_dropped or self.pieces_merged)
+        return bool(
+            self.vertices_welded
+            or self.faces_removed
+            or self.faces_added
+            or self.faces_flipped
+            or self.pieces_dropped
+            or self.pieces_merged
+        )
 
     def summary(self) -> list[str]:
         """One sentence per change, for the manifest and the command's output."""
@@ -376,7 +383,9 @@ def material_in_names(names: list[str]) -> str | None:
     return None
 
 
-def choose_density(density: float | None = None, material: str | None = None, *, cad_names: list[str] = (), rig: dict | None = None) -> Density:
+def choose_density(
+    density: float | None = None, material: str | None = None, *, cad_names: list[str] = (), rig: dict | None = None
+) -> Density:
     """The body's density by precedence: flag (`density`, `material`), a material in the CAD's
     `cad_names`, rig.toml's [simulation] table `rig` ({"density": ..., "material": ...}), default."""
     if density is not None or material is not None:
@@ -454,8 +463,15 @@ def build_asset(name: str, parts: MeshParts, *, face_rgb: np.ndarray | None = No
     except RepairError as e:
         raise RepairError(f"{name}: {e}") from None
     return SimAsset(
-        name=name, vertices=v, faces=f, face_part=data["part"].astype(np.int64), part_names=list(parts.part_names),
-        face_rgb=data["rgb"], density=density, mass=mass_properties(v, f, density.value), repair=report,
+        name=name,
+        vertices=v,
+        faces=f,
+        face_part=data["part"].astype(np.int64),
+        part_names=list(parts.part_names),
+        face_rgb=data["rgb"],
+        density=density,
+        mass=mass_properties(v, f, density.value),
+        repair=report,
     )
 
 
@@ -470,7 +486,12 @@ def asset_from_twin(twin: Twin, name: str | None = None, *, density: Density | N
 
 
 def load_mesh_asset(
-    path: str | os.PathLike, unit: str | None = None, name: str | None = None, *, density: Density | None = None, split_components: bool = False
+    path: str | os.PathLike,
+    unit: str | None = None,
+    name: str | None = None,
+    *,
+    density: Density | None = None,
+    split_components: bool = False,
 ) -> SimAsset:
     """A CAD/mesh file as a rigid body. `unit` (m, mm, cm, in) may be omitted only when the file
     name declares it (`part.unitsmm.stl`) or a units.json beside it does; it is never guessed.

@@ -193,9 +193,15 @@ def _coacd_worker(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOp
 
     coacd.set_log_level("error")
     parts = coacd.run_coacd(
-        coacd.Mesh(vertices, faces), threshold=threshold, max_convex_hull=opts.max_convex_hull,
-        preprocess_mode="off", resolution=opts.resolution, mcts_iterations=opts.mcts_iterations,
-        mcts_nodes=opts.mcts_nodes, mcts_max_depth=opts.mcts_max_depth, seed=opts.seed,
+        coacd.Mesh(vertices, faces),
+        threshold=threshold,
+        max_convex_hull=opts.max_convex_hull,
+        preprocess_mode="off",
+        resolution=opts.resolution,
+        mcts_iterations=opts.mcts_iterations,
+        mcts_nodes=opts.mcts_nodes,
+        mcts_max_depth=opts.mcts_max_depth,
+        seed=opts.seed,
     )
     queue.put([np.asarray(v, np.float64) for v, _ in parts])
 
@@ -211,7 +217,13 @@ def decimated(vertices: np.ndarray, faces: np.ndarray, target: int = DECOMPOSE_F
     return v32.astype(np.float64), f2.astype(np.int64)
 
 
-def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOptions = DecompositionOptions(), threshold: float | None = None, timeout_s: float | None = None) -> list[np.ndarray] | None:
+def decompose(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    opts: DecompositionOptions = DecompositionOptions(),
+    threshold: float | None = None,
+    timeout_s: float | None = None,
+) -> list[np.ndarray] | None:
     """Convex pieces [M_i, 3] of the mesh by one CoACD run at `threshold` (default opts.threshold),
     in a child process so the timeout can stop it; None when it ran out of time."""
     v, f = decimated(vertices, faces)
@@ -219,8 +231,9 @@ def decompose(vertices: np.ndarray, faces: np.ndarray, opts: DecompositionOption
     # child deadlocks on a mutex one of them held (seen: the export step hung for its whole time budget).
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue, os.getpid()),
-                       daemon=True)
+    proc = ctx.Process(
+        target=_coacd_worker, args=(v, f, opts, opts.threshold if threshold is None else threshold, queue, os.getpid()), daemon=True
+    )
     proc.start()
     try:
         pieces = queue.get(timeout=opts.timeout_s if timeout_s is None else timeout_s)
@@ -300,7 +313,9 @@ def boundary_points(shapes: list, samples: int, seed: int = 0) -> np.ndarray:
     total = sum(m.area for m in shapes)
     kept = []
     for i, m in enumerate(shapes):
-        pts = np.concatenate([trimesh.sample.sample_surface(m, max(int(samples * m.area / total), 1), seed=seed + i)[0], np.asarray(m.vertices)])
+        pts = np.concatenate(
+            [trimesh.sample.sample_surface(m, max(int(samples * m.area / total), 1), seed=seed + i)[0], np.asarray(m.vertices)]
+        )
         covered = np.zeros(len(pts), bool)
         for j, eq in enumerate(planes):
             if j != i:
@@ -323,7 +338,12 @@ def hausdorff(mesh, shapes: list, samples: int = HAUSDORFF_SAMPLES, seed: int = 
 
 
 def _adaptive_decomposition(
-    vertices, faces, mesh_volume: float, tolerance: float, opts: DecompositionOptions, budget: int | None = None,
+    vertices,
+    faces,
+    mesh_volume: float,
+    tolerance: float,
+    opts: DecompositionOptions,
+    budget: int | None = None,
 ) -> tuple[tuple[np.ndarray, ...], float, list[str]]:
     """CoACD pieces chosen by volume error within a hull `budget` (None: none): runs at falling
     thresholds until the error is within `tolerance`; a run over the budget makes the next threshold
@@ -342,7 +362,9 @@ def _adaptive_decomposition(
             break
         err = union_volume((), tuple(pieces)) / mesh_volume - 1
         over = budget is not None and len(pieces) > budget
-        notes.append(f"CoACD threshold {threshold:.3g}: {len(pieces)} pieces{' (over the budget)' if over else ''}, {100 * err:+.1f}% volume")
+        notes.append(
+            f"CoACD threshold {threshold:.3g}: {len(pieces)} pieces{' (over the budget)' if over else ''}, {100 * err:+.1f}% volume"
+        )
         if over:
             over_at = max(over_at, threshold)
         else:
@@ -370,7 +392,13 @@ def _adaptive_decomposition(
 
 
 def _part_geometry(
-    vertices, faces, volume: float, tolerance: float, primitives: tuple[str, ...], decomposition: DecompositionOptions | None, budget: int | None = None,
+    vertices,
+    faces,
+    volume: float,
+    tolerance: float,
+    primitives: tuple[str, ...],
+    decomposition: DecompositionOptions | None,
+    budget: int | None = None,
 ):
     """(primitives, pieces, error, notes) for one closed part, at most `budget` pieces."""
     err = lambda vol: (vol - volume) / volume  # noqa: E731
@@ -386,7 +414,12 @@ def _part_geometry(
     if not pieces or abs(dec_err) >= abs(hull_err):
         why = "no CoACD run finished" if not pieces else f"CoACD's best ({100 * dec_err:+.1f}%) was no closer"
         return (), (hull,), hull_err, notes + [f"{why}; convex hull used ({100 * hull_err:.1f}% volume error)"]
-    return (), pieces, dec_err, notes + [f"CoACD: {len(pieces)} convex pieces, {100 * dec_err:+.1f}% volume error (hull {100 * hull_err:+.1f}%)"]
+    return (
+        (),
+        pieces,
+        dec_err,
+        notes + [f"CoACD: {len(pieces)} convex pieces, {100 * dec_err:+.1f}% volume error (hull {100 * hull_err:+.1f}%)"],
+    )
 
 
 def _closed_parts(vertices: np.ndarray, faces: np.ndarray, face_part: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]] | None:

@@ -19,15 +19,15 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from calibration.fileio import atomic_write_bytes, fsync_dir, publish_dir
-from reconstruction.gaussians import Gaussians
 from calibration.so3 import matrix_to_quat
+from reconstruction.gaussians import Gaussians
 from reconstruction.mesh_io import MeshParts, material_names
 from reconstruction.twin import MESH_CAD_GLB, SPLATS_PLY, TWIN_JSON, Twin, TwinError, load_twin, splats_to_ply_bytes
 from simulation.asset import Density, asset_from_twin, choose_density, load_mesh_asset, rig_simulation_table, sh_dc_rgb
@@ -38,8 +38,6 @@ from simulation.mjcf import BodySpec, SimOptions, write_mjcf_package
 from simulation.scene import Placement, resting_position
 from simulation.spz import spz_bytes
 from simulation.up import Up, resolve_up, standing
-
-IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def body_density(placement: Placement, rig: dict | None = None) -> Density:
@@ -52,7 +50,10 @@ def body_density(placement: Placement, rig: dict | None = None) -> Density:
 
 
 def load_body(
-    placement: Placement, decomposition: DecompositionOptions | None = DecompositionOptions(), rig: dict | None = None, twin: Twin | None = None,
+    placement: Placement,
+    decomposition: DecompositionOptions | None = DecompositionOptions(),
+    rig: dict | None = None,
+    twin: Twin | None = None,
 ) -> tuple[BodySpec, Gaussians]:
     """A scene entry -> (BodySpec placed as the scene says, its splats in the object frame).
 
@@ -72,7 +73,12 @@ def load_body(
         asset = load_mesh_asset(src, placement.unit, placement.name, density=density)
         splats = splats_from_mesh(asset.vertices, asset.faces, asset.face_rgb, asset.face_part, placement.splats).gaussians
     col = collision_geometry(
-        asset.vertices, asset.faces, asset.mass.volume, face_part=asset.face_part, tolerance=placement.collision_tolerance, decomposition=decomposition
+        asset.vertices,
+        asset.faces,
+        asset.mass.volume,
+        face_part=asset.face_part,
+        tolerance=placement.collision_tolerance,
+        decomposition=decomposition,
     )
     quat = np.asarray(placement.quat, np.float64)
     pos = resting_position(asset.vertices, quat, placement.pos, placement.bottom)
@@ -85,15 +91,24 @@ def twin_up(twin: Twin, rig: dict | None = None, cad_up_axis: str | None = None)
     else rig.toml's `cad_up_axis`), else +z."""
     rig = rig or {}
     return resolve_up(
-        twin_up=twin.up_object, rig_up=rig.get("up"), rotation_rig_to_object=twin.sim3_rig_to_object.rotation,
+        twin_up=twin.up_object,
+        rig_up=rig.get("up"),
+        rotation_rig_to_object=twin.sim3_rig_to_object.rotation,
         cad_up_axis=cad_up_axis or rig.get("cad_up_axis"),
     )
 
 
 def twin_body(
-    twin_dir: str | os.PathLike, *, density: float | None = None, material: str | None = None, rig_toml: str | os.PathLike | None = None,
-    tolerance: float = DEFAULT_TOLERANCE, decomposition: DecompositionOptions | None = DecompositionOptions(), hull_budget: int | None = None,
-    up: Up | None = None, twin: Twin | None = None,
+    twin_dir: str | os.PathLike,
+    *,
+    density: float | None = None,
+    material: str | None = None,
+    rig_toml: str | os.PathLike | None = None,
+    tolerance: float = DEFAULT_TOLERANCE,
+    decomposition: DecompositionOptions | None = DecompositionOptions(),
+    hull_budget: int | None = None,
+    up: Up | None = None,
+    twin: Twin | None = None,
 ) -> BodySpec:
     """One twin as a free body standing on z = 0 as it stood on the line (`up` turned to +z; object
     frame = body frame), density by flag, CAD material, rig.toml ([simulation]) or default; at most
@@ -108,16 +123,23 @@ def twin_body(
         decomposition = replace(decomposition, hull_budget=int(budget))
     quat = (1.0, 0.0, 0.0, 0.0) if up is None else tuple(float(x) for x in matrix_to_quat(standing(up.vector, "+z")))
     placement = Placement(
-        name=_body_name(twin_dir), source=twin_dir, quat=quat, bottom=0.0, density=density, material=material, collision_tolerance=tolerance,
+        name=_body_name(twin_dir),
+        source=twin_dir,
+        quat=quat,
+        bottom=0.0,
+        density=density,
+        material=material,
+        collision_tolerance=tolerance,
     )
     return load_body(placement, decomposition, rig, twin)[0]
 
 
 def _physics(twin_dir: Path, physics: dict) -> tuple[Twin, dict, dict]:
-    """(the twin, rig.toml's [simulation] table, the physics options less the up ones) of an export call."""
-    twin = load_twin(twin_dir)
+    """(the twin, rig.toml's [simulation] table, the physics options less the up ones) of an export call; the twin is
+    `physics["twin"]` when the caller has it in memory, else read (and verified) from `twin_dir`."""
+    twin = physics.get("twin") or load_twin(twin_dir)
     rig = rig_simulation_table(physics["rig_toml"]) if physics.get("rig_toml") is not None else {}
-    return twin, rig, {k: v for k, v in physics.items() if k != "cad_up_axis"}
+    return twin, rig, {k: v for k, v in physics.items() if k not in ("cad_up_axis", "twin")}
 
 
 def export_mjcf(twin_dir: str | os.PathLike, out_dir: str | os.PathLike, **physics) -> Path:
@@ -162,7 +184,9 @@ def colmap_reconstruction(cameras, means: np.ndarray, rgb: np.ndarray):
     for i, c in enumerate(cameras, start=1):
         cam = c.camera
         k = cam.K
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[k[0, 0], k[1, 1], k[0, 2], k[1, 2]], camera_id=i))
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[k[0, 0], k[1, 1], k[0, 2], k[1, 2]], camera_id=i)
+        )
         image = pycolmap.Image(name=Path(c.file_path).name, camera_id=i, image_id=i)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(cam.viewmat[:3, :4]))
     col = np.clip(np.asarray(rgb) * 255.0 + 0.5, 0, 255).astype(np.uint8)
@@ -171,10 +195,10 @@ def colmap_reconstruction(cameras, means: np.ndarray, rgb: np.ndarray):
     return rec
 
 
-def export_colmap(twin_dir: str | os.PathLike, out_dir: str | os.PathLike) -> Path:
+def export_colmap(twin_dir: str | os.PathLike, out_dir: str | os.PathLike, *, twin: Twin | None = None) -> Path:
     """COLMAP text model of a twin: its training cameras (refined, object frame) and its splat means
-    coloured by their DC colour. Returns `out_dir`."""
-    twin = load_twin(twin_dir)
+    coloured by their DC colour. Returns `out_dir`. `twin`: the twin at `twin_dir` when already in memory."""
+    twin = twin or load_twin(twin_dir)
     if not twin.cameras:
         raise ValueError(f"{twin_dir}: the twin records no cameras to export")
     out = Path(out_dir)
@@ -195,10 +219,10 @@ def _write_atomic(data: bytes, out: Path, name: str) -> Path:
     return out
 
 
-def export_ply(twin_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+def export_ply(twin_dir: str | os.PathLike, out: str | os.PathLike, *, twin: Twin | None = None) -> Path:
     """The splats re-encoded as the current PLY layout (SH padded to degree 3, so Inria's loader
     reads it without --sh_degree), also for twins saved before the padding; object frame."""
-    twin = load_twin(twin_dir)  # validates the twin before anything is written
+    twin = twin or load_twin(twin_dir)  # validates the twin before anything is written
     data = splats_to_ply_bytes(twin.gaussians)
     return _write_atomic(data, Path(out), SPLATS_PLY)
 
@@ -212,11 +236,17 @@ def gltf_frame(twin: Twin, rig_toml: str | os.PathLike | None = None, cad_up_axi
 
 
 def export_glb(
-    twin_dir: str | os.PathLike, out: str | os.PathLike, *, mesh: bool = False, rig_toml: str | os.PathLike | None = None, cad_up_axis: str | None = None,
+    twin_dir: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    mesh: bool = False,
+    rig_toml: str | os.PathLike | None = None,
+    cad_up_axis: str | None = None,
+    twin: Twin | None = None,
 ) -> Path:
     """The splats as a glTF KHR_gaussian_splatting GLB (`simulation.gltf_splats`), with the deformed mesh
     (one node per part) when `mesh`, +Y up as the part stood on the line."""
-    twin = load_twin(twin_dir)
+    twin = twin or load_twin(twin_dir)
     up, gltf_from_object = gltf_frame(twin, rig_toml, cad_up_axis)
     parts = None
     if mesh:
@@ -229,9 +259,16 @@ def export_glb(
     return _write_atomic(glb_bytes(doc, blob), Path(out), "splats.glb")
 
 
-def export_spz(twin_dir: str | os.PathLike, out: str | os.PathLike, *, rig_toml: str | os.PathLike | None = None, cad_up_axis: str | None = None) -> Path:
+def export_spz(
+    twin_dir: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    rig_toml: str | os.PathLike | None = None,
+    cad_up_axis: str | None = None,
+    twin: Twin | None = None,
+) -> Path:
     """The splats as a Niantic .spz (`simulation.spz`), in its RUB frame (+Y up) as the part stood on the line."""
-    twin = load_twin(twin_dir)
+    twin = twin or load_twin(twin_dir)
     _, gltf_from_object = gltf_frame(twin, rig_toml, cad_up_axis)
     return _write_atomic(spz_bytes(twin.gaussians.transformed(gltf_from_object)), Path(out), "splats.spz")
 
@@ -270,14 +307,17 @@ def export_file(fmt: str, twin_dir: Path, out: Path) -> Path:
     return out / DEFAULT_FILE_NAMES[fmt] if out.is_dir() else out
 
 
-def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False, **options) -> Path:
+def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False, twin: Twin | None = None, **options) -> Path:
     """Export the twin at `twin_dir` as `fmt` to `out`, atomically; returns what was written.
 
     A file is written beside its name and renamed; a directory format is built in a hidden sibling
     directory and renamed into place, so a full disk or a kill leaves the old output or none. An
     existing output is replaced only with `overwrite`, and only when it holds an export of `fmt`.
-    `options` go to the format's exporter (the physics options of `PHYSICS_FORMATS`).
+    `options` go to the format's exporter (the physics options of `PHYSICS_FORMATS`); `twin`: the twin at
+    `twin_dir` when the caller holds it already (a service job), so it is not read and verified again.
     """
+    if twin is not None:
+        options["twin"] = twin
     exporter = FORMATS[fmt][0]
     if fmt not in DIRECTORY_MARKERS:
         target = export_file(fmt, twin_dir, out)
@@ -291,7 +331,8 @@ def write_export(fmt: str, twin_dir: Path, out: Path, *, overwrite: bool = False
             raise ExportError(f"{out} already exists; pass --overwrite to replace it")
         if not (out / DIRECTORY_MARKERS[fmt]).is_file():
             raise ExportError(f"{out} holds no {fmt} export (no {DIRECTORY_MARKERS[fmt]}), so it is not replaced; choose another --out")
-    load_twin(twin_dir)  # a damaged twin fails here, before anything is written
+    if twin is None:
+        load_twin(twin_dir)  # a damaged twin fails here, before anything is written
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
     try:

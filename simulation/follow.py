@@ -20,7 +20,9 @@ from simulation.scene import CameraSpec
 OPAQUE_LOGIT = 4.0  # sigmoid(4) = 0.98: splats made from a bare mesh cover it like a surface
 
 
-def splats_from_mesh(vertices: np.ndarray, faces: np.ndarray, face_rgb: np.ndarray, face_part: np.ndarray, n: int, seed: int = 0) -> CanonicalSplats:
+def splats_from_mesh(
+    vertices: np.ndarray, faces: np.ndarray, face_rgb: np.ndarray, face_part: np.ndarray, n: int, seed: int = 0
+) -> CanonicalSplats:
     """Opaque degree-0 splats on a bare mesh (no twin): area-uniform, each with its face's colour and
     part, so a CAD part can be simulated and rendered beside reconstructed twins."""
     s = init_splats(vertices, faces, n, sh_degree=0, face_part=face_part, seed=seed)

@@ -121,14 +121,34 @@ def splats_gltf(g: Gaussians, mesh: MeshParts | None = None, *, name: str = "twi
     """(glTF JSON document, binary buffer) of splats `g` and, when given, the mesh `mesh` (one node per
     part), both already in glTF's frame (+Y up, metres). `extras` goes to the root node's extras.cadsplat."""
     b = _Builder()
-    meshes = [{"name": f"{name}_splats", "primitives": [{
-        "attributes": splat_attributes(b, g), "mode": POINTS,
-        "extensions": {EXTENSION: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective", "sortingMethod": "cameraDistance"}},
-    }]}]
+    meshes = [
+        {
+            "name": f"{name}_splats",
+            "primitives": [
+                {
+                    "attributes": splat_attributes(b, g),
+                    "mode": POINTS,
+                    "extensions": {
+                        EXTENSION: {
+                            "kernel": "ellipse",
+                            "colorSpace": "srgb_rec709_display",
+                            "projection": "perspective",
+                            "sortingMethod": "cameraDistance",
+                        }
+                    },
+                }
+            ],
+        }
+    ]
     nodes = [{"name": name, "children": []}, {"name": f"{name}_splats", "mesh": 0}]
     materials = []
     if mesh is not None:
-        materials.append({"name": "deformed_cad", "pbrMetallicRoughness": {"baseColorFactor": [0.6, 0.6, 0.6, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8}})
+        materials.append(
+            {
+                "name": "deformed_cad",
+                "pbrMetallicRoughness": {"baseColorFactor": [0.6, 0.6, 0.6, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8},
+            }
+        )
         for part, prim in _mesh_primitives(b, mesh):
             meshes.append({"name": part, "primitives": [prim]})
             nodes.append({"name": part, "mesh": len(meshes) - 1})
@@ -157,10 +177,15 @@ def glb_bytes(doc: dict, blob: bytes) -> bytes:
     js += b" " * (-len(js) % 4)
     blob = blob + b"\0" * (-len(blob) % 4)
     total = 12 + 8 + len(js) + 8 + len(blob)
-    return b"".join([
-        struct.pack("<III", GLB_MAGIC, GLB_VERSION, total), struct.pack("<II", len(js), CHUNK_JSON), js,
-        struct.pack("<II", len(blob), CHUNK_BIN), blob,
-    ])
+    return b"".join(
+        [
+            struct.pack("<III", GLB_MAGIC, GLB_VERSION, total),
+            struct.pack("<II", len(js), CHUNK_JSON),
+            js,
+            struct.pack("<II", len(blob), CHUNK_BIN),
+            blob,
+        ]
+    )
 
 
 def read_glb(data: bytes) -> tuple[dict, bytes]:
@@ -173,13 +198,13 @@ def read_glb(data: bytes) -> tuple[dict, bytes]:
     n, kind = struct.unpack_from("<II", data, 12)
     if kind != CHUNK_JSON:
         raise ValueError("a GLB whose first chunk is not JSON")
-    doc = json.loads(data[20:20 + n])
+    doc = json.loads(data[20 : 20 + n])
     rest = 20 + n
     blob = b""
     if rest + 8 <= len(data):
         m, kind = struct.unpack_from("<II", data, rest)
         if kind == CHUNK_BIN:
-            blob = data[rest + 8:rest + 8 + m]
+            blob = data[rest + 8 : rest + 8 + m]
     return doc, blob
 
 

@@ -109,8 +109,14 @@ def _collision_geoms(body: ET.Element, assets: ET.Element, spec: BodySpec, files
     common = {"group": "3", "mass": "0", "rgba": "0.2 0.6 1 0.3"}
     for i, p in enumerate(col.primitives):
         ET.SubElement(
-            body, "geom", name=f"{name}_collision_{p.kind}_{i}", type=p.kind, size=_fmt(p.size), pos=_fmt(p.transform[:3, 3]),
-            quat=_fmt(matrix_to_quat(p.transform[:3, :3])), **common,
+            body,
+            "geom",
+            name=f"{name}_collision_{p.kind}_{i}",
+            type=p.kind,
+            size=_fmt(p.size),
+            pos=_fmt(p.transform[:3, 3]),
+            quat=_fmt(matrix_to_quat(p.transform[:3, :3])),
+            **common,
         )
     for i, piece in enumerate(col.pieces):
         mesh_name = f"{name}_collision_{i}"
@@ -128,13 +134,24 @@ def mjcf_document(bodies: list[BodySpec], options: SimOptions = SimOptions(), mo
     root = ET.Element("mujoco", model=model_name)
     ET.SubElement(root, "compiler", angle="radian", meshdir="meshes", texturedir="textures", autolimits="true")
     opt = ET.SubElement(
-        root, "option", timestep=_fmt(options.timestep), gravity=_fmt(options.gravity), integrator=options.integrator,
-        cone=options.cone, impratio=_fmt(options.impratio),
+        root,
+        "option",
+        timestep=_fmt(options.timestep),
+        gravity=_fmt(options.gravity),
+        integrator=options.integrator,
+        cone=options.cone,
+        impratio=_fmt(options.impratio),
     )
     ET.SubElement(opt, "flag", energy="enable")
     default = ET.SubElement(root, "default")
     ET.SubElement(
-        default, "geom", condim=str(c.condim), friction=_fmt(c.friction), solref=_fmt(c.solref), solimp=_fmt(c.solimp), margin=_fmt(c.margin),
+        default,
+        "geom",
+        condim=str(c.condim),
+        friction=_fmt(c.friction),
+        solref=_fmt(c.solref),
+        solimp=_fmt(c.solimp),
+        margin=_fmt(c.margin),
     )
     ET.SubElement(ET.SubElement(root, "visual"), "headlight", ambient="0.5 0.5 0.5", diffuse="0.5 0.5 0.5")
     assets = ET.SubElement(root, "asset")
@@ -142,9 +159,21 @@ def mjcf_document(bodies: list[BodySpec], options: SimOptions = SimOptions(), mo
     ET.SubElement(world, "light", pos="0 0 3", dir="0 0 -1", directional="true")
     files: dict[str, bytes] = {}
     if options.floor:
-        ET.SubElement(assets, "texture", name="floor_grid", type="2d", builtin="checker", rgb1="0.75 0.75 0.75", rgb2="0.6 0.6 0.6", width="256", height="256")
+        ET.SubElement(
+            assets,
+            "texture",
+            name="floor_grid",
+            type="2d",
+            builtin="checker",
+            rgb1="0.75 0.75 0.75",
+            rgb2="0.6 0.6 0.6",
+            width="256",
+            height="256",
+        )
         ET.SubElement(assets, "material", name="floor", texture="floor_grid", texrepeat="8 8", reflectance="0.05")
-        ET.SubElement(world, "geom", name="floor", type="plane", size=f"{options.floor_size:g} {options.floor_size:g} 0.1", material="floor")
+        ET.SubElement(
+            world, "geom", name="floor", type="plane", size=f"{options.floor_size:g} {options.floor_size:g} 0.1", material="floor"
+        )
     for spec in bodies:
         a = spec.asset
         tex = face_atlas(a.face_rgb)
@@ -157,8 +186,16 @@ def mjcf_document(bodies: list[BodySpec], options: SimOptions = SimOptions(), mo
         if not spec.fixed:
             ET.SubElement(body, "freejoint", name=f"{a.name}_free")
         ET.SubElement(
-            body, "geom", name=f"{a.name}_visual", type="mesh", mesh=a.name, material=f"{a.name}_material",
-            density=_fmt(a.density.value), contype="0", conaffinity="0", group="1",
+            body,
+            "geom",
+            name=f"{a.name}_visual",
+            type="mesh",
+            mesh=a.name,
+            material=f"{a.name}_material",
+            density=_fmt(a.density.value),
+            contype="0",
+            conaffinity="0",
+            group="1",
         )
         _collision_geoms(body, assets, spec, files)
     ET.indent(root)
@@ -182,15 +219,23 @@ def body_manifest(b: BodySpec) -> dict:
         "principal_axes": m.principal_axes,
         "repair": {**vars(a.repair), "summary": a.repair.summary()},
         "collision": {
-            "kind": c.kind, "primitives": [p.kind for p in c.primitives], "hulls": c.hull_count, "hull_budget": c.hull_budget, "volume_m3": c.volume,
-            "volume_error": c.volume_error, "hausdorff_m": c.hausdorff if np.isfinite(c.hausdorff) else None, "seconds": c.seconds,
+            "kind": c.kind,
+            "primitives": [p.kind for p in c.primitives],
+            "hulls": c.hull_count,
+            "hull_budget": c.hull_budget,
+            "volume_m3": c.volume,
+            "volume_error": c.volume_error,
+            "hausdorff_m": c.hausdorff if np.isfinite(c.hausdorff) else None,
+            "seconds": c.seconds,
             "notes": list(c.notes),
         },
         "pose": {"pos": b.pos, "quat_wxyz": b.quat, "fixed": b.fixed},
     }
 
 
-def write_mjcf_package(out_dir: str | os.PathLike, bodies: list[BodySpec], options: SimOptions = SimOptions(), extra: dict | None = None) -> Path:
+def write_mjcf_package(
+    out_dir: str | os.PathLike, bodies: list[BodySpec], options: SimOptions = SimOptions(), extra: dict | None = None
+) -> Path:
     """Write the MJCF package (every file atomically, `manifest.json` last with their sha256, each
     body's mass properties and collision choice, and `extra`'s entries). Returns the path of `model.xml`."""
     out = Path(out_dir)

@@ -73,7 +73,9 @@ def list_parts(twin: Twin) -> list[tuple[int, str, int]]:
     return [(i, name, int(counts[i])) for i, name in enumerate(twin.part_names)]
 
 
-def exploded_splats(twin: Twin, factor: float, hidden: Iterable[str | int] = (), moving: Iterable[str | int] | None = None) -> tuple[Gaussians, np.ndarray]:
+def exploded_splats(
+    twin: Twin, factor: float, hidden: Iterable[str | int] = (), moving: Iterable[str | int] | None = None
+) -> tuple[Gaussians, np.ndarray]:
     """The twin's Gaussians with its parts exploded by `factor` and the `hidden` parts removed, and the
     part label [M] of each kept one. `moving` limits the explosion to those parts (default: all). Names or indices.
     """

@@ -50,9 +50,7 @@ class Trajectory:
     def to_dict(self) -> dict:
         return {
             "times_s": self.times,
-            "bodies": {
-                name: {"pos": self.pos[:, b], "quat_wxyz": self.quat[:, b]} for b, name in enumerate(self.body_names)
-            },
+            "bodies": {name: {"pos": self.pos[:, b], "quat_wxyz": self.quat[:, b]} for b, name in enumerate(self.body_names)},
             "kinetic_energy_j": self.kinetic,
             "potential_energy_j": self.potential,
             "penetration_m": self.penetration,
@@ -148,7 +146,9 @@ def support_distance(com_xy: np.ndarray, contact_xy: np.ndarray) -> float:
     return float(np.linalg.norm(edges[:, 0] + s[:, None] * ab - p, axis=1).min())
 
 
-def rest_report(traj: Trajectory, body: int, vertices: np.ndarray, center_of_mass: np.ndarray, support_points: np.ndarray, contact_band: float = 2e-3) -> RestReport:
+def rest_report(
+    traj: Trajectory, body: int, vertices: np.ndarray, center_of_mass: np.ndarray, support_points: np.ndarray, contact_band: float = 2e-3
+) -> RestReport:
     """Rest checks for `body` at the last frame. vertices [V, 3] (the mesh) and support_points [S, 3]
     (the collision geometry's surface points) in the object frame; points within `contact_band` of
     the lowest collision point count as touching the floor."""

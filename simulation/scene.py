@@ -37,11 +37,11 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
 from calibration.so3 import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
 from simulation.mjcf import ContactParams, SimOptions
@@ -238,11 +238,15 @@ def parse_scene(doc: dict, base: Path) -> Scene:
         raise SceneError(f"camera fov_deg must be below 180, got {camera.fov_deg}")
     duration, fps = _bounded(doc.get("duration", 2.0), "duration"), _bounded(doc.get("fps", 25), "fps")
     if duration / timestep > MAX_PHYSICS_STEPS:
-        raise SceneError(f"duration / timestep is {duration / timestep:.3g} physics steps; at most {MAX_PHYSICS_STEPS:,} (shorten duration or raise timestep)")
+        raise SceneError(
+            f"duration / timestep is {duration / timestep:.3g} physics steps; at most {MAX_PHYSICS_STEPS:,} (shorten duration or raise timestep)"
+        )
     frame_pixels = (math.floor(duration * fps + 1e-9) + 1) * camera.width * camera.height
     if frame_pixels > MAX_FRAME_PIXELS:
-        raise SceneError(f"duration x fps x camera width x height is {frame_pixels:,} rendered pixels, held for the video; "
-                         f"at most {MAX_FRAME_PIXELS:,} (shorten duration, or lower fps or the camera size)")
+        raise SceneError(
+            f"duration x fps x camera width x height is {frame_pixels:,} rendered pixels, held for the video; "
+            f"at most {MAX_FRAME_PIXELS:,} (shorten duration, or lower fps or the camera size)"
+        )
     return Scene(placements, options, duration, fps, camera)
 
 

@@ -80,14 +80,20 @@ def spz_bytes(g: Gaussians) -> bytes:
     sh = np.asarray(g.sh, np.float64)
     opacity = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, np.float64)))
     rest = sh[:, 1:, :]
-    sh_bytes = np.concatenate([quantize_sh(rest[:, :3], SH1_BUCKET), quantize_sh(rest[:, 3:], SH_REST_BUCKET)], 1) if degree else np.zeros((n, 0, 3), np.uint8)
-    body = b"".join([
-        struct.pack("<IIIBBBB", MAGIC, VERSION, n, degree, FRACTIONAL_BITS, 0, 0),
-        pack_positions(means).tobytes(),
-        _to_uint8(opacity * 255.0).tobytes(),
-        _to_uint8(sh[:, 0] * (COLOR_SCALE * 255.0) + 0.5 * 255.0).tobytes(),
-        _to_uint8((np.asarray(g.log_scales, np.float64) + 10.0) * 16.0).tobytes(),
-        pack_rotations(quats).astype("<u4").tobytes(),
-        sh_bytes.tobytes(),
-    ])
+    sh_bytes = (
+        np.concatenate([quantize_sh(rest[:, :3], SH1_BUCKET), quantize_sh(rest[:, 3:], SH_REST_BUCKET)], 1)
+        if degree
+        else np.zeros((n, 0, 3), np.uint8)
+    )
+    body = b"".join(
+        [
+            struct.pack("<IIIBBBB", MAGIC, VERSION, n, degree, FRACTIONAL_BITS, 0, 0),
+            pack_positions(means).tobytes(),
+            _to_uint8(opacity * 255.0).tobytes(),
+            _to_uint8(sh[:, 0] * (COLOR_SCALE * 255.0) + 0.5 * 255.0).tobytes(),
+            _to_uint8((np.asarray(g.log_scales, np.float64) + 10.0) * 16.0).tobytes(),
+            pack_rotations(quats).astype("<u4").tobytes(),
+            sh_bytes.tobytes(),
+        ]
+    )
     return gzip.compress(body, compresslevel=9, mtime=0)

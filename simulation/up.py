@@ -46,7 +46,7 @@ def unit(v, what: str = "up") -> np.ndarray:
 
 
 def axis_vector(axis: str) -> np.ndarray:
-    """"+y", "y", "-z", ... -> the unit vector [3]; ValueError for anything else."""
+    """ "+y", "y", "-z", ... -> the unit vector [3]; ValueError for anything else."""
     s = str(axis).strip().lower()
     sign = -1.0 if s.startswith("-") else 1.0
     name = s.lstrip("+-")
@@ -64,8 +64,12 @@ def board_up(board_to_rig: np.ndarray) -> np.ndarray:
 
 
 def resolve_up(
-    *, twin_up: dict | None = None, calibration_up: np.ndarray | None = None, rig_up: np.ndarray | None = None,
-    rotation_rig_to_object: np.ndarray | None = None, cad_up_axis: str | None = None,
+    *,
+    twin_up: dict | None = None,
+    calibration_up: np.ndarray | None = None,
+    rig_up: np.ndarray | None = None,
+    rotation_rig_to_object: np.ndarray | None = None,
+    cad_up_axis: str | None = None,
 ) -> Up:
     """The object frame's up by precedence (module docstring): the twin's record `twin_up`
     ({"vector", "source"}), the calibration's rig-frame `calibration_up` [3], rig.toml's rig-frame
@@ -78,7 +82,9 @@ def resolve_up(
         return Up(unit(up), "calibration", "the calibration board lying on the conveyor, through the twin's registration")
     if rig_up is not None and rotation_rig_to_object is not None:
         up = np.asarray(rotation_rig_to_object, np.float64) @ unit(rig_up, "rig.toml's simulation.up")
-        return Up(unit(up), "rig.toml", f"rig.toml's simulation.up {list(map(float, rig_up))} in the rig frame, through the twin's registration")
+        return Up(
+            unit(up), "rig.toml", f"rig.toml's simulation.up {list(map(float, rig_up))} in the rig frame, through the twin's registration"
+        )
     if cad_up_axis is not None:
         return Up(axis_vector(cad_up_axis), "cad", f"the CAD model's declared up axis {cad_up_axis}")
     return Up(np.array([0.0, 0.0, 1.0]), "default", "no calibration, rig.toml or CAD declaration: the CAD convention +z assumed")

@@ -121,7 +121,9 @@ def turned_body(body: BodySpec, rotation: np.ndarray) -> BodySpec:
     t[:3, :3] = r
     mass = replace(m, center_of_mass=r @ m.center_of_mass, inertia=r @ m.inertia @ r.T)
     collision = replace(
-        col, pieces=tuple(np.asarray(p) @ r.T for p in col.pieces), primitives=tuple(replace(p, transform=t @ p.transform) for p in col.primitives),
+        col,
+        pieces=tuple(np.asarray(p) @ r.T for p in col.pieces),
+        primitives=tuple(replace(p, transform=t @ p.transform) for p in col.primitives),
     )
     return replace(body, asset=replace(a, vertices=a.vertices @ r.T, mass=mass), collision=collision)
 
@@ -144,7 +146,9 @@ def _splats(stage, path: str, g: Gaussians):
     field.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(scales, np.float32)))
     field.CreateOpacitiesAttr(Vt.FloatArray.FromNumpy(np.ascontiguousarray(opacity, np.float32)))
     field.CreateRadianceSphericalHarmonicsDegreeAttr(int(g.sh_degree))
-    coeffs = field.CreateRadianceSphericalHarmonicsCoefficientsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sh.reshape(-1, 3), np.float32)))
+    coeffs = field.CreateRadianceSphericalHarmonicsCoefficientsAttr(
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sh.reshape(-1, 3), np.float32))
+    )
     primvar = UsdGeom.Primvar(coeffs)
     primvar.SetInterpolation(UsdGeom.Tokens.vertex)
     primvar.SetElementSize(int(sh.shape[1]))
@@ -207,7 +211,9 @@ def usd_stage(body: BodySpec, splats: Gaussians | None = None, up_axis: str = "Z
     for geom in shapes:
         UsdPhysics.CollisionAPI.Apply(geom.GetPrim())
         UsdGeom.Imageable(geom).CreatePurposeAttr(UsdGeom.Tokens.guide)
-    root.SetCustomDataByKey("cadsplat:collision", {"kind": col.kind, "volume_error": float(col.volume_error), "hull_budget": int(col.hull_budget or 0)})
+    root.SetCustomDataByKey(
+        "cadsplat:collision", {"kind": col.kind, "volume_error": float(col.volume_error), "hull_budget": int(col.hull_budget or 0)}
+    )
     stage.GetRootLayer().customLayerData = {"generator": "cadsplat", **(layer_data or {})}
     return stage
 
@@ -223,7 +229,11 @@ def check_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None 
     stage = Usd.Stage.Open(str(path))
     if stage is None:
         raise UsdCheckError(f"{path}: pxr cannot open the file just written")
-    if UsdGeom.GetStageUpAxis(stage) != up_axis or UsdGeom.GetStageMetersPerUnit(stage) != 1.0 or UsdPhysics.GetStageKilogramsPerUnit(stage) != 1.0:
+    if (
+        UsdGeom.GetStageUpAxis(stage) != up_axis
+        or UsdGeom.GetStageMetersPerUnit(stage) != 1.0
+        or UsdPhysics.GetStageKilogramsPerUnit(stage) != 1.0
+    ):
         raise UsdCheckError(f"{path}: the stage's upAxis, metersPerUnit or kilogramsPerUnit is not what was written")
     root = stage.GetDefaultPrim()
     if not (root and root.HasAPI(UsdPhysics.RigidBodyAPI) and root.HasAPI(UsdPhysics.MassAPI)):
@@ -277,13 +287,21 @@ def check_splats(path, prim, splats: Gaussians) -> None:
     pos = np.array(field.GetPositionsAttr().Get(), np.float32)
     counts = [len(field.GetOrientationsAttr().Get()), len(field.GetScalesAttr().Get()), len(field.GetOpacitiesAttr().Get())]
     if pos.shape != (n, 3) or counts != [n, n, n]:
-        raise UsdCheckError(f"{path}: the splat field holds {len(pos)} positions and {counts} orientations, scales, opacities; the twin has {n} splats")
+        raise UsdCheckError(
+            f"{path}: the splat field holds {len(pos)} positions and {counts} orientations, scales, opacities; the twin has {n} splats"
+        )
     if not np.allclose(pos, np.asarray(splats.means, np.float32), atol=1e-6):
         raise UsdCheckError(f"{path}: the splat positions differ from the twin's")
     coeffs = field.GetRadianceSphericalHarmonicsCoefficientsAttr()
     sh = np.array(coeffs.Get(), np.float32)
-    if field.GetRadianceSphericalHarmonicsDegreeAttr().Get() != splats.sh_degree or UsdGeom.Primvar(coeffs).GetElementSize() != k or sh.shape != (n * k, 3):
-        raise UsdCheckError(f"{path}: the splats' SH degree or coefficient count is not the twin's (degree {splats.sh_degree}, {k} per splat)")
+    if (
+        field.GetRadianceSphericalHarmonicsDegreeAttr().Get() != splats.sh_degree
+        or UsdGeom.Primvar(coeffs).GetElementSize() != k
+        or sh.shape != (n * k, 3)
+    ):
+        raise UsdCheckError(
+            f"{path}: the splats' SH degree or coefficient count is not the twin's (degree {splats.sh_degree}, {k} per splat)"
+        )
     if not np.allclose(sh.reshape(n, k, 3), np.asarray(splats.sh, np.float32), atol=1e-6):
         raise UsdCheckError(f"{path}: the splats' SH coefficients differ from the twin's")
 
@@ -316,7 +334,9 @@ def write_usd(path: str | os.PathLike, body: BodySpec, splats: Gaussians | None 
     stage_body = turned_body(body, rotation)
     stage_splats = None if splats is None else splats.transformed(_rigid(rotation))
     layer_data = {
-        "cadsplat:up_source": up.source, "cadsplat:up_detail": up.detail, "cadsplat:up_object": Gf.Vec3d(*map(float, up.vector)),
+        "cadsplat:up_source": up.source,
+        "cadsplat:up_detail": up.detail,
+        "cadsplat:up_object": Gf.Vec3d(*map(float, up.vector)),
         "cadsplat:stage_from_object": Vt.DoubleArray([float(x) for x in _rigid(rotation).reshape(-1)]),  # row-major, column vectors
     }
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)

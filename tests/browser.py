@@ -19,8 +19,18 @@ import time
 
 import numpy as np
 
-FLAGS = ["--headless", "--no-sandbox", "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
-         "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--hide-scrollbars"]
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--no-first-run",
+    "--no-default-browser-check",
+    "--disable-extensions",
+    "--mute-audio",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--ignore-gpu-blocklist",
+    "--hide-scrollbars",
+]
 
 
 def chromium_binary() -> str | None:
@@ -48,9 +58,14 @@ class Chromium:
             os.dup2(to_child_r, 3)
             os.dup2(from_child_w, 4)
 
-        self._proc = subprocess.Popen([binary, *FLAGS, f"--user-data-dir={self._profile}", "--remote-debugging-pipe", "about:blank"],
-                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                      preexec_fn=fds, pass_fds=(3, 4))  # noqa: PLW1509 - it only calls dup2, safe after fork
+        self._proc = subprocess.Popen(
+            [binary, *FLAGS, f"--user-data-dir={self._profile}", "--remote-debugging-pipe", "about:blank"],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=fds,
+            pass_fds=(3, 4),
+        )  # noqa: PLW1509 - it only calls dup2, safe after fork
         os.close(to_child_r)
         os.close(from_child_w)
         self._buffer = b""
@@ -87,7 +102,9 @@ class Chromium:
     def _note(self, event: dict) -> None:
         p = event.get("params", {})
         if event.get("method") == "Runtime.consoleAPICalled":
-            self.log.append(f"console.{p.get('type')}: " + " ".join(str(a.get("value", a.get("description", ""))) for a in p.get("args", [])))
+            self.log.append(
+                f"console.{p.get('type')}: " + " ".join(str(a.get("value", a.get("description", ""))) for a in p.get("args", []))
+            )
         elif event.get("method") == "Runtime.exceptionThrown":
             d = p.get("exceptionDetails", {})
             self.log.append(f"exception: {d.get('exception', {}).get('description') or d.get('text')}")
@@ -102,14 +119,20 @@ class Chromium:
         try:
             for method in ("Runtime.enable", "Page.enable"):
                 self.call(method, session=session)
-            self.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
-                      session=session)
+            self.call(
+                "Emulation.setDeviceMetricsOverride",
+                {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+                session=session,
+            )
             self.call("Emulation.setDefaultBackgroundColorOverride", {"color": {"r": 0, "g": 0, "b": 0, "a": 0}}, session=session)
             self.call("Page.navigate", {"url": url}, session=session)
             deadline = time.monotonic() + timeout
             while True:
-                state = self.call("Runtime.evaluate", {"expression": "window.cadsplatReady ? 'ready' : (window.cadsplatError || '')",
-                                                       "returnByValue": True}, session=session)["result"].get("value", "")
+                state = self.call(
+                    "Runtime.evaluate",
+                    {"expression": "window.cadsplatReady ? 'ready' : (window.cadsplatError || '')", "returnByValue": True},
+                    session=session,
+                )["result"].get("value", "")
                 if state == "ready":
                     break
                 if state or time.monotonic() > deadline:

@@ -13,7 +13,7 @@ configure_openmp()
 # headless EGL, as rig/render_mujoco.py asks for, on machines with no display.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import pytest
+import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

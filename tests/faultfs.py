@@ -33,8 +33,16 @@ def tree_bytes(root: Path) -> int:
 
 
 class FaultyDisk:
-    def __init__(self, root: str | os.PathLike, *, fail_at: int | None = None, errno_: int = errno.ENOSPC, persistent: bool = False,
-                 fill_at: int | None = None, capacity: int | None = None) -> None:
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        *,
+        fail_at: int | None = None,
+        errno_: int = errno.ENOSPC,
+        persistent: bool = False,
+        fill_at: int | None = None,
+        capacity: int | None = None,
+    ) -> None:
         self.root = os.path.abspath(root)
         self.fail_at, self.errno, self.persistent, self.fill_at = fail_at, errno_, persistent, fill_at
         self.capacity = capacity
@@ -96,7 +104,9 @@ class FaultyDisk:
                 try:
                     disk._site("sqlite", self_.path, 4096)
                 except OSError as e:
-                    raise sqlite3.OperationalError("database or disk is full" if e.errno == errno.ENOSPC else "attempt to write a readonly database") from e
+                    raise sqlite3.OperationalError(
+                        "database or disk is full" if e.errno == errno.ENOSPC else "attempt to write a readonly database"
+                    ) from e
             with real_tx(self_) as db:
                 yield db
 

@@ -18,7 +18,9 @@ def cadsplat(*args: str) -> list[str]:
     return [sys.executable, "-c", "import sys; from deploy.cli import main; sys.exit(main())", *args]
 
 
-def run_until_killed(argv: list[str], kill_after_s: float, *, ready: tuple[str, ...] | None = None, timeout_s: float = 600) -> tuple[str, bool]:
+def run_until_killed(
+    argv: list[str], kill_after_s: float, *, ready: tuple[str, ...] | None = None, timeout_s: float = 600
+) -> tuple[str, bool]:
     """Run `argv`; SIGKILL it `kill_after_s` after it printed a line starting with one of `ready` (or after start).
     Returns (stdout, killed)."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}

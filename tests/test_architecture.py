@@ -11,7 +11,6 @@ import ast
 from pathlib import Path
 
 import networkx as nx
-import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("calibration", "rig", "reconstruction", "simulation", "deploy")
@@ -94,8 +93,12 @@ def test_no_package_imports_a_package_above_it():
 
 
 def test_benchmarks_do_not_edit_sys_path():
-    edits = [f"{p.relative_to(REPO)}:{i}" for p in sorted((REPO / "benchmarks").rglob("*.py"))
-             for i, line in enumerate(p.read_text().splitlines(), start=1) if "sys.path" in line]
+    edits = [
+        f"{p.relative_to(REPO)}:{i}"
+        for p in sorted((REPO / "benchmarks").rglob("*.py"))
+        for i, line in enumerate(p.read_text().splitlines(), start=1)
+        if "sys.path" in line
+    ]
     assert edits == []
 
 

@@ -69,13 +69,26 @@ def _image_folder(folder: Path) -> dict[str, Path]:
 
 @calibrate.command("board")
 @click.option("--board", "board", required=True, help="board spec, e.g. charuco:5x7:0.04:0.02:DICT_6X6_250")
-@click.option("--images", "folders", multiple=True, required=True, type=click.Path(path_type=Path), help="one folder per camera; frames matched by file name")
+@click.option(
+    "--images",
+    "folders",
+    multiple=True,
+    required=True,
+    type=click.Path(path_type=Path),
+    help="one folder per camera; frames matched by file name",
+)
 @click.option("--names", default=None, help="camera names, comma-separated (default: folder names)")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version; old ones are kept)")
-@click.option("--dist", "num_dist", type=click.Choice(["0", "4", "5"]), default="5", show_default=True, help="OpenCV distortion coefficients")
+@click.option(
+    "--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version; old ones are kept)"
+)
+@click.option(
+    "--dist", "num_dist", type=click.Choice(["0", "4", "5"]), default="5", show_default=True, help="OpenCV distortion coefficients"
+)
 @click.option("--no-cross-validation", is_flag=True, help="skip the split-half uncertainty figures (faster)")
 @click.option("--force", is_flag=True, help="store a calibration that fails the quality gate (RMS, intrinsics, coverage), marked as forced")
-def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Path, num_dist: str, no_cross_validation: bool, force: bool) -> None:
+def board_cmd(
+    board: str, folders: tuple[Path, ...], names: str | None, out: Path, num_dist: str, no_cross_validation: bool, force: bool
+) -> None:
     """Calibrate intrinsics and rig extrinsics from board images."""
     spec = _spec(board)
     cam_names = names.split(",") if names else [f.name for f in folders]
@@ -89,7 +102,9 @@ def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Pat
                 img = to_gray_u8(read_image(path))
                 h, w = img.shape
                 if sizes.setdefault(name, (w, h)) != (w, h):
-                    raise click.ClickException(f"{path} is {w}x{h} but other images of camera '{name}' are {sizes[name][0]}x{sizes[name][1]}")
+                    raise click.ClickException(
+                        f"{path} is {w}x{h} but other images of camera '{name}' are {sizes[name][0]}x{sizes[name][1]}"
+                    )
                 detections[name][stem] = detect_board(spec, img)
     try:
         rig = calibrate_rig(detections, sizes, num_dist=int(num_dist), cross_validate=not no_cross_validation)
@@ -118,7 +133,12 @@ def board_cmd(board: str, folders: tuple[Path, ...], names: str | None, out: Pat
 @calibrate.command("sfm")
 @click.argument("capture", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration.json (new version)")
-@click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None, help="calibration to align to (default: the capture's own poses)")
+@click.option(
+    "--reference",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="calibration to align to (default: the capture's own poses)",
+)
 @click.option("--max-error-px", type=float, default=1.0, show_default=True)
 @click.option("--force", is_flag=True, help="store a calibration that fails the quality gate, marked as forced")
 def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: float, force: bool) -> None:
@@ -134,7 +154,12 @@ def sfm_cmd(capture: Path, out: Path, reference: Path | None, max_error_px: floa
     ref = {n: c.c2w for n, c in read_calibration(reference).cameras.items()} if reference else {n: c.c2w for n, c in cams.items()}
     res = sfm_calibrate(images, cams, reference=ref, max_reprojection_px=max_error_px)
     figures = {n: {"rms_px": res.reprojection_px} for n in res.cameras}
-    notes = {"registered": f"{res.registered}/{res.total}", "points": res.points, "alignment_rms_m": res.alignment_rms_m, "capture": str(capture)}
+    notes = {
+        "registered": f"{res.registered}/{res.total}",
+        "points": res.points,
+        "alignment_rms_m": res.alignment_rms_m,
+        "capture": str(capture),
+    }
     try:
         doc = CalibrationStore(out).commit(CalibrationDoc(res.cameras, figures, source="sfm", notes=notes), force=force)
     except CalibrationFileError as e:
@@ -165,7 +190,9 @@ def _keeper(calibration: Path, config: Path | None) -> Keeper:
 @click.option("--thorough", is_flag=True, help="SIFT features and refined poses (the scheduled check)")
 @click.option("--set-reference", is_flag=True, help="store the capture's empty-rig frames as the drift reference")
 @click.option("--config", type=click.Path(dir_okay=False, path_type=Path), default=None, help="TOML with a [calibration.keeper] table")
-def check_cmd(capture: Path | None, calibration: Path, latest: Path | None, thorough: bool, set_reference: bool, config: Path | None) -> None:
+def check_cmd(
+    capture: Path | None, calibration: Path, latest: Path | None, thorough: bool, set_reference: bool, config: Path | None
+) -> None:
     """Check every camera for drift; correct small drift, alarm on large (exit 3)."""
     if (capture is None) == (latest is None):
         raise click.ClickException("give either a CAPTURE or --latest FOLDER")
@@ -203,7 +230,9 @@ def history_cmd(calibration: Path, plot: Path | None, config: Path | None) -> No
         click.echo(f"check {r['check']:>4}  {r['time']}  {r['status']:<11} {r['action']}  {r['capture']}")
     alarm = keeper.alarm()
     if alarm:
-        click.echo(f"ALARM since {alarm['since']}: recalibrate {', '.join(alarm['cameras'])}; {len(alarm['flagged_captures'])} captures flagged")
+        click.echo(
+            f"ALARM since {alarm['since']}: recalibrate {', '.join(alarm['cameras'])}; {len(alarm['flagged_captures'])} captures flagged"
+        )
     if plot is not None:
         plot_history(records, plot, keeper.config)
         click.echo(f"wrote {plot}")

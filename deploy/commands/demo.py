@@ -77,17 +77,26 @@ def validate_sample(sample_dir: str | Path) -> dict:
     train_dev = np.abs(sim3.apply_to_c2w(np.stack([f.camera.c2w for f in train.frames])) - np.array(gt["train_c2w_object"])).max()
     noisy = gt.get("calib_noise", {}).get("sigma_deg", 0) or gt.get("calib_noise", {}).get("sigma_mm", 0)
     if held_dev > 1e-6 or (not noisy and train_dev > 1e-6):
-        raise SampleError(f"{root / 'gt.json'}: sim3_rig_to_object does not map the recorded poses onto the true ones (off by {max(held_dev, train_dev):.2g})")
-    checks.append(f"gt.json: rig->object Sim(3) (scale {sim3.scale:.3f}) maps recorded poses onto true poses within {max(held_dev, train_dev):.1e}")
+        raise SampleError(
+            f"{root / 'gt.json'}: sim3_rig_to_object does not map the recorded poses onto the true ones (off by {max(held_dev, train_dev):.2g})"
+        )
+    checks.append(
+        f"gt.json: rig->object Sim(3) (scale {sim3.scale:.3f}) maps recorded poses onto true poses within {max(held_dev, train_dev):.1e}"
+    )
 
     mesh_path = root / gt["mesh"]
     if not mesh_path.is_file():
         raise SampleError(f"{root / 'gt.json'}: its mesh {mesh_path} is missing")
     vertices = np.asarray(trimesh.load(mesh_path, force="mesh", process=False).vertices, np.float64)
-    hits = [mask_hit_fraction(vertices, np.array(c2w), cap, i)
-            for key, cap in (("train_c2w_object", train), ("heldout_c2w_object", held)) for i, c2w in enumerate(gt[key])]
+    hits = [
+        mask_hit_fraction(vertices, np.array(c2w), cap, i)
+        for key, cap in (("train_c2w_object", train), ("heldout_c2w_object", held))
+        for i, c2w in enumerate(gt[key])
+    ]
     if min(hits) < 0.999:
-        raise SampleError(f"{mesh_path}: projected with the true poses, only {min(hits):.1%} of its vertices land inside the worst view's mask")
+        raise SampleError(
+            f"{mesh_path}: projected with the true poses, only {min(hits):.1%} of its vertices land inside the worst view's mask"
+        )
     checks.append(f"true mesh projected with true poses: {min(hits):.2%} of vertices inside every mask (1-px tolerance), {len(hits)} views")
 
     digests = manifest.get("sha256", {})
@@ -162,20 +171,41 @@ def run_demo(root: Path, work: Path, *, preset: str = "cpu", heldout_views: int 
                 finish_stages()
                 bar.live.stop()
 
-        run = run_protocol(root / manifest.get("train", "train"), root / manifest.get("heldout", "heldout"), work / "library",
-                           work / "twin", preset=preset, heldout_views=heldout_views, refine_steps=0, gt=gt,
-                           progress=progress, log=lambda m: bar.console.print(f"  {m}"), heldout_progress=scoring)
+        run = run_protocol(
+            root / manifest.get("train", "train"),
+            root / manifest.get("heldout", "heldout"),
+            work / "library",
+            work / "twin",
+            preset=preset,
+            heldout_views=heldout_views,
+            refine_steps=0,
+            gt=gt,
+            progress=progress,
+            log=lambda m: bar.console.print(f"  {m}"),
+            heldout_progress=scoring,
+        )
     timings |= run.timings_s
-    return {"twin": run.twin, "registration": run.registration, "metrics": run.mean, "heldout_views": len(run.heldout_views),
-            "reg_init": run.reg_init, "reg_refined": run.reg_refined, "timings_s": timings,
-            "true_model_id": manifest["true_model_id"]}
+    return {
+        "twin": run.twin,
+        "registration": run.registration,
+        "metrics": run.mean,
+        "heldout_views": len(run.heldout_views),
+        "reg_init": run.reg_init,
+        "reg_refined": run.reg_refined,
+        "timings_s": timings,
+        "true_model_id": manifest["true_model_id"],
+    }
 
 
-@click.command(help="Run the bundled sample end to end: CAD library -> registration -> reconstruction (cpu preset) -> "
-                    "held-out renders -> fgPSNR, IoU and registration error against the sample's ground truth.")
+@click.command(
+    help="Run the bundled sample end to end: CAD library -> registration -> reconstruction (cpu preset) -> "
+    "held-out renders -> fgPSNR, IoU and registration error against the sample's ground truth."
+)
 @click.option("--sample", "sample", type=click.Path(path_type=Path), default=None, help="Sample directory (default: the bundled sample/).")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "preview", "paper"]), help="Reconstruction preset.")
-@click.option("--work", "work", type=click.Path(path_type=Path), default=None, help="Keep the library and twin here (default: a temporary directory).")
+@click.option(
+    "--work", "work", type=click.Path(path_type=Path), default=None, help="Keep the library and twin here (default: a temporary directory)."
+)
 @click.option("--validate-only", is_flag=True, help="Only check the sample and print what it holds.")
 def demo(sample: Path | None, preset: str, work: Path | None, validate_only: bool) -> None:
     import shutil
@@ -218,8 +248,12 @@ def demo(sample: Path | None, preset: str, work: Path | None, validate_only: boo
     fg = "n/a" if m.get("fgpsnr") is None else f"{m['fgpsnr']:.2f} dB"
     click.echo(f"Retrieved '{found}' ({right}); twin of {r['twin'].num_splats} splats, preset {preset}.")
     click.echo(f"Held-out views ({r['heldout_views']}): fgPSNR {fg}, IoU {m['iou']:.3f}, object-crop PSNR {m['psnr']:.2f} dB.")
-    click.echo(f"Registration error (median over train cameras): {ri['rotation_deg_median']:.2f} deg / {ri['center_pct_median']:.2f} % "
-               f"after retrieval, {rr['rotation_deg_median']:.2f} deg / {rr['center_pct_median']:.2f} % after reconstruction "
-               f"(paper T_opt: 2.9 deg / 6.1 %).")
-    click.echo(f"Wall time: library {tw['library']:.0f} s, reconstruction {ratio_line(tw['reconstruct'], anchor)}, "
-               f"evaluation {tw['evaluate']:.0f} s" + (f"; twin kept in {work / 'twin'}" if tmp is None else "") + ".")
+    click.echo(
+        f"Registration error (median over train cameras): {ri['rotation_deg_median']:.2f} deg / {ri['center_pct_median']:.2f} % "
+        f"after retrieval, {rr['rotation_deg_median']:.2f} deg / {rr['center_pct_median']:.2f} % after reconstruction "
+        f"(paper T_opt: 2.9 deg / 6.1 %)."
+    )
+    click.echo(
+        f"Wall time: library {tw['library']:.0f} s, reconstruction {ratio_line(tw['reconstruct'], anchor)}, "
+        f"evaluation {tw['evaluate']:.0f} s" + (f"; twin kept in {work / 'twin'}" if tmp is None else "") + "."
+    )

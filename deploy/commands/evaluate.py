@@ -16,25 +16,59 @@ def _fmt(x: float | None) -> str:
     return "   n/a" if x is None or not math.isfinite(x) else f"{x:6.3f}"
 
 
-@click.command(help="Score the twin at TWIN on the held-out capture's views (their cameras in the rig frame) with the "
-                    "paper's protocol, with and without test-time pose refinement, and write every metric to --out.")
+@click.command(
+    help="Score the twin at TWIN on the held-out capture's views (their cameras in the rig frame) with the "
+    "paper's protocol, with and without test-time pose refinement, and write every metric to --out."
+)
 @click.argument("twin_dir", type=click.Path(path_type=Path))
 @click.option("--views", "views_dir", required=True, type=click.Path(path_type=Path), help="Held-out capture (with masks/).")
 @click.option("--out", "out_path", required=True, type=click.Path(path_type=Path), help="metrics.json to write.")
-@click.option("--refine-steps", default=400, show_default=True, type=click.IntRange(0, 100_000),
-              help="Test-time pose refinement steps per view (0 scores only the nominal poses).")
-@click.option("--gt", "gt_path", default=None, type=click.Path(path_type=Path),
-              help="gt.json of a synthetic rig: also score the twin's training-camera registration.")
-@click.option("--symmetry", "symmetry_axes", multiple=True, type=click.Choice(["x", "y", "z"]),
-              help="With --gt: the object looks the same turned 180 deg about this object axis; registration errors "
-                   "are taken against the closer pose (repeatable).")
-@click.option("--near-symmetries", "symmetry_mm", default=None, type=click.FloatRange(min=0.0, min_open=True),
-              help="With --gt: find the turns that move the twin's mesh by less than MM (mean surface distance, e.g. the "
-                   "rig's calibration noise) and take registration errors against the closest of them.")
-@click.option("--max-views", default=None, type=click.IntRange(1, 100_000),
-              help="Score at most N held-out views, evenly spread over the capture (default: all).")
-def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int, gt_path: Path | None,
-             symmetry_axes: tuple[str, ...], symmetry_mm: float | None, max_views: int | None) -> None:
+@click.option(
+    "--refine-steps",
+    default=400,
+    show_default=True,
+    type=click.IntRange(0, 100_000),
+    help="Test-time pose refinement steps per view (0 scores only the nominal poses).",
+)
+@click.option(
+    "--gt",
+    "gt_path",
+    default=None,
+    type=click.Path(path_type=Path),
+    help="gt.json of a synthetic rig: also score the twin's training-camera registration.",
+)
+@click.option(
+    "--symmetry",
+    "symmetry_axes",
+    multiple=True,
+    type=click.Choice(["x", "y", "z"]),
+    help="With --gt: the object looks the same turned 180 deg about this object axis; registration errors "
+    "are taken against the closer pose (repeatable).",
+)
+@click.option(
+    "--near-symmetries",
+    "symmetry_mm",
+    default=None,
+    type=click.FloatRange(min=0.0, min_open=True),
+    help="With --gt: find the turns that move the twin's mesh by less than MM (mean surface distance, e.g. the "
+    "rig's calibration noise) and take registration errors against the closest of them.",
+)
+@click.option(
+    "--max-views",
+    default=None,
+    type=click.IntRange(1, 100_000),
+    help="Score at most N held-out views, evenly spread over the capture (default: all).",
+)
+def evaluate(
+    twin_dir: Path,
+    views_dir: Path,
+    out_path: Path,
+    refine_steps: int,
+    gt_path: Path | None,
+    symmetry_axes: tuple[str, ...],
+    symmetry_mm: float | None,
+    max_views: int | None,
+) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -59,7 +93,9 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
         if "train_c2w_object" not in gt:
             raise click.ClickException(f"--gt {gt_path} has no train_c2w_object; is it a synthetic rig's gt.json?")
     if (symmetry_axes or symmetry_mm) and gt is None:
-        raise click.ClickException("--symmetry and --near-symmetries need --gt: symmetries only change how registration errors are measured")
+        raise click.ClickException(
+            "--symmetry and --near-symmetries need --gt: symmetries only change how registration errors are measured"
+        )
     symmetries = [half_turn(a) for a in symmetry_axes]
     labels = [f"the pose turned 180 deg about {a}" for a in symmetry_axes]
     if symmetry_mm:
@@ -75,18 +111,27 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
     t_load = time.perf_counter() - t0
 
     console = Console(stderr=True)
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True
+    ) as bar:
         task = bar.add_task(f"evaluating ({refine_steps} refinement steps per view)", total=len(idx))
-        report = evaluate_twin(twin, cams, images, masks, names=names, refine_steps=refine_steps, gt=gt,
-                               symmetries=symmetries or None,
-                               progress=lambda done, _total: bar.update(task, completed=done))
+        report = evaluate_twin(
+            twin,
+            cams,
+            images,
+            masks,
+            names=names,
+            refine_steps=refine_steps,
+            gt=gt,
+            symmetries=symmetries or None,
+            progress=lambda done, _total: bar.update(task, completed=done),
+        )
     report["timings_s"]["load"] = t_load
     doc = {
         "twin": str(twin_dir),
         "views": str(views_dir),
         "protocol": "paper 4.3: object crop (10%-padded square, Lanczos 256) psnr/ssim/lpips/flip; 5-px eroded mask "
-                    "mpsnr/mssim/mlpips/mflip; fgpsnr; iou (alpha > 0.5); None = undefined or infinite",
+        "mpsnr/mssim/mlpips/mflip; fgpsnr; iou (alpha > 0.5); None = undefined or infinite",
         "model_id": twin.model_id,
         "preset": twin.preset,
         "refine_steps": refine_steps,
@@ -96,8 +141,10 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
     }
     atomic_write_json(out_path, doc)
 
-    click.echo(f"Evaluated {twin.model_id} ({twin.num_splats} splats, preset {twin.preset}) on {len(idx)} held-out views "
-               f"in {report['timings_s']['total']:.1f} s ({report['timings_s']['per_view_render_ms']:.0f} ms per render).")
+    click.echo(
+        f"Evaluated {twin.model_id} ({twin.num_splats} splats, preset {twin.preset}) on {len(idx)} held-out views "
+        f"in {report['timings_s']['total']:.1f} s ({report['timings_s']['per_view_render_ms']:.0f} ms per render)."
+    )
     click.echo("              " + " ".join(f"{k:>6}" for k in SUMMARY))
     click.echo("  nominal     " + " ".join(_fmt(report["mean"][k]) for k in SUMMARY))
     if refine_steps:
@@ -105,6 +152,8 @@ def evaluate(twin_dir: Path, views_dir: Path, out_path: Path, refine_steps: int,
     if "registration" in report:
         r = report["registration"]
         sym = "" if r["symmetry"] is None else f" (against {labels[r['symmetry']]})"
-        click.echo(f"  registration of {len(r['cameras'])} training cameras: median {r['rotation_deg_median']:.2f} deg, "
-                   f"{r['center_pct_median']:.2f} % of distance{sym}")
+        click.echo(
+            f"  registration of {len(r['cameras'])} training cameras: median {r['rotation_deg_median']:.2f} deg, "
+            f"{r['center_pct_median']:.2f} % of distance{sym}"
+        )
     click.echo(f"  metrics per view and averaged: {out_path}")

@@ -19,15 +19,37 @@ from simulation.export import FORMATS, PHYSICS_FORMATS, UP_FORMATS, ExportError,
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output file or directory.")
 @click.option("--density", type=float, default=None, help="mjcf/usd: density in kg/m^3 (overrides the material).")
 @click.option("--material", default=None, help="mjcf/usd: material name (plastic, steel, aluminium, ...) giving the density.")
-@click.option("--hull-budget", type=click.IntRange(1, 10000), default=None, help="mjcf/usd: most convex hulls in the collision decomposition (default: rig.toml's, else 32).")
-@click.option("--rig", "rig_toml", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="glb/spz/mjcf/usd: rig.toml whose [simulation] table gives the density, hull budget and up direction.")
-@click.option("--cad-up-axis", default=None, help="glb/spz/mjcf/usd: the CAD model's up axis (+y, z, -x, ...) when neither the twin nor rig.toml says which way is up.")
+@click.option(
+    "--hull-budget",
+    type=click.IntRange(1, 10000),
+    default=None,
+    help="mjcf/usd: most convex hulls in the collision decomposition (default: rig.toml's, else 32).",
+)
+@click.option(
+    "--rig",
+    "rig_toml",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="glb/spz/mjcf/usd: rig.toml whose [simulation] table gives the density, hull budget and up direction.",
+)
+@click.option(
+    "--cad-up-axis",
+    default=None,
+    help="glb/spz/mjcf/usd: the CAD model's up axis (+y, z, -x, ...) when neither the twin nor rig.toml says which way is up.",
+)
 @click.option("--mesh", is_flag=True, help="glb: the deformed CAD mesh alongside the splats.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing export of this format at --out.")
 def export(
-    twin_dir: Path, fmt: str, out: Path, density: float | None, material: str | None, hull_budget: int | None, rig_toml: Path | None,
-    cad_up_axis: str | None, mesh: bool, overwrite: bool,
+    twin_dir: Path,
+    fmt: str,
+    out: Path,
+    density: float | None,
+    material: str | None,
+    hull_budget: int | None,
+    rig_toml: Path | None,
+    cad_up_axis: str | None,
+    mesh: bool,
+    overwrite: bool,
 ) -> None:
     options: dict = {}
     if fmt in UP_FORMATS:

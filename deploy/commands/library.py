@@ -18,7 +18,13 @@ def library() -> None:
 @library.command(help="Index every mesh (OBJ, STL, PLY, GLB) under MESH_DIR into the library LIB; models already indexed are kept.")
 @click.argument("mesh_dir", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Library directory (created or updated).")
-@click.option("--unit", default="m", show_default=True, type=click.Choice(list(UNIT_TO_M)), help="Unit of meshes that do not declare their own (name.units<u>.ext or units.json).")
+@click.option(
+    "--unit",
+    default="m",
+    show_default=True,
+    type=click.Choice(list(UNIT_TO_M)),
+    help="Unit of meshes that do not declare their own (name.units<u>.ext or units.json).",
+)
 @click.option("--workers", default=None, type=click.IntRange(1, 256), help="Parallel render processes (default: all cores).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 def build(mesh_dir: Path, out_dir: Path, unit: str, workers: int | None, progress: bool) -> None:

@@ -17,7 +17,7 @@ STAGE_TITLES = {"pose": "Stage I: pose", "deform": "Stage I: pose + deformation"
 
 
 def parse_views(text: str | None) -> list[int] | None:
-    """"0,3,7" -> [0, 3, 7]; None -> None (all views)."""
+    """ "0,3,7" -> [0, 3, 7]; None -> None (all views)."""
     if text is None:
         return None
     try:
@@ -59,34 +59,85 @@ def given_registration(path: Path, capture_dir: Path, lib_dir: Path):
     except OSError as e:
         raise click.ClickException(f"{path}: cannot read the registration ({e.strerror or e})") from None
     except (json.JSONDecodeError, UnicodeDecodeError):
-        raise click.ClickException(f"{path} is not a registration document (not JSON); give the reg.json `cadsplat register` wrote") from None
+        raise click.ClickException(
+            f"{path} is not a registration document (not JSON); give the reg.json `cadsplat register` wrote"
+        ) from None
     capture = read_capture(capture_dir)
     return capture, RegistrationResult.from_dict(doc, capture=capture, library=load_library(lib_dir), where=str(path))
 
 
 @click.command(help="Reconstruct a CAD-registered Gaussian-splat twin from CAPTURE; writes the twin directory OUT.")
 @click.argument("capture_dir", type=click.Path(path_type=Path))
-@click.option("--library", "lib_dir", default=None, type=click.Path(path_type=Path), help="CAD library (cadsplat library build); not read with --init sphere.")
+@click.option(
+    "--library",
+    "lib_dir",
+    default=None,
+    type=click.Path(path_type=Path),
+    help="CAD library (cadsplat library build); not read with --init sphere.",
+)
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Twin directory to write.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "preview", "paper"]), help="Model size and schedule.")
 @click.option("--model", "model_id", default=None, help="Use this library model instead of retrieving one.")
-@click.option("--registration", "registration_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
-              help="A reg.json `cadsplat register` wrote for this capture and library: used as given instead of registering again.")
+@click.option(
+    "--registration",
+    "registration_path",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="A reg.json `cadsplat register` wrote for this capture and library: used as given instead of registering again.",
+)
 @click.option("--views", "views_text", default=None, help="Training views by index, e.g. 0,3,7 (default: all).")
-@click.option("--pose-mode", default=None, type=click.Choice(list(POSE_MODE_NAMES)), help="Override the pose-correction mode chosen from the capture's provenance.")
+@click.option(
+    "--pose-mode",
+    default=None,
+    type=click.Choice(list(POSE_MODE_NAMES)),
+    help="Override the pose-correction mode chosen from the capture's provenance.",
+)
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--init", "init", default="cad", show_default=True, type=click.Choice(["cad", "sphere"]),
-              help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).")
-@click.option("--ablate", "ablations", multiple=True, type=click.Choice(list(ABLATION_NAMES)),
-              help="Switch one ingredient off (repeatable), as the paper's ablations.")
-@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path),
-              help="rig.toml: its [registration] table (known_part, scale_tolerance, prior) when registering here.")
-@click.option("--like", "like_dir", default=None, type=click.Path(path_type=Path),
-              help="Train again as the twin at this directory was trained: its configuration, seed, views and registration.")
+@click.option(
+    "--init",
+    "init",
+    default="cad",
+    show_default=True,
+    type=click.Choice(["cad", "sphere"]),
+    help="Anchor the splats on the registered CAD model, or on the paper's generic sphere (no CAD; for evaluation).",
+)
+@click.option(
+    "--ablate",
+    "ablations",
+    multiple=True,
+    type=click.Choice(list(ABLATION_NAMES)),
+    help="Switch one ingredient off (repeatable), as the paper's ablations.",
+)
+@click.option(
+    "--rig-config",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="rig.toml: its [registration] table (known_part, scale_tolerance, prior) when registering here.",
+)
+@click.option(
+    "--like",
+    "like_dir",
+    default=None,
+    type=click.Path(path_type=Path),
+    help="Train again as the twin at this directory was trained: its configuration, seed, views and registration.",
+)
 @click.option("--overwrite", is_flag=True, help="Replace an existing twin at OUT.")
-def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: str, model_id: str | None, registration_path: Path | None,
-                views_text: str | None, pose_mode: str | None, seed: int, init: str, ablations: tuple[str, ...], rig_config: Path | None,
-                like_dir: Path | None, overwrite: bool) -> None:
+def reconstruct(
+    capture_dir: Path,
+    lib_dir: Path | None,
+    out_dir: Path,
+    preset: str,
+    model_id: str | None,
+    registration_path: Path | None,
+    views_text: str | None,
+    pose_mode: str | None,
+    seed: int,
+    init: str,
+    ablations: tuple[str, ...],
+    rig_config: Path | None,
+    like_dir: Path | None,
+    overwrite: bool,
+) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from reconstruction.pipeline import reconstruct_capture, retrain_like
@@ -97,8 +148,10 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
         from reconstruction.twin import load_twin
 
         if registration_path is not None or views is not None or model_id is not None or ablations or pose_mode is not None:
-            raise click.UsageError("--like takes the configuration, views and registration from the twin's record; "
-                                   "give it with CAPTURE, --library, --out and --overwrite only")
+            raise click.UsageError(
+                "--like takes the configuration, views and registration from the twin's record; "
+                "give it with CAPTURE, --library, --out and --overwrite only"
+            )
         like = load_twin(like_dir)
         init = "sphere" if like.model_id == "sphere" else "cad"
     if init == "cad" and lib_dir is None:
@@ -108,7 +161,9 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
     from reconstruction.twin import is_twin_dir
 
     if out_dir.exists() and not is_twin_dir(out_dir):
-        raise click.ClickException(f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out")
+        raise click.ClickException(
+            f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out"
+        )
     from deploy.steps import registration_config
 
     reg_config = registration_config(rig_config)
@@ -118,8 +173,14 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
             raise click.UsageError("--registration places the CAD model; it does not go with --init sphere")
         capture, registration = given_registration(registration_path, capture_dir, lib_dir)
     tasks: dict[str, int] = {}
-    with Progress(TextColumn("{task.description:<30}"), BarColumn(), MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4f}"),
-                  TimeElapsedColumn(), transient=False) as bar:
+    with Progress(
+        TextColumn("{task.description:<30}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]:.4f}"),
+        TimeElapsedColumn(),
+        transient=False,
+    ) as bar:
 
         def progress(stage: str, it: int, cap: int, loss: float) -> None:
             if stage not in tasks:
@@ -132,9 +193,23 @@ def reconstruct(capture_dir: Path, lib_dir: Path | None, out_dir: Path, preset: 
         if like is not None:
             result = retrain_like(like, capture, lib_dir, out_dir, progress=progress, log=log, overwrite=overwrite)
         else:
-            result = reconstruct_capture(capture, lib_dir, out_dir, registration=registration, preset=preset, model_id=model_id, views=views,
-                                         pose_mode=pose_mode, seed=seed, progress=progress, log=log, overwrite=overwrite, init=init,
-                                         ablations=ablations, registration_config=reg_config)
+            result = reconstruct_capture(
+                capture,
+                lib_dir,
+                out_dir,
+                registration=registration,
+                preset=preset,
+                model_id=model_id,
+                views=views,
+                pose_mode=pose_mode,
+                seed=seed,
+                progress=progress,
+                log=log,
+                overwrite=overwrite,
+                init=init,
+                ablations=ablations,
+                registration_config=reg_config,
+            )
         for t in tasks.values():
             bar.update(t, total=bar.tasks[t].completed)
     click.echo(verdict(result.twin, result.registration))

@@ -23,22 +23,66 @@ import click
 @click.command(help="Find the library model in CAPTURE and the Sim(3) from the rig frame to its CAD frame; writes reg.json and overlays.")
 @click.argument("capture_dir", type=click.Path(path_type=Path))
 @click.option("--library", "lib_dir", required=True, type=click.Path(path_type=Path), help="Library directory (cadsplat library build).")
-@click.option("--out", "out_path", default="reg.json", show_default=True, type=click.Path(path_type=Path), help="Where to write the registration JSON.")
-@click.option("--overlays", "overlay_dir", default=None, type=click.Path(path_type=Path),
-              help="Directory for the per-photo overlay PNGs (default: <out stem>_overlays beside --out).")
+@click.option(
+    "--out",
+    "out_path",
+    default="reg.json",
+    show_default=True,
+    type=click.Path(path_type=Path),
+    help="Where to write the registration JSON.",
+)
+@click.option(
+    "--overlays",
+    "overlay_dir",
+    default=None,
+    type=click.Path(path_type=Path),
+    help="Directory for the per-photo overlay PNGs (default: <out stem>_overlays beside --out).",
+)
 @click.option("--no-overlays", is_flag=True, help="Do not write overlay PNGs.")
 @click.option("--top-k", default=None, type=click.IntRange(1, 10000), help="Library views kept per mask [default: rig.toml's, else 50].")
-@click.option("--iou-threshold", default=None, type=click.FloatRange(0, 1), help="Minimum silhouette IoU of a kept view [default: rig.toml's, else 0.7].")
+@click.option(
+    "--iou-threshold",
+    default=None,
+    type=click.FloatRange(0, 1),
+    help="Minimum silhouette IoU of a kept view [default: rig.toml's, else 0.7].",
+)
 @click.option("--model", "model_ids", multiple=True, help="Restrict the search to these model ids (repeatable).")
 @click.option("--known-part", default=None, help="The library model every capture holds (no library search).")
-@click.option("--prior", "prior_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
-              help="A previous reg.json of the known part: its pose is the prior, the search is yaw + position on the conveyor.")
-@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path), help="rig.toml: its [registration] table (known_part, scale_tolerance, prior, ...).")
-@click.option("--scale-tolerance", default=None, type=click.FloatRange(0, 0.99), help="Part size tolerance against its CAD model on a metric rig [default: rig.toml's, else 0.10].")
+@click.option(
+    "--prior",
+    "prior_path",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="A previous reg.json of the known part: its pose is the prior, the search is yaw + position on the conveyor.",
+)
+@click.option(
+    "--rig-config",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="rig.toml: its [registration] table (known_part, scale_tolerance, prior, ...).",
+)
+@click.option(
+    "--scale-tolerance",
+    default=None,
+    type=click.FloatRange(0, 0.99),
+    help="Part size tolerance against its CAD model on a metric rig [default: rig.toml's, else 0.10].",
+)
 @click.option("--seed", default=0, show_default=True, type=int, help="RANSAC seed.")
-def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path | None, no_overlays: bool, top_k: int | None, iou_threshold: float | None,
-             model_ids: tuple[str, ...], known_part: str | None, prior_path: Path | None, rig_config: Path | None, scale_tolerance: float | None,
-             seed: int) -> None:
+def register(
+    capture_dir: Path,
+    lib_dir: Path,
+    out_path: Path,
+    overlay_dir: Path | None,
+    no_overlays: bool,
+    top_k: int | None,
+    iou_threshold: float | None,
+    model_ids: tuple[str, ...],
+    known_part: str | None,
+    prior_path: Path | None,
+    rig_config: Path | None,
+    scale_tolerance: float | None,
+    seed: int,
+) -> None:
     import time
 
     from calibration.capture import read_capture
@@ -48,8 +92,9 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     from reconstruction.views import capture_views
 
     t0 = time.perf_counter()
-    cfg = config_from_options(rig_config, known_part=known_part, prior_path=prior_path, scale_tolerance=scale_tolerance, top_k=top_k,
-                              iou_threshold=iou_threshold)
+    cfg = config_from_options(
+        rig_config, known_part=known_part, prior_path=prior_path, scale_tolerance=scale_tolerance, top_k=top_k, iou_threshold=iou_threshold
+    )
     capture = read_capture(capture_dir)
     lib = load_library(lib_dir)
     views = capture_views(capture)  # decoded once: masks, the colour tie-break and the overlays
@@ -60,24 +105,39 @@ def register(capture_dir: Path, lib_dir: Path, out_path: Path, overlay_dir: Path
     if out_path.parent and not out_path.parent.exists():
         out_path.parent.mkdir(parents=True)
     if not no_overlays:
-        doc["overlays"] = write_overlays(overlay_dir or out_path.parent / f"{out_path.stem}_overlays", views, lib.load_mesh(res.model_id),
-                                         res.sim3_rig_to_object)
+        doc["overlays"] = write_overlays(
+            overlay_dir or out_path.parent / f"{out_path.stem}_overlays", views, lib.load_mesh(res.model_id), res.sim3_rig_to_object
+        )
     atomic_write_json(out_path, doc)
     statement = res.scale_statement()
-    click.echo(f"{res.model_id}: mean IoU {res.score:.3f} over {len(views)} views (scale {res.sim3_rig_to_object.scale:.4g}"
-               + (f"; {statement}" if statement else "") + f"), written to {out_path}")
+    click.echo(
+        f"{res.model_id}: mean IoU {res.score:.3f} over {len(views)} views (scale {res.sim3_rig_to_object.scale:.4g}"
+        + (f"; {statement}" if statement else "")
+        + f"), written to {out_path}"
+    )
     for tie in res.model_ties:
-        click.echo(f"warning: {tie['model_id']} ({tie['cad_size_ratio']:.3g} times the size) fits within {tie['score_gap']:.3f}; "
-                   + ("a metric calibration would tell them apart" if views.metres_per_unit is None else "the masks cannot tell them apart"), err=True)
+        click.echo(
+            f"warning: {tie['model_id']} ({tie['cad_size_ratio']:.3g} times the size) fits within {tie['score_gap']:.3f}; "
+            + ("a metric calibration would tell them apart" if views.metres_per_unit is None else "the masks cannot tell them apart"),
+            err=True,
+        )
     if res.ambiguity and res.ambiguity["ambiguous"]:
         click.echo(
             f"warning: a pose {res.ambiguity['rotation_deg']:.0f} degrees away scores within {abs(res.ambiguity['score_gap']):.3f}; "
-            "the object looks symmetric from these views", err=True,
+            "the object looks symmetric from these views",
+            err=True,
         )
 
 
-def config_from_options(rig_config: Path | None, *, known_part: str | None = None, prior_path: Path | None = None, scale_tolerance: float | None = None,
-                        top_k: int | None = None, iou_threshold: float | None = None):
+def config_from_options(
+    rig_config: Path | None,
+    *,
+    known_part: str | None = None,
+    prior_path: Path | None = None,
+    scale_tolerance: float | None = None,
+    top_k: int | None = None,
+    iou_threshold: float | None = None,
+):
     """The `RegistrationConfig` of rig.toml's [registration] (when `rig_config` is given) with the command's options over it."""
     import dataclasses
     import json
@@ -98,7 +158,9 @@ def config_from_options(rig_config: Path | None, *, known_part: str | None = Non
         try:
             prior_doc = json.loads(prior_path.read_text())
             prior_model = prior_doc["model_id"]
-            prior = RegistrationConfig.from_dict({"known_part": prior_model, "prior": prior_doc["sim3_rig_to_object"]}, where=str(prior_path)).prior
+            prior = RegistrationConfig.from_dict(
+                {"known_part": prior_model, "prior": prior_doc["sim3_rig_to_object"]}, where=str(prior_path)
+            ).prior
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise click.ClickException(f"{prior_path}: not a usable reg.json ({type(e).__name__}: {e})") from None
         if prior_model != known_part:
@@ -154,4 +216,3 @@ def overlay(image, mask, vertices, faces, camera, sim3):
     out[cv2.dilate(boundary(mask).astype(np.uint8), thick) > 0] = (255, 0, 255)
     out[cv2.dilate(boundary(sil).astype(np.uint8), thick) > 0] = (0, 255, 0)
     return out
-

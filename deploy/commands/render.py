@@ -37,16 +37,37 @@ def orbit_cameras(twin, n: int):
 
 @click.command(help="Render the twin at TWIN from a capture's cameras (rig frame) or a turntable orbit; writes DIR/<name>.png as RGBA.")
 @click.argument("twin_dir", type=click.Path(path_type=Path))
-@click.option("--views", "views_dir", default=None, type=click.Path(path_type=Path), help="Capture whose cameras (rig frame) to render from.")
+@click.option(
+    "--views", "views_dir", default=None, type=click.Path(path_type=Path), help="Capture whose cameras (rig frame) to render from."
+)
 @click.option("--orbit", default=None, type=click.IntRange(1, 3600), help="Render a turntable of N views instead.")
 @click.option("--out", "out_dir", default=None, type=click.Path(path_type=Path), help="Directory for the PNGs.")
-@click.option("--explode", default=0.0, show_default=True, type=float, help="Move parts away from the assembly centre by this fraction (an exploded view).")
+@click.option(
+    "--explode",
+    default=0.0,
+    show_default=True,
+    type=float,
+    help="Move parts away from the assembly centre by this fraction (an exploded view).",
+)
 @click.option("--hide-part", "hidden", multiple=True, help="Leave this part (name or index) out; repeatable.")
 @click.option("--list-parts", is_flag=True, help="List the twin's parts and their splat counts, render nothing.")
-@click.option("--refine-steps", default=0, show_default=True, type=click.IntRange(0, 10000),
-              help="Test-time pose refinement steps per view against the capture's own images (the twin stays frozen).")
-def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: Path | None, explode: float, hidden: tuple[str, ...],
-           list_parts: bool, refine_steps: int) -> None:
+@click.option(
+    "--refine-steps",
+    default=0,
+    show_default=True,
+    type=click.IntRange(0, 10000),
+    help="Test-time pose refinement steps per view against the capture's own images (the twin stays frozen).",
+)
+def render(
+    twin_dir: Path,
+    views_dir: Path | None,
+    orbit: int | None,
+    out_dir: Path | None,
+    explode: float,
+    hidden: tuple[str, ...],
+    list_parts: bool,
+    refine_steps: int,
+) -> None:
     from calibration.capture import read_capture
     from reconstruction.twin import load_twin
     from simulation.parts import exploded_splats
@@ -66,8 +87,10 @@ def render(twin_dir: Path, views_dir: Path | None, orbit: int | None, out_dir: P
     gaussians = exploded_splats(twin, explode, hidden)[0] if explode or hidden else twin.gaussians
     if views_dir is not None:
         capture = read_capture(views_dir)
-        jobs = [(Path(f.file_path).name, capture.camera(i).with_c2w(twin.sim3_rig_to_object.apply_to_c2w(f.camera.c2w)), i)
-                for i, f in enumerate(capture.frames)]
+        jobs = [
+            (Path(f.file_path).name, capture.camera(i).with_c2w(twin.sim3_rig_to_object.apply_to_c2w(f.camera.c2w)), i)
+            for i, f in enumerate(capture.frames)
+        ]
     else:
         capture = None
         jobs = [(name, cam, None) for name, cam in orbit_cameras(twin, orbit)]

@@ -25,8 +25,10 @@ from pathlib import Path
 import click
 
 STORE_HELP = "Capture store directory (default: storage.root of the config)."
-SPILL_HELP = ("Where captures wait when the store cannot be written until the rig stops; on another filesystem than the store "
-              "(default: storage.spill of the config, else $XDG_STATE_HOME/cadsplat/spill).")
+SPILL_HELP = (
+    "Where captures wait when the store cannot be written until the rig stops; on another filesystem than the store "
+    "(default: storage.spill of the config, else $XDG_STATE_HOME/cadsplat/spill)."
+)
 
 
 def _load(config: str | None, simulate: bool):
@@ -43,8 +45,17 @@ def _load(config: str | None, simulate: bool):
 
 
 @contextmanager
-def _session(role: str, cfg, simulate: bool, store_dir: str | None, views: int, size: tuple[int, int], mesh: str | None,
-             min_free_gb: float | None, spill_dir: str | None):
+def _session(
+    role: str,
+    cfg,
+    simulate: bool,
+    store_dir: str | None,
+    views: int,
+    size: tuple[int, int],
+    mesh: str | None,
+    min_free_gb: float | None,
+    spill_dir: str | None,
+):
     """Take the store's writer lock (as `role`), open cameras and store (config or simulated), importing what waits in
     the spill; yields the acquisition. The lock is held until the acquisition is closed: opening the store quarantines
     what is left in its .incoming/ and continues its id counter, which only its one writer may do."""
@@ -68,7 +79,9 @@ def _session(role: str, cfg, simulate: bool, store_dir: str | None, views: int, 
 
 
 @contextmanager
-def _opened(cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None, spill_dir: str | None):
+def _opened(
+    cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], mesh: str | None, min_free_gb: float | None, spill_dir: str | None
+):
     """Open cameras and the store at `root` (whose lock the caller holds); yields the acquisition."""
     from rig.acquisition import Acquisition, Thresholds, open_cameras
     from rig.assembly import build_cameras, build_store, load_rig_calibration, simulated_cameras
@@ -110,8 +123,17 @@ def _opened(cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], 
         if synthetic is not None:
             synthetic.close()
         raise click.ClickException(str(e)) from None
-    acq = Acquisition(cameras, store, rig_id=rig_id, calibration_id=calibration_id, calibration_uncertainty=uncertainty, units=units,
-                      thresholds=thresholds, settings=locked, spill=spill)
+    acq = Acquisition(
+        cameras,
+        store,
+        rig_id=rig_id,
+        calibration_id=calibration_id,
+        calibration_uncertainty=uncertainty,
+        units=units,
+        thresholds=thresholds,
+        settings=locked,
+        spill=spill,
+    )
     try:
         if acq.reference_note:
             click.echo(acq.reference_note, err=True)
@@ -119,8 +141,11 @@ def _opened(cfg, simulate: bool, root: Path, views: int, size: tuple[int, int], 
             if simulate:
                 _report(acq.take_reference("first start of the simulated rig (its belt starts empty)"))
             else:
-                click.echo("no empty-rig reference yet: captures carry no background, so the service cannot segment them; "
-                           "run `cadsplat rig reference` with the belt empty", err=True)
+                click.echo(
+                    "no empty-rig reference yet: captures carry no background, so the service cannot segment them; "
+                    "run `cadsplat rig reference` with the belt empty",
+                    err=True,
+                )
         yield acq
     finally:
         for out in acq.close():  # what became of captures still held: committed now, spilled or failed
@@ -166,8 +191,18 @@ def _common(f):
             click.option("--simulate", is_flag=True, help="Run on the synthetic rig (no hardware)."),
             click.option("--store", "store_dir", type=click.Path(file_okay=False), help=STORE_HELP),
             click.option("--views", default=8, show_default=True, type=click.IntRange(1, 64), help="Simulated cameras."),
-            click.option("--size", default=(640, 480), show_default=True, type=(click.IntRange(16, 4096), click.IntRange(16, 4096)), help="Simulated image size W H."),
-            click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="Simulated part (default: the bundled sample, else a procedural box)."),
+            click.option(
+                "--size",
+                default=(640, 480),
+                show_default=True,
+                type=(click.IntRange(16, 4096), click.IntRange(16, 4096)),
+                help="Simulated image size W H.",
+            ),
+            click.option(
+                "--mesh",
+                type=click.Path(exists=True, dir_okay=False),
+                help="Simulated part (default: the bundled sample, else a procedural box).",
+            ),
             click.option("--min-free-gb", type=click.FloatRange(0), help="Stop capturing below this much free disk."),
             click.option("--spill", "spill_dir", type=click.Path(file_okay=False), help=SPILL_HELP),
         ]
@@ -244,11 +279,20 @@ def capture(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_d
 
 @rig.command()
 @_common
-@click.option("--trigger", "trigger_kind", type=click.Choice(["can", "serial"]), default="can", show_default=True, help="Simulated trigger line.")
+@click.option(
+    "--trigger", "trigger_kind", type=click.Choice(["can", "serial"]), default="can", show_default=True, help="Simulated trigger line."
+)
 @click.option("--rate", default=0.5, show_default=True, type=click.FloatRange(0.01, 1000), help="Simulated triggers per second.")
 @click.option("--max-captures", type=click.IntRange(1), help="Stop after this many captures (committed or quarantined).")
-@click.option("--reference-every", type=click.FloatRange(1), default=None, help="Retake the empty-rig reference every this many seconds while no trigger waits.")
-def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir, trigger_kind, rate, max_captures, reference_every) -> None:
+@click.option(
+    "--reference-every",
+    type=click.FloatRange(1),
+    default=None,
+    help="Retake the empty-rig reference every this many seconds while no trigger waits.",
+)
+def watch(
+    config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir, trigger_kind, rate, max_captures, reference_every
+) -> None:
     """Capture on every trigger until stopped, with a live status line."""
     from rig.assembly import SimulatedPlc, build_trigger
 
@@ -274,7 +318,9 @@ def watch(config, simulate, store_dir, views, size, mesh, min_free_gb, spill_dir
             for s, h in previous.items():
                 signal.signal(s, h)
             pending = source.events.qsize()
-            click.echo(("\n" if tty else "") + _status(acq, source) + (f" | {pending} triggers unhandled at stop" if pending else ""), err=True)
+            click.echo(
+                ("\n" if tty else "") + _status(acq, source) + (f" | {pending} triggers unhandled at stop" if pending else ""), err=True
+            )
 
 
 @rig.command()

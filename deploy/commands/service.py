@@ -21,17 +21,44 @@ def service() -> None:
 @click.option("--max-queue", default=8, show_default=True, help="Jobs waiting at most; more captures wait in the store.")
 @click.option("--max-jobs", default=None, type=int, help="Stop after this many jobs (default: serve until SIGTERM).")
 @click.option("--poll", default=2.0, show_default=True, help="Seconds between scans of the store.")
-@click.option("--inspect-tolerance", "tolerance_mm", default=None, type=click.FloatRange(min=0.0, min_open=True),
-              help="Inspect every twin against its CAD at this tolerance, mm (`cadsplat inspect`); the verdict goes in the job record.")
-@click.option("--max-unseen", "max_unseen_pct", default=None, type=click.FloatRange(0.0, 100.0),
-              help="With --inspect-tolerance: unseen surface share (%) above which the verdict is UNCERTAIN.")
-@click.option("--min-free-gb", default=0.25, show_default=True, type=click.FloatRange(0), help="Claim no job while WORK has less free disk than this.")
-@click.option("--rig-config", default=None, type=click.Path(dir_okay=False, path_type=Path),
-              help="rig.toml: its [registration] table (known_part, scale_tolerance, ...) applies to every capture.")
-def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max_jobs: int | None, poll: float,
-        tolerance_mm: float | None, max_unseen_pct: float | None, min_free_gb: float, rig_config: Path | None) -> None:
+@click.option(
+    "--inspect-tolerance",
+    "tolerance_mm",
+    default=None,
+    type=click.FloatRange(min=0.0, min_open=True),
+    help="Inspect every twin against its CAD at this tolerance, mm (`cadsplat inspect`); the verdict goes in the job record.",
+)
+@click.option(
+    "--max-unseen",
+    "max_unseen_pct",
+    default=None,
+    type=click.FloatRange(0.0, 100.0),
+    help="With --inspect-tolerance: unseen surface share (%) above which the verdict is UNCERTAIN.",
+)
+@click.option(
+    "--min-free-gb", default=0.25, show_default=True, type=click.FloatRange(0), help="Claim no job while WORK has less free disk than this."
+)
+@click.option(
+    "--rig-config",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The line's rig.toml: its [registration], [inspection] and [limits] apply to every capture (flags above win).",
+)
+def run(
+    store: Path,
+    work: Path,
+    library: Path,
+    preset: str,
+    max_queue: int,
+    max_jobs: int | None,
+    poll: float,
+    tolerance_mm: float | None,
+    max_unseen_pct: float | None,
+    min_free_gb: float,
+    rig_config: Path | None,
+) -> None:
     from deploy.service import PipelineService
-    from deploy.steps import PipelineConfig, make_step_runner, registration_config
+    from deploy.steps import make_step_runner, pipeline_config
 
     def show(e) -> None:
         if e.kind == "stopped":
@@ -43,8 +70,14 @@ def run(store: Path, work: Path, library: Path, preset: str, max_queue: int, max
         detail = e.detail.get("error", "") if e.kind in ("job-failed", "job-retry") else e.detail.get("inspection", {}).get("line", "")
         click.echo(f"{e.kind:<12} job {e.job_id} {e.capture_id} {e.step} {detail}".rstrip())
 
-    cfg = PipelineConfig(str(library), preset, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct,
-                         registration=registration_config(rig_config))
+    rig = None
+    if rig_config is not None:
+        from rig.config import load_config
+
+        rig = load_config(rig_config)
+    cfg = pipeline_config(
+        library, preset, rig=rig, rig_toml=rig_config, inspection_tolerance_mm=tolerance_mm, inspection_max_unseen_pct=max_unseen_pct
+    )
     svc = PipelineService(store, work, make_step_runner(cfg), max_queue=max_queue, on_event=show, min_free_bytes=int(min_free_gb * 1e9))
     requeued = sum(j.status == "queued" for j in svc.recovered)
     if requeued:

@@ -54,16 +54,36 @@ def _write_video(path: Path, frames: np.ndarray, fps: float) -> None:
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output directory (new or empty).")
 @click.option("--video", type=click.Choice(["gif", "mp4"]), default="gif", show_default=True, help="Animation format.")
 @click.option("--no-render", is_flag=True, help="Simulate and write poses only (no Gaussian renders).")
-@click.option("--decompose/--no-decompose", default=True, show_default=True, help="Allow CoACD decomposition for concave bodies (else their convex hull).")
-@click.option("--coacd-threshold", type=click.FloatRange(min=0.01, max=1.0), default=0.05, show_default=True, help="CoACD's first concavity threshold; lowered while the pieces miss the volume tolerance.")
-@click.option("--coacd-timeout", type=click.FloatRange(min=1.0), default=300.0, show_default=True, help="Seconds CoACD may spend per part (all runs) before the best so far, or the hull, is used.")
-def simulate(scene_toml: Path, out_dir: Path, video: str, no_render: bool, decompose: bool, coacd_threshold: float, coacd_timeout: float) -> None:
+@click.option(
+    "--decompose/--no-decompose",
+    default=True,
+    show_default=True,
+    help="Allow CoACD decomposition for concave bodies (else their convex hull).",
+)
+@click.option(
+    "--coacd-threshold",
+    type=click.FloatRange(min=0.01, max=1.0),
+    default=0.05,
+    show_default=True,
+    help="CoACD's first concavity threshold; lowered while the pieces miss the volume tolerance.",
+)
+@click.option(
+    "--coacd-timeout",
+    type=click.FloatRange(min=1.0),
+    default=300.0,
+    show_default=True,
+    help="Seconds CoACD may spend per part (all runs) before the best so far, or the hull, is used.",
+)
+def simulate(
+    scene_toml: Path, out_dir: Path, video: str, no_render: bool, decompose: bool, coacd_threshold: float, coacd_timeout: float
+) -> None:
     """Run SCENE_TOML in MuJoCo and render every frame with the twins' Gaussians."""
     from simulation.collision import DecompositionOptions
     from simulation.export import load_body
     from simulation.follow import camera_path, render_trajectory
     from simulation.mjcf import write_mjcf_package
-    from simulation.run import load_model, simulate as run_simulation
+    from simulation.run import load_model
+    from simulation.run import simulate as run_simulation
     from simulation.scene import load_scene
 
     scene = load_scene(scene_toml)

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import click
 
-
 SPILL_HELP = "The rig's spill directory (default: storage.spill of --config, else $XDG_STATE_HOME/cadsplat/spill)."
 
 
@@ -108,9 +107,12 @@ def verify(root: Path, spill: Path | None, config: str | None) -> None:
     counts, problems = verify_store(root, _spill_dir(spill, config))
     for p in problems:
         click.echo(p)
-    click.echo(f"{counts['verified']}/{counts['captures']} captures verify, {counts['quarantined']} quarantined, "
-               f"{counts['references']} empty-rig reference version(s), {counts['spilled']} waiting in the spill"
-               + (f", {counts['in_flight']} being written by the rig" if counts["in_flight"] else "") + f"; {len(problems)} problem(s)")
+    click.echo(
+        f"{counts['verified']}/{counts['captures']} captures verify, {counts['quarantined']} quarantined, "
+        f"{counts['references']} empty-rig reference version(s), {counts['spilled']} waiting in the spill"
+        + (f", {counts['in_flight']} being written by the rig" if counts["in_flight"] else "")
+        + f"; {len(problems)} problem(s)"
+    )
     if problems:
         raise click.exceptions.Exit(1)
 

@@ -41,13 +41,23 @@ def view_roots(target: str, work: Path | None):
     return ViewRoots(twin.resolve(), inspection.resolve() if inspection.is_dir() else None)
 
 
-@click.command(help="Serve TWIN (a twin directory, or with --work a service job's capture id) as a page in the browser, "
-                    "read-only, and print its URL. Stops on Ctrl-C or SIGTERM.")
+@click.command(
+    help="Serve TWIN (a twin directory, or with --work a service job's capture id) as a page in the browser, "
+    "read-only, and print its URL. Stops on Ctrl-C or SIGTERM."
+)
 @click.argument("target")
-@click.option("--work", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
-              help="The service's work folder: TARGET is then the capture id of one of its jobs.")
-@click.option("--host", default="127.0.0.1", show_default=True,
-              help="Interface to bind. Anything but loopback makes the server ask for the token printed in the URL.")
+@click.option(
+    "--work",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    default=None,
+    help="The service's work folder: TARGET is then the capture id of one of its jobs.",
+)
+@click.option(
+    "--host",
+    default="127.0.0.1",
+    show_default=True,
+    help="Interface to bind. Anything but loopback makes the server ask for the token printed in the URL.",
+)
 @click.option("--port", default=0, type=click.IntRange(0, 65535), help="Port (default: a free one).")
 def view(target: str, work: Path | None, host: str, port: int) -> None:
     from deploy.view import ViewServer, is_loopback, new_token, serve_until

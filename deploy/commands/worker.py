@@ -21,7 +21,9 @@ def worker() -> None:
 @click.option("--library", "library", required=True, type=click.Path(exists=True, path_type=Path))
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path))
 @click.option("--preset", default="cpu", type=click.Choice(["preview", "cpu", "paper"]), show_default=True)
-@click.option("--cluster", "address", default=None, help="Ray address (ray://host:10001, host:6379 or auto); default: a local Ray on this machine.")
+@click.option(
+    "--cluster", "address", default=None, help="Ray address (ray://host:10001, host:6379 or auto); default: a local Ray on this machine."
+)
 @click.option("--retries", default=2, show_default=True, help="Ray retries of a failed task before it is reported failed.")
 def run(captures: tuple[Path, ...], library: Path, out: Path, preset: str, address: str | None, retries: int) -> None:
     from deploy.cluster import connect, run_tasks
@@ -34,15 +36,22 @@ def run(captures: tuple[Path, ...], library: Path, out: Path, preset: str, addre
     click.echo(f"cluster: {resources.get('CPU', 0):.0f} CPU, {resources.get('GPU', 0):.0f} GPU")
     cfg = PipelineConfig(str(library.resolve()), preset)
     jobs = [(name, (str(c.resolve()), str((out / name).resolve()), cfg), {}) for name, c in zip(names, captures)]
-    results = run_tasks(process_capture, jobs, max_retries=retries,
-                        on_result=lambda r: click.echo(f"{r.status:<6} {r.key} {r.error or r.output['reconstruct']['twin']}"))
+    results = run_tasks(
+        process_capture,
+        jobs,
+        max_retries=retries,
+        on_result=lambda r: click.echo(f"{r.status:<6} {r.key} {r.error or r.output['reconstruct']['twin']}"),
+    )
     failed = [r for r in results if r.status != "done"]
     if failed:
         raise click.ClickException(f"{len(failed)} of {len(results)} captures failed: " + "; ".join(f"{r.key}: {r.error}" for r in failed))
 
 
-@worker.command("join", help="Make this machine a worker node of the Ray cluster at ADDRESS (blocks until stopped). "
-                "Token authentication is required (RAY_AUTH_MODE=token unless set): the token comes from RAY_AUTH_TOKEN or Ray's token file.")
+@worker.command(
+    "join",
+    help="Make this machine a worker node of the Ray cluster at ADDRESS (blocks until stopped). "
+    "Token authentication is required (RAY_AUTH_MODE=token unless set): the token comes from RAY_AUTH_TOKEN or Ray's token file.",
+)
 @click.option("--cluster", "address", required=True, help="The head node, host:6379.")
 @click.option("--num-gpus", default=None, type=int, help="GPUs to offer (default: what Ray detects).")
 def join(address: str, num_gpus: int | None) -> None:

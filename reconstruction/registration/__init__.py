@@ -18,7 +18,16 @@ Evidence for the constants: benchmarks/results/registration*.md.
 
 from reconstruction.registration.config import RegistrationConfig
 from reconstruction.registration.entry import register_views, registration_document
-from reconstruction.registration.hypotheses import Hypothesis, Observation, hypothesis, independent_poses, match_views, observe, sim3_from_pair, touches_border
+from reconstruction.registration.hypotheses import (
+    Hypothesis,
+    Observation,
+    hypothesis,
+    independent_poses,
+    match_views,
+    observe,
+    sim3_from_pair,
+    touches_border,
+)
 from reconstruction.registration.known_part import area_centroid, known_part_register, rig_up, triangulate_centroid
 from reconstruction.registration.photo import bilinear, break_tie, photo_disagreement
 from reconstruction.registration.refine import camera_poses, perturb, pose_sigmas, refine
@@ -28,9 +37,41 @@ from reconstruction.registration.scoring import REFINE_PX, SCORE_PX, Scorer, bou
 from reconstruction.registration.search import register
 
 __all__ = [
-    "METHODS", "REFINE_PX", "SCALE_SEARCH", "SCALE_TOLERANCE", "SCORE_PX", "Hypothesis", "Observation", "RegistrationConfig", "RegistrationError",
-    "RegistrationResult", "Scorer", "area_centroid", "bilinear", "boundary", "break_tie", "camera_poses", "check_fits", "cut_short", "hypothesis",
-    "independent_poses", "known_part_register", "match_views", "observe", "perturb", "photo_disagreement", "pose_sigmas", "provenance", "refine",
-    "register", "register_views", "registration_document", "rig_up", "scale_band", "scoring_shape", "sim3_from_pair", "touches_border",
+    "METHODS",
+    "REFINE_PX",
+    "SCALE_SEARCH",
+    "SCALE_TOLERANCE",
+    "SCORE_PX",
+    "Hypothesis",
+    "Observation",
+    "RegistrationConfig",
+    "RegistrationError",
+    "RegistrationResult",
+    "Scorer",
+    "area_centroid",
+    "bilinear",
+    "boundary",
+    "break_tie",
+    "camera_poses",
+    "check_fits",
+    "cut_short",
+    "hypothesis",
+    "independent_poses",
+    "known_part_register",
+    "match_views",
+    "observe",
+    "perturb",
+    "photo_disagreement",
+    "pose_sigmas",
+    "provenance",
+    "refine",
+    "register",
+    "register_views",
+    "registration_document",
+    "rig_up",
+    "scale_band",
+    "scoring_shape",
+    "sim3_from_pair",
+    "touches_border",
     "triangulate_centroid",
 ]

@@ -40,9 +40,14 @@ class RegistrationConfig:
             raise RegistrationError(f"the scale tolerance must be in [0, 1), got {self.scale_tolerance}")
 
     def to_dict(self) -> dict:
-        return {"known_part": self.known_part, "scale_tolerance": self.scale_tolerance,
-                "prior": None if self.prior is None else self.prior.to_dict(), "photo_tie_break": self.photo_tie_break,
-                "top_k": self.top_k, "iou_threshold": self.iou_threshold}
+        return {
+            "known_part": self.known_part,
+            "scale_tolerance": self.scale_tolerance,
+            "prior": None if self.prior is None else self.prior.to_dict(),
+            "photo_tie_break": self.photo_tie_break,
+            "top_k": self.top_k,
+            "iou_threshold": self.iou_threshold,
+        }
 
     @classmethod
     def from_dict(cls, doc: dict, *, where: str = "registration") -> RegistrationConfig:
@@ -90,7 +95,9 @@ def _sim3(val, where: str) -> Sim3 | None:
     try:
         sim = Sim3.from_dict(val)
     except (KeyError, TypeError, ValueError, AttributeError):
-        raise RegistrationError(f"{where} must be a Sim(3) table (scale, rotation [3x3], translation [3]), as a reg.json's sim3_rig_to_object") from None
+        raise RegistrationError(
+            f"{where} must be a Sim(3) table (scale, rotation [3x3], translation [3]), as a reg.json's sim3_rig_to_object"
+        ) from None
     if sim.rotation.shape != (3, 3) or sim.translation.shape != (3,) or not (sim.scale > 0 and np.all(np.isfinite(sim.matrix()))):
         raise RegistrationError(f"{where} must be a Sim(3) table (scale > 0, rotation [3x3], translation [3]) of finite numbers")
     return sim

@@ -18,8 +18,14 @@ from reconstruction.registration.search import register
 from reconstruction.views import CaptureViews
 
 
-def register_views(views: CaptureViews, library: Library, config: RegistrationConfig = RegistrationConfig(), *,
-                   model_id: str | Sequence[str] | None = None, seed: int = 0) -> RegistrationResult:
+def register_views(
+    views: CaptureViews,
+    library: Library,
+    config: RegistrationConfig = RegistrationConfig(),
+    *,
+    model_id: str | Sequence[str] | None = None,
+    seed: int = 0,
+) -> RegistrationResult:
     """The library model in `views` and the rig-to-object Sim(3), refused (QualityError, one sentence) when the
     masks are no object's silhouettes or the fit cannot be trusted (below the silhouette floor, `MaskGate.fit_floor`).
 
@@ -34,19 +40,45 @@ def register_views(views: CaptureViews, library: Library, config: RegistrationCo
     if config.known_part is not None:
         if wanted is not None and wanted != [config.known_part]:
             raise RegistrationError(f"the line's known part is {config.known_part!r}; asking for {', '.join(wanted)} contradicts it")
-        res = known_part_register(masks, cameras, library, config.known_part, config.prior, rig_metres_per_unit=views.metres_per_unit,
-                                  scale_tolerance=config.scale_tolerance, seed=seed, images=images)
+        res = known_part_register(
+            masks,
+            cameras,
+            library,
+            config.known_part,
+            config.prior,
+            rig_metres_per_unit=views.metres_per_unit,
+            scale_tolerance=config.scale_tolerance,
+            seed=seed,
+            images=images,
+        )
     else:
-        res = register(masks, cameras, library, top_k=config.top_k, iou_threshold=config.iou_threshold, seed=seed, model_ids=wanted,
-                       rig_metres_per_unit=views.metres_per_unit, scale_tolerance=config.scale_tolerance, images=images)
-    check_registration(res.score, res.alternatives, masks, len(library.models), res.model_id, per_view_iou=res.per_view_iou, names=views.names)
+        res = register(
+            masks,
+            cameras,
+            library,
+            top_k=config.top_k,
+            iou_threshold=config.iou_threshold,
+            seed=seed,
+            model_ids=wanted,
+            rig_metres_per_unit=views.metres_per_unit,
+            scale_tolerance=config.scale_tolerance,
+            images=images,
+        )
+    check_registration(
+        res.score, res.alternatives, masks, len(library.models), res.model_id, per_view_iou=res.per_view_iou, names=views.names
+    )
     return res
 
 
 def registration_document(res: RegistrationResult, views: CaptureViews, library: Library, config: RegistrationConfig) -> dict:
     """What reg.json and the service's registration.json hold: the result, its `provenance`, the config it was
     made with, where the masks came from, and each camera pose named by its view and camera id."""
-    doc = {**res.to_dict(), **provenance(views.capture, library, res.model_id), "config": config.to_dict(), "mask_source": views.mask_source}
+    doc = {
+        **res.to_dict(),
+        **provenance(views.capture, library, res.model_id),
+        "config": config.to_dict(),
+        "mask_source": views.mask_source,
+    }
     frames = [views.capture.frames[i] for i in views.indices]
     doc["camera_poses"] = [{**pose, "view": f.file_path, "camera_id": f.camera_id} for pose, f in zip(doc["camera_poses"], frames)]
     return doc

@@ -125,8 +125,15 @@ def hypothesis(obs: Observation, view: int, index: SilhouetteIndex, row: int, va
     return Hypothesis(view, model, iou, r_obj_virtual @ obs.r_virtual.T, center - r_obj_virtual @ p_virtual)
 
 
-def sim3_from_pair(first: Hypothesis, second: Hypothesis | None, cameras: list[Camera], center: np.ndarray, *,
-                   band: tuple[float, float] = SCALE_SEARCH, expected_scale: float | None = None) -> list[Sim3]:
+def sim3_from_pair(
+    first: Hypothesis,
+    second: Hypothesis | None,
+    cameras: list[Camera],
+    center: np.ndarray,
+    *,
+    band: tuple[float, float] = SCALE_SEARCH,
+    expected_scale: float | None = None,
+) -> list[Sim3]:
     """Rig-to-object Sim(3) candidates: rotation and translation from `first`, scale from `second`.
 
     The paper's scale is the ratio of inter-camera distances |C_i - C_j|_obj / |C_i - C_j|_rig; it
@@ -162,7 +169,9 @@ def sim3_from_pair(first: Hypothesis, second: Hypothesis | None, cameras: list[C
     return [Sim3(s, r, first.center_obj - s * r @ ci.center) for s in kept]
 
 
-def match_views(observations: list[Observation | None], index: SilhouetteIndex, *, top_k: int, iou_threshold: float, model_mask: np.ndarray | None) -> tuple[list[list[Hypothesis]], float]:
+def match_views(
+    observations: list[Observation | None], index: SilhouetteIndex, *, top_k: int, iou_threshold: float, model_mask: np.ndarray | None
+) -> tuple[list[list[Hypothesis]], float]:
     """Top-k hypotheses per view and the best IoU seen anywhere."""
     hyps, best_seen = [], 0.0
     for v, obs in enumerate(observations):
@@ -175,7 +184,9 @@ def match_views(observations: list[Observation | None], index: SilhouetteIndex, 
     return hyps, best_seen
 
 
-def independent_poses(masks: np.ndarray, cameras: list[Camera], library: Library, *, model_ids: list[str] | None = None) -> list[tuple[str, np.ndarray] | None]:
+def independent_poses(
+    masks: np.ndarray, cameras: list[Camera], library: Library, *, model_ids: list[str] | None = None
+) -> list[tuple[str, np.ndarray] | None]:
     """Each view matched alone to its single best library silhouette (paper Fig. 5b, for contrast):
     per view (model id, camera-to-object c2w [4, 4]) or None."""
     index = library.index

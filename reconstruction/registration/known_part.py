@@ -99,8 +99,16 @@ def known_part_register(
     if model_id not in index.model_ids:
         raise RegistrationError(f"the known part {model_id!r} is not in the library")
     if prior is None:
-        res = register(masks, cameras_rig, library, model_ids=[model_id], rig_metres_per_unit=rig_metres_per_unit, scale_tolerance=scale_tolerance,
-                       seed=seed, images=images)
+        res = register(
+            masks,
+            cameras_rig,
+            library,
+            model_ids=[model_id],
+            rig_metres_per_unit=rig_metres_per_unit,
+            scale_tolerance=scale_tolerance,
+            seed=seed,
+            images=images,
+        )
         return dataclasses.replace(res, method="known_part")
     band = scale_band(rig_metres_per_unit, scale_tolerance)
     model = index.model_ids.index(model_id)
@@ -130,20 +138,48 @@ def known_part_register(
 
     t = time.perf_counter()
     best = None
-    for sc, sim in [c for c in cands[:KNOWN_STARTS] if c[0] >= cands[0][0] - KNOWN_START_GAP]:
+    for _score, sim in [c for c in cands[:KNOWN_STARTS] if c[0] >= cands[0][0] - KNOWN_START_GAP]:
         # Yaw (about the conveyor normal, seen in the object frame) and position only.
         basis = np.zeros((7, 4))
         basis[:3, 0] = sim.rotation @ up
         basis[3:6, 1:] = np.eye(3)
-        sim_r, sc_r = refine(scorer, verts, faces, sim, center, radius, max_evals=KNOWN_STAGE_EVALS, band=band, basis=basis,
-                             steps=np.array([0.1, 0.05, 0.05, 0.05]), winding=winding)
+        sim_r, sc_r = refine(
+            scorer,
+            verts,
+            faces,
+            sim,
+            center,
+            radius,
+            max_evals=KNOWN_STAGE_EVALS,
+            band=band,
+            basis=basis,
+            steps=np.array([0.1, 0.05, 0.05, 0.05]),
+            winding=winding,
+        )
         if best is None or sc_r > best[0]:
             best = (sc_r, sim_r)
     fine = Scorer(masks, cameras_rig, KNOWN_FINAL_PX)
     fix_scale = rig_metres_per_unit is None
-    refined, score = refine(fine, verts, faces, best[1], center, radius, max_evals=KNOWN_FINAL_EVALS, fix_scale=fix_scale, band=band,
-                            winding=winding)
+    refined, score = refine(
+        fine, verts, faces, best[1], center, radius, max_evals=KNOWN_FINAL_EVALS, fix_scale=fix_scale, band=band, winding=winding
+    )
     timings["refine"] = time.perf_counter() - t
-    return result_of(masks, cameras_rig, library, model, refined, score, fine, alternatives=[], ambiguity=None, model_ties=[], timings=timings, t0=t0,
-                     truncated=[i for i, m in enumerate(masks) if m.any() and touches_border(m)], scale_observable=True,
-                     rig_metres_per_unit=rig_metres_per_unit, band=band, method="known_part_prior")
+    return result_of(
+        masks,
+        cameras_rig,
+        library,
+        model,
+        refined,
+        score,
+        fine,
+        alternatives=[],
+        ambiguity=None,
+        model_ties=[],
+        timings=timings,
+        t0=t0,
+        truncated=[i for i, m in enumerate(masks) if m.any() and touches_border(m)],
+        scale_observable=True,
+        rig_metres_per_unit=rig_metres_per_unit,
+        band=band,
+        method="known_part_prior",
+    )

@@ -70,13 +70,25 @@ def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
-def break_tie(images: np.ndarray, cameras_rig: list[Camera], verts: np.ndarray, faces: np.ndarray, pose: Sim3, score: float, alt_pose: Sim3,
-              alt_score: float, ambiguity: dict) -> tuple[Sim3, float]:
+def break_tie(
+    images: np.ndarray,
+    cameras_rig: list[Camera],
+    verts: np.ndarray,
+    faces: np.ndarray,
+    pose: Sim3,
+    score: float,
+    alt_pose: Sim3,
+    alt_score: float,
+    ambiguity: dict,
+) -> tuple[Sim3, float]:
     """The winner of a near-tie between `pose` (the silhouettes' choice, objective `score`) and `alt_pose`: the alternative
     when its colours agree better across views by the PHOTO_DECISIVE ratio. Records both disagreements and what decided
     in `ambiguity` (its score_gap turns negative and its alternative becomes `pose` when the images overrule; both
     disagreements are None when no surface point is seen by three views)."""
-    pd, pd_alt = photo_disagreement(images, cameras_rig, verts, faces, pose), photo_disagreement(images, cameras_rig, verts, faces, alt_pose)
+    pd, pd_alt = (
+        photo_disagreement(images, cameras_rig, verts, faces, pose),
+        photo_disagreement(images, cameras_rig, verts, faces, alt_pose),
+    )
     if np.isnan(pd) or np.isnan(pd_alt):
         # No surface point is seen by three views (two views, cameras facing away): the images cannot decide.
         ambiguity.update(photo_disagreement=None, alternative_photo_disagreement=None, decided_by="silhouettes")

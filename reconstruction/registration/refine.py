@@ -36,9 +36,21 @@ def perturb(sim3: Sim3, params: np.ndarray, center: np.ndarray, radius: float) -
     return delta @ sim3
 
 
-def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float, *, max_evals: int = 200,
-           fix_scale: bool = False, band: tuple[float, float] = SCALE_SEARCH, basis: np.ndarray | None = None, steps: np.ndarray | None = None,
-           winding: int = 0) -> tuple[Sim3, float]:
+def refine(
+    scorer: Scorer,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    sim3: Sim3,
+    center: np.ndarray,
+    radius: float,
+    *,
+    max_evals: int = 200,
+    fix_scale: bool = False,
+    band: tuple[float, float] = SCALE_SEARCH,
+    basis: np.ndarray | None = None,
+    steps: np.ndarray | None = None,
+    winding: int = 0,
+) -> tuple[Sim3, float]:
     """Local Nelder-Mead on the mean silhouette objective; returns the refined Sim(3) and its objective.
 
     The search runs over x with the 7 perturbation params = basis [7, n] @ x (default: all 7, or the
@@ -56,15 +68,18 @@ def refine(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, cen
         return -float(scorer.scores(verts, faces, cand, winding=winding)[1].mean())
 
     simplex = np.vstack([np.zeros(n), np.diag(steps)])
-    res = minimize(cost, np.zeros(n), method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-4, "fatol": 1e-5})
+    res = minimize(
+        cost, np.zeros(n), method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-4, "fatol": 1e-5}
+    )
     start = -cost(np.zeros(n))
     if -res.fun < start:
         return sim3, start
     return perturb(sim3, basis @ res.x, center, radius), -float(res.fun)
 
 
-def pose_sigmas(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float, *,
-                winding: int = 0) -> np.ndarray:
+def pose_sigmas(
+    scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3, center: np.ndarray, radius: float, *, winding: int = 0
+) -> np.ndarray:
     """Standard deviations [6] of the rotation vector (rad) and translation (model radii) perturbations.
 
     Each is the offset at which the mean objective drops by UNCERTAINTY_DROP, from a quadratic
@@ -83,7 +98,9 @@ def pose_sigmas(scorer: Scorer, verts: np.ndarray, faces: np.ndarray, sim3: Sim3
     return out
 
 
-def camera_poses(cameras_rig: list[Camera], sim3: Sim3, sigmas: np.ndarray, center: np.ndarray, radius: float, *, samples: int = 64, seed: int = 0) -> list[dict]:
+def camera_poses(
+    cameras_rig: list[Camera], sim3: Sim3, sigmas: np.ndarray, center: np.ndarray, radius: float, *, samples: int = 64, seed: int = 0
+) -> list[dict]:
     """The object's pose in every camera, T_cam_obj [4, 4] (x_cam = T_cam_obj x_obj, object units), with
     its uncertainty: RMS rotation (deg) and translation (object units) over Sim(3) perturbations drawn
     from N(0, diag(`sigmas`^2)) (see `pose_sigmas`)."""
@@ -98,11 +115,32 @@ def camera_poses(cameras_rig: list[Camera], sim3: Sim3, sigmas: np.ndarray, cent
         rot[i] = geodesic_angle_deg(t_d[:, :3, :3], t_cam_obj[:, :3, :3])
         trans[i] = np.linalg.norm(t_d[:, :3, 3] - t_cam_obj[:, :3, 3], axis=1)
     rot_sigma, trans_sigma = np.sqrt(np.mean(rot**2, 0)), np.sqrt(np.mean(trans**2, 0))
-    return [{"T_cam_obj": t.tolist(), "rotation_sigma_deg": float(r), "translation_sigma": float(s)} for t, r, s in zip(t_cam_obj, rot_sigma, trans_sigma)]
+    return [
+        {"T_cam_obj": t.tolist(), "rotation_sigma_deg": float(r), "translation_sigma": float(s)}
+        for t, r, s in zip(t_cam_obj, rot_sigma, trans_sigma)
+    ]
 
 
-def result_of(masks, cameras_rig, library, model: int, refined: Sim3, objective: float, fine: Scorer, *, alternatives, ambiguity, model_ties, timings,
-              t0, truncated, scale_observable, rig_metres_per_unit, band, method: str = "library_search") -> RegistrationResult:
+def result_of(
+    masks,
+    cameras_rig,
+    library,
+    model: int,
+    refined: Sim3,
+    objective: float,
+    fine: Scorer,
+    *,
+    alternatives,
+    ambiguity,
+    model_ties,
+    timings,
+    t0,
+    truncated,
+    scale_observable,
+    rig_metres_per_unit,
+    band,
+    method: str = "library_search",
+) -> RegistrationResult:
     """The result of a registration: per-view IoU at full resolution, the pose per camera with its
     uncertainty (from the objective of `fine`, the scorer the pose was refined on)."""
     index = library.index

@@ -86,8 +86,9 @@ class RegistrationResult:
         }
 
     @classmethod
-    def from_dict(cls, doc: dict, *, capture: Capture | None = None, library: Library | None = None,
-                  where: str = "the registration") -> RegistrationResult:
+    def from_dict(
+        cls, doc: dict, *, capture: Capture | None = None, library: Library | None = None, where: str = "the registration"
+    ) -> RegistrationResult:
         """The result `to_dict` wrote (reg.json, the service's registration.json), checked against the
         `capture` and `library` it is to be used with when given (and the `provenance` the document
         records). A malformed or mismatched document raises RegistrationError in one sentence."""
@@ -136,20 +137,27 @@ class RegistrationResult:
 def provenance(capture: Capture, library: Library, model_id: str) -> dict:
     """What a registration document records beside `to_dict()` so `from_dict` can refuse it for another
     capture or library: the views' file paths, the capture's fingerprint, the model mesh's sha256."""
-    return {"views": [f.file_path for f in capture.frames], "capture_sha256": capture_fingerprint(capture),
-            "model_sha256": library.entry(model_id).sha256}
+    return {
+        "views": [f.file_path for f in capture.frames],
+        "capture_sha256": capture_fingerprint(capture),
+        "model_sha256": library.entry(model_id).sha256,
+    }
 
 
 def check_fits(reg: RegistrationResult, capture: Capture, where: str = "the registration") -> None:
     """Refuse (RegistrationError, one sentence) a registration of another number of views than `capture`
     has, or one made without the metric scale the capture states (or with one it does not)."""
     if len(reg.per_view_iou) != len(capture):
-        raise RegistrationError(f"{where} registers {len(reg.per_view_iou)} camera views but the capture at {capture.root} has {len(capture)}")
+        raise RegistrationError(
+            f"{where} registers {len(reg.per_view_iou)} camera views but the capture at {capture.root} has {len(capture)}"
+        )
     metric = rig_metres_per_unit(capture.meta, capture.root)
     if reg.rig_metres_per_unit != metric:
         stated = "no metric scale" if reg.rig_metres_per_unit is None else f"{reg.rig_metres_per_unit:g} m per rig unit"
-        raise RegistrationError(f"{where} was registered with {stated}, but the capture at {capture.root} states "
-                                + ("none" if metric is None else f"{metric:g} m per rig unit"))
+        raise RegistrationError(
+            f"{where} was registered with {stated}, but the capture at {capture.root} states "
+            + ("none" if metric is None else f"{metric:g} m per rig unit")
+        )
 
 
 def _typed(value, kind: type):

@@ -40,7 +40,16 @@ def _boundary_dt(sil: np.ndarray, dt: np.ndarray) -> int:
         for c in range(w):
             edge = False
             if sil[r, c]:
-                edge = r == 0 or c == 0 or r == h - 1 or c == w - 1 or not sil[r - 1, c] or not sil[r + 1, c] or not sil[r, c - 1] or not sil[r, c + 1]
+                edge = (
+                    r == 0
+                    or c == 0
+                    or r == h - 1
+                    or c == w - 1
+                    or not sil[r - 1, c]
+                    or not sil[r + 1, c]
+                    or not sil[r, c - 1]
+                    or not sil[r, c + 1]
+                )
             if edge:
                 dt[r, c] = 0.0
                 n += 1
@@ -76,9 +85,27 @@ def _boundary_dt(sil: np.ndarray, dt: np.ndarray) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, winding: int, ks: np.ndarray, viewmats: np.ndarray, masks: np.ndarray,
-                 obs_dt: np.ndarray, obs_edges: np.ndarray, n_edges: np.ndarray, obs_boxes: np.ndarray, sizes: np.ndarray, counts: np.ndarray,
-                 taus: np.ndarray, edge_weight: float, stop_below: float, iou: np.ndarray, obj: np.ndarray) -> None:
+def _view_scores(
+    lo: int,
+    hi: int,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    winding: int,
+    ks: np.ndarray,
+    viewmats: np.ndarray,
+    masks: np.ndarray,
+    obs_dt: np.ndarray,
+    obs_edges: np.ndarray,
+    n_edges: np.ndarray,
+    obs_boxes: np.ndarray,
+    sizes: np.ndarray,
+    counts: np.ndarray,
+    taus: np.ndarray,
+    edge_weight: float,
+    stop_below: float,
+    iou: np.ndarray,
+    obj: np.ndarray,
+) -> None:
     """Views lo..hi-1: writes IoU iou [V] and the objective obj [V] = (1 - edge_weight) IoU + edge_weight exp(-chamfer / tau).
 
     chamfer: symmetric mean distance (px) between the rendered and the observed silhouette
@@ -155,7 +182,9 @@ def _view_scores(lo: int, hi: int, verts: np.ndarray, faces: np.ndarray, winding
 
 def boundary(mask: np.ndarray) -> np.ndarray:
     """Boundary pixels of a bool mask [H, W] (inside, with a 4-neighbour outside or on the image edge) -> bool [H, W]."""
-    cross = cv2.erode(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    cross = cv2.erode(
+        mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)), borderType=cv2.BORDER_CONSTANT, borderValue=0
+    )
     return mask & (cross == 0)
 
 
@@ -212,8 +241,16 @@ class Scorer:
         self.sizes = np.array(sizes, dtype=np.int64)
         self.counts = self.masks.reshape(n, -1).sum(1).astype(np.int64)
 
-    def scores(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0,
-               parallel: bool = True, winding: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def scores(
+        self,
+        vertices_obj: np.ndarray,
+        faces: np.ndarray,
+        sim3_rig_to_object: Sim3,
+        *,
+        stop_below: float = -1.0,
+        parallel: bool = True,
+        winding: int = 0,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """IoU [V] and objective [V] of the mesh (object frame) seen by the rig cameras under the Sim(3).
 
         With `stop_below`, scoring stops once the objective sum cannot reach it (the rest stay 0).
@@ -224,8 +261,22 @@ class Scorer:
         verts_rig = ((vertices_obj - t) @ r) / s
         n = len(self.ks)
         iou, obj = np.zeros(n), np.zeros(n)
-        args = (verts_rig, faces, int(winding), self.ks, self.viewmats, self.masks, self.obs_dt, self.obs_edges, self.n_edges, self.obs_boxes,
-                self.sizes, self.counts, self.taus, self.edge_weight)
+        args = (
+            verts_rig,
+            faces,
+            int(winding),
+            self.ks,
+            self.viewmats,
+            self.masks,
+            self.obs_dt,
+            self.obs_edges,
+            self.n_edges,
+            self.obs_boxes,
+            self.sizes,
+            self.counts,
+            self.taus,
+            self.edge_weight,
+        )
         if stop_below > -1.0 or not parallel:
             # Cutting short depends on the running sum over the views in order: one thread.
             _view_scores(0, n, *args, float(stop_below), iou, obj)
@@ -234,8 +285,9 @@ class Scorer:
             parallel_for(_view_scores, n, *args, -1.0, iou, obj)
         return iou, obj
 
-    def __call__(self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0,
-                 winding: int = 0) -> np.ndarray:
+    def __call__(
+        self, vertices_obj: np.ndarray, faces: np.ndarray, sim3_rig_to_object: Sim3, *, stop_below: float = -1.0, winding: int = 0
+    ) -> np.ndarray:
         """IoU per view [V] of the mesh (object frame) seen by the rig cameras under the Sim(3)."""
         return self.scores(vertices_obj, faces, sim3_rig_to_object, stop_below=stop_below, winding=winding)[0]
 

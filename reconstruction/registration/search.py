@@ -117,8 +117,18 @@ class _Search:
 
     def refine(self, scorer: Scorer, model: int, sim: Sim3, max_evals: int) -> tuple[Sim3, float]:
         v_, f_, w_ = self.mesh(model)
-        return refine(scorer, v_, f_, sim, self.index.centers[model], float(self.index.radii[model]), max_evals=max_evals, fix_scale=self.fix_scale,
-                      band=self.band, winding=w_)
+        return refine(
+            scorer,
+            v_,
+            f_,
+            sim,
+            self.index.centers[model],
+            float(self.index.radii[model]),
+            max_evals=max_evals,
+            fix_scale=self.fix_scale,
+            band=self.band,
+            winding=w_,
+        )
 
 
 def register(
@@ -158,7 +168,9 @@ def register(
     hyps, best_seen = match_views(observations, index, top_k=top_k, iou_threshold=iou_threshold, model_mask=model_mask)
     timings["match"] = time.perf_counter() - t
     if not any(hyps):
-        raise RegistrationError(f"no library silhouette reaches IoU {iou_threshold:.2f} with any mask; the best IoU found was {best_seen:.2f}")
+        raise RegistrationError(
+            f"no library silhouette reaches IoU {iou_threshold:.2f} with any mask; the best IoU found was {best_seen:.2f}"
+        )
 
     # Truncated silhouettes have a wrong bbox: they seed hypotheses only when nothing else can.
     seeds = [v for v, h in enumerate(hyps) if h and v not in truncated] or [v for v, h in enumerate(hyps) if h]
@@ -185,9 +197,24 @@ def register(
     model_ties = _model_ties(index, contenders)
     refined, score, ambiguity = _symmetry(search, fine, best_model, refined, score, shortlist + scored, images)
     timings["refine"] = time.perf_counter() - t
-    return result_of(masks, cameras_rig, library, best_model, refined, score, fine, alternatives=_alternatives(index, scored, best_model),
-                     ambiguity=ambiguity, model_ties=model_ties, timings=timings, t0=t0, truncated=truncated, scale_observable=scale_observable,
-                     rig_metres_per_unit=rig_metres_per_unit, band=band)
+    return result_of(
+        masks,
+        cameras_rig,
+        library,
+        best_model,
+        refined,
+        score,
+        fine,
+        alternatives=_alternatives(index, scored, best_model),
+        ambiguity=ambiguity,
+        model_ties=model_ties,
+        timings=timings,
+        t0=t0,
+        truncated=truncated,
+        scale_observable=scale_observable,
+        rig_metres_per_unit=rig_metres_per_unit,
+        band=band,
+    )
 
 
 def _model_mask(model_ids: list[str], wanted: list[str] | None) -> np.ndarray | None:
@@ -201,8 +228,17 @@ def _model_mask(model_ids: list[str], wanted: list[str] | None) -> np.ndarray | 
     return mask
 
 
-def _ransac(search: _Search, hyps: list[list[Hypothesis]], seeds: list[int], centers: np.ndarray, spread: float, rng: np.random.Generator,
-            iterations: int, *, paired: bool = True) -> list[tuple[int, Sim3]]:
+def _ransac(
+    search: _Search,
+    hyps: list[list[Hypothesis]],
+    seeds: list[int],
+    centers: np.ndarray,
+    spread: float,
+    rng: np.random.Generator,
+    iterations: int,
+    *,
+    paired: bool = True,
+) -> list[tuple[int, Sim3]]:
     """(model, Sim(3)) candidates from `iterations` random draws: a seed view's hypothesis, and with `paired` (the scale is
     observable) a hypothesis of the same model in another view at a distinct camera centre for the scale. Repeated draws are skipped."""
     by_model_view: dict[tuple[int, int], list[Hypothesis]] = {}
@@ -216,7 +252,11 @@ def _ransac(search: _Search, hyps: list[list[Hypothesis]], seeds: list[int], cen
         hi = hyps[vi][rng.integers(len(hyps[vi]))]
         second, key2 = None, None
         if paired:
-            partners = [v for v in range(len(hyps)) if v != vi and (hi.model, v) in by_model_view and np.linalg.norm(centers[v] - centers[vi]) > 1e-9 * max(1.0, spread)]
+            partners = [
+                v
+                for v in range(len(hyps))
+                if v != vi and (hi.model, v) in by_model_view and np.linalg.norm(centers[v] - centers[vi]) > 1e-9 * max(1.0, spread)
+            ]
             if not partners:
                 continue
             vj = partners[rng.integers(len(partners))]
@@ -227,17 +267,25 @@ def _ransac(search: _Search, hyps: list[list[Hypothesis]], seeds: list[int], cen
         if key in seen:
             continue
         seen.add(key)
-        candidates += [(hi.model, sim) for sim in sim3_from_pair(hi, second, search.cameras, search.index.centers[hi.model], band=search.band,
-                                                                expected_scale=search.expected)]
+        candidates += [
+            (hi.model, sim)
+            for sim in sim3_from_pair(
+                hi, second, search.cameras, search.index.centers[hi.model], band=search.band, expected_scale=search.expected
+            )
+        ]
     return candidates
 
 
-def _single_view_scores(search: _Search, scorer: Scorer, hyps: list[list[Hypothesis]], seeds: list[int], top_k: int) -> list[tuple[float, int, Sim3]]:
+def _single_view_scores(
+    search: _Search, scorer: Scorer, hyps: list[list[Hypothesis]], seeds: list[int], top_k: int
+) -> list[tuple[float, int, Sim3]]:
     """Every hypothesising model appears in one view only: no pair to take a scale from, so each seed hypothesis alone."""
     scored = []
     for vi in seeds:
         for h in hyps[vi][:top_k]:
-            sim = sim3_from_pair(h, None, search.cameras, search.index.centers[h.model], band=search.band, expected_scale=search.expected)[0]
+            sim = sim3_from_pair(h, None, search.cameras, search.index.centers[h.model], band=search.band, expected_scale=search.expected)[
+                0
+            ]
             v_, f_, w_ = search.mesh(h.model)
             scored.append((float(scorer.scores(v_, f_, sim, winding=w_)[1].mean()), h.model, sim))
     return scored
@@ -252,7 +300,7 @@ def _decide(search: _Search, scorer: Scorer, fine: Scorer, scored: list[tuple[fl
     either the winner or reported as a tie, not lost to a brief refinement.
     """
     shortlist: list[tuple[float, int, Sim3]] = []
-    for sc, m, sim in scored:
+    for _score, m, sim in scored:
         if len(shortlist) == CANDIDATES:
             break
         if all(m != o[1] or geodesic_angle_deg(sim.rotation, o[2].rotation) > DISTINCT_DEG for o in shortlist):
@@ -274,14 +322,20 @@ def _model_ties(index, contenders: list[tuple[float, int, Sim3]]) -> list[dict]:
     another size, which only a metric rig tells apart."""
     score, best_model, refined = contenders[0]
     return [
-        {"model_id": index.model_ids[m], "score_gap": float(score - sc), "cad_size_ratio": float(index.radii[m] / index.radii[best_model]),
-         "scale_ratio": float(sim.scale / refined.scale)}
-        for sc, m, sim in contenders[1:] if score - sc < AMBIGUOUS_GAP
+        {
+            "model_id": index.model_ids[m],
+            "score_gap": float(score - sc),
+            "cad_size_ratio": float(index.radii[m] / index.radii[best_model]),
+            "scale_ratio": float(sim.scale / refined.scale),
+        }
+        for sc, m, sim in contenders[1:]
+        if score - sc < AMBIGUOUS_GAP
     ]
 
 
-def _symmetry(search: _Search, fine: Scorer, model: int, refined: Sim3, score: float, ranked: list[tuple[float, int, Sim3]],
-              images: np.ndarray | None) -> tuple[Sim3, float, dict | None]:
+def _symmetry(
+    search: _Search, fine: Scorer, model: int, refined: Sim3, score: float, ranked: list[tuple[float, int, Sim3]], images: np.ndarray | None
+) -> tuple[Sim3, float, dict | None]:
     """The winner (pose and objective) after the symmetry check, and its report: the best pose of the same `model` in
     `ranked` that is not the same pose is refined; the better of the two wins, and on a near-tie the `images` decide
     (`photo.break_tie`). None: no distinct pose of that model was found."""

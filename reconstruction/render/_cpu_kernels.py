@@ -89,8 +89,7 @@ def _prefetch(typingctx, array, index):
         at = context.cast(builder, args[1], signature.args[1], types.intp)
         ptr = builder.bitcast(cgutils.get_item_pointer(context, builder, array_type, data, [at]), ir.IntType(8).as_pointer())
         i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [ptr.type, i32, i32, i32]),
-                                            "llvm.prefetch.p0i8")
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [ptr.type, i32, i32, i32]), "llvm.prefetch.p0i8")
         # read, high temporal locality, data cache
         builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
         return context.get_dummy_value()
@@ -113,8 +112,7 @@ def _pack4_indices(mask: int) -> list[int]:
 
 
 def _ctpop(builder, bits: int):
-    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(bits), [ir.IntType(bits)]),
-                                          f"llvm.ctpop.i{bits}")
+    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(bits), [ir.IntType(bits)]), f"llvm.ctpop.i{bits}")
 
 
 def _store_packed_by_table(builder, value, keep_bits, data, array_type, context, m) -> None:
@@ -132,11 +130,14 @@ def _store_packed_by_table(builder, value, keep_bits, data, array_type, context,
         table.initializer = ir.Constant(table_type, [ir.Constant(v8i32, _pack4_indices(mask)) for mask in range(16)])
     permd = cgutils.get_or_insert_function(builder.module, ir.FunctionType(v8i32, [v8i32, v8i32]), "llvm.x86.avx2.permd")
     low = builder.and_(keep_bits, ir.Constant(i8, 15))
-    halves = ((0, low, m), (1, builder.lshr(keep_bits, ir.Constant(i8, 4)),
-                            builder.add(m, builder.zext(builder.call(_ctpop(builder, 8), [low]), i64))))
+    halves = (
+        (0, low, m),
+        (1, builder.lshr(keep_bits, ir.Constant(i8, 4)), builder.add(m, builder.zext(builder.call(_ctpop(builder, 8), [low]), i64))),
+    )
     for half, nibble, at_m in halves:
-        quad = builder.shuffle_vector(value, ir.Constant(value.type, ir.Undefined),
-                                      ir.Constant(ir.VectorType(i32, 4), [4 * half + j for j in range(4)]))
+        quad = builder.shuffle_vector(
+            value, ir.Constant(value.type, ir.Undefined), ir.Constant(ir.VectorType(i32, 4), [4 * half + j for j in range(4)])
+        )
         indices = builder.load(builder.gep(table, [ir.Constant(i32, 0), builder.zext(nibble, i32)]), align=32)
         packed = builder.call(permd, [builder.bitcast(quad, v8i32), indices])
         at = cgutils.get_item_pointer(context, builder, array_type, data, [at_m])
@@ -160,8 +161,14 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
     each half of four lanes is packed by one permute instead (`_packs_by_table`). Packing only moves values, so the
     lists are the same on any CPU; the arithmetic is the scalar listing's, operation for operation, so are the sigmas.
     """
-    if not (isinstance(buf_p, types.Array) and buf_p.ndim == 1 and buf_p.dtype == types.int64
-            and isinstance(buf_sigma, types.Array) and buf_sigma.ndim == 1 and buf_sigma.dtype == types.float64):
+    if not (
+        isinstance(buf_p, types.Array)
+        and buf_p.ndim == 1
+        and buf_p.dtype == types.int64
+        and isinstance(buf_sigma, types.Array)
+        and buf_sigma.ndim == 1
+        and buf_sigma.dtype == types.float64
+    ):
         return None
 
     def codegen(context, builder, signature, args):
@@ -192,16 +199,18 @@ def _list_lanes(typingctx, buf_p, buf_sigma, m, px0, p0, row_bits, first_bit, mx
         else:
             keep = builder.and_(within, builder.bitcast(row_bits, vb))
             keep_bits = builder.bitcast(keep, ir.IntType(LIST_LANES))
-        values = ((sigma, sigma_array, signature.args[1]),
-                  (builder.add(splat(p0_, vi), lanes), p_array, signature.args[0]))
+        values = ((sigma, sigma_array, signature.args[1]), (builder.add(splat(p0_, vi), lanes), p_array, signature.args[0]))
         for value, array, array_type in values:
             data = context.make_array(array_type)(context, builder, array)
             if by_table:
                 _store_packed_by_table(builder, value, keep_bits, data, array_type, context, m_)
                 continue
             vt = value.type
-            compress = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vt, [vt, vb, vt]),
-                                                      f"llvm.experimental.vector.compress.v{LIST_LANES}{'f64' if vt == vf else 'i64'}")
+            compress = cgutils.get_or_insert_function(
+                builder.module,
+                ir.FunctionType(vt, [vt, vb, vt]),
+                f"llvm.experimental.vector.compress.v{LIST_LANES}{'f64' if vt == vf else 'i64'}",
+            )
             packed = builder.call(compress, [value, keep, ir.Constant(vt, ir.Undefined)])
             at = cgutils.get_item_pointer(context, builder, array_type, data, [m_])
             builder.store(packed, builder.bitcast(at, vt.as_pointer()), align=8)
@@ -232,9 +241,15 @@ def _unit_quaternion(quat):
 def _rotation_matrix(w, x, y, z):
     """Row-major entries of R(q) for a unit wxyz quaternion."""
     return (
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - w * z),
+        2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y),
+        2.0 * (y * z + w * x),
+        1.0 - 2.0 * (x * x + y * y),
     )
 
 
@@ -378,8 +393,30 @@ def _chunk_covariances(lo, hi, means, quats, scales, opacities, active, cols, co
 
 @njit(fastmath=_FUSED, **_OPTS)
 def project_forward(
-    chunk_lo, chunk_hi, n_chunks, means, quats, scales, opacities, active, viewmats, Ks, width, height, near, far,
-    eps2d, tile_size, means2d, conics, depths, radii, two_logs, rects, tile_counts, hist,
+    chunk_lo,
+    chunk_hi,
+    n_chunks,
+    means,
+    quats,
+    scales,
+    opacities,
+    active,
+    viewmats,
+    Ks,
+    width,
+    height,
+    near,
+    far,
+    eps2d,
+    tile_size,
+    means2d,
+    conics,
+    depths,
+    radii,
+    two_logs,
+    rects,
+    tile_counts,
+    hist,
 ) -> None:
     """Projects N Gaussians into C cameras; culled entries keep the zeros they were allocated with.
 
@@ -433,7 +470,20 @@ def project_forward(
                 my = r10 * p0 + r11 * p1 + r12 * p2 + t1
                 mz = r20 * p0 + r21 * p1 + r22 * p2 + t2
                 w00, w01, w02, w11, w12, w22 = _camera_covariance(
-                    r00, r01, r02, r10, r11, r12, r20, r21, r22, cov[0, i], cov[1, i], cov[2, i], cov[3, i], cov[4, i],
+                    r00,
+                    r01,
+                    r02,
+                    r10,
+                    r11,
+                    r12,
+                    r20,
+                    r21,
+                    r22,
+                    cov[0, i],
+                    cov[1, i],
+                    cov[2, i],
+                    cov[3, i],
+                    cov[4, i],
                     cov[5, i],
                 )
                 # One division per divisor and multiplications after: the projection's divisions and square roots
@@ -504,8 +554,25 @@ def project_forward(
 
 @njit(fastmath=_FUSED, **_OPTS)
 def project_backward(
-    chunk_lo, chunk_hi, means, quats, scales, viewmats, Ks, width, height, radii, conics, v_means2d, v_conics,
-    want_cov, want_viewmats, v_means, v_quats, v_scales, v_viewmats_chunks,
+    chunk_lo,
+    chunk_hi,
+    means,
+    quats,
+    scales,
+    viewmats,
+    Ks,
+    width,
+    height,
+    radii,
+    conics,
+    v_means2d,
+    v_conics,
+    want_cov,
+    want_viewmats,
+    v_means,
+    v_quats,
+    v_scales,
+    v_viewmats_chunks,
 ) -> None:
     """VJP of `project_forward` for the visible entries.
 
@@ -546,8 +613,21 @@ def project_backward(
                 my = vm[1, 0] * means[g, 0] + vm[1, 1] * means[g, 1] + vm[1, 2] * means[g, 2] + vm[1, 3]
                 mz = vm[2, 0] * means[g, 0] + vm[2, 1] * means[g, 1] + vm[2, 2] * means[g, 2] + vm[2, 3]
                 w00, w01, w02, w11, w12, w22 = _camera_covariance(
-                    vm[0, 0], vm[0, 1], vm[0, 2], vm[1, 0], vm[1, 1], vm[1, 2], vm[2, 0], vm[2, 1], vm[2, 2],
-                    c00, c01, c02, c11, c12, c22,
+                    vm[0, 0],
+                    vm[0, 1],
+                    vm[0, 2],
+                    vm[1, 0],
+                    vm[1, 1],
+                    vm[1, 2],
+                    vm[2, 0],
+                    vm[2, 1],
+                    vm[2, 2],
+                    c00,
+                    c01,
+                    c02,
+                    c11,
+                    c12,
+                    c22,
                 )
                 fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
                 x_lo, x_hi, y_lo, y_hi = limits[c, 0], limits[c, 1], limits[c, 2], limits[c, 3]
@@ -670,7 +750,18 @@ def project_backward(
 
 @njit(**_OPTS)
 def scatter_tile_keys(
-    chunk_lo, chunk_hi, n_chunks, rects, tile_counts, n, depth_bits, tile_size, tiles_x, tiles_per_cam, cursor, keys,
+    chunk_lo,
+    chunk_hi,
+    n_chunks,
+    rects,
+    tile_counts,
+    n,
+    depth_bits,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    cursor,
+    keys,
 ) -> None:
     """Writes each slot's key (float32 depth bits << 32 | g) at its chunk's cursor for its tile.
 
@@ -778,8 +869,27 @@ def _sort_tile(segment, depths, cam_base, tmp, counts) -> None:
 
 @njit(**_OPTS)
 def tile_slots(
-    lo, hi, tile_offsets, keys, depths, n, tile_size, tiles_x, tiles_per_cam, rects, slot_offsets, means2d, conics,
-    opacities, two_logs, colors, slot_f, slot_i, slot_c, slot_at, slot_areas,
+    lo,
+    hi,
+    tile_offsets,
+    keys,
+    depths,
+    n,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    rects,
+    slot_offsets,
+    means2d,
+    conics,
+    opacities,
+    two_logs,
+    colors,
+    slot_f,
+    slot_i,
+    slot_c,
+    slot_at,
+    slot_areas,
 ) -> None:
     """Sorts tiles lo..hi-1 front to back (`_sort_tile`) and fills their slots' records.
 
@@ -964,8 +1074,27 @@ def _exp_neg(sigma, out, m) -> None:
 
 @njit(fastmath=_FUSED, **_OPTS)
 def rasterize_forward(
-    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, pair_offsets, out_colors, out_transmittance, render_colors, render_alphas, slot_starts, slot_counts, pair_px,
+    bin_lo,
+    bin_hi,
+    slot_f,
+    slot_c,
+    slot_i,
+    tile_offsets,
+    work,
+    work_offsets,
+    tile_size,
+    tiles_x,
+    backgrounds,
+    width,
+    height,
+    pair_offsets,
+    out_colors,
+    out_transmittance,
+    render_colors,
+    render_alphas,
+    slot_starts,
+    slot_counts,
+    pair_px,
     pair_vis,
 ) -> None:
     """Front-to-back alpha compositing, one tile at a time, splat-major inside a tile.
@@ -1061,8 +1190,27 @@ def rasterize_forward(
 
 @njit(fastmath=_FUSED, **_OPTS)
 def rasterize_backward(
-    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, out_colors, transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
+    bin_lo,
+    bin_hi,
+    slot_f,
+    slot_c,
+    slot_i,
+    tile_offsets,
+    work,
+    work_offsets,
+    tile_size,
+    tiles_x,
+    backgrounds,
+    width,
+    height,
+    out_colors,
+    transmittance,
+    slot_starts,
+    slot_counts,
+    pair_px,
+    pair_vis,
+    v_out_colors,
+    v_out_alphas,
     slot_grads,
 ) -> None:
     """VJP of `rasterize_forward`: each tile's shaded pixels again, front to back, as the forward listed them.
@@ -1088,20 +1236,55 @@ def rasterize_backward(
             if tile_offsets[tile] == tile_offsets[tile + 1]:
                 continue
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
-            _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans,
-                         behind, v_px, v_t_term)
+            _pixel_state(
+                c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans, behind, v_px, v_t_term
+            )
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 if slot_counts[k] == 0:
                     slot_grads[k, :] = 0.0
                     continue
-                _slot_backward(k, slot_f, slot_c, x0, y0, np.uint64(slot_starts[k]), np.uint64(slot_counts[k]),
-                               pair_px, pair_vis, trans, behind, v_px, v_t_term, v_color, slot_grads)
+                _slot_backward(
+                    k,
+                    slot_f,
+                    slot_c,
+                    x0,
+                    y0,
+                    np.uint64(slot_starts[k]),
+                    np.uint64(slot_counts[k]),
+                    pair_px,
+                    pair_vis,
+                    trans,
+                    behind,
+                    v_px,
+                    v_t_term,
+                    v_color,
+                    slot_grads,
+                )
 
 
 @njit(fastmath=_FUSED, **_OPTS)
 def rasterize_backward_rgb(
-    bin_lo, bin_hi, slot_f, slot_c, slot_i, tile_offsets, work, work_offsets, tile_size, tiles_x, backgrounds, width,
-    height, out_colors, transmittance, slot_starts, slot_counts, pair_px, pair_vis, v_out_colors, v_out_alphas,
+    bin_lo,
+    bin_hi,
+    slot_f,
+    slot_c,
+    slot_i,
+    tile_offsets,
+    work,
+    work_offsets,
+    tile_size,
+    tiles_x,
+    backgrounds,
+    width,
+    height,
+    out_colors,
+    transmittance,
+    slot_starts,
+    slot_counts,
+    pair_px,
+    pair_vis,
+    v_out_colors,
+    v_out_alphas,
     slot_grads,
 ) -> None:
     """`rasterize_backward` for three colour channels (Stage II's renders), to the bit.
@@ -1122,22 +1305,25 @@ def rasterize_backward_rgb(
             if tile_offsets[tile] == tile_offsets[tile + 1]:
                 continue
             c, x0, y0, x1, y1 = _tile_geometry(tile, tiles_x, tiles_per_cam, tile_size, width, height)
-            _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans,
-                         behind, v_px, v_t_term)
+            _pixel_state(
+                c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans, behind, v_px, v_t_term
+            )
             for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
                 if slot_counts[k] == 0:
                     slot_grads[k, :] = 0.0
                     continue
                 start = np.uint64(slot_starts[k])
                 count = np.uint64(slot_counts[k])
-                _composite_backward_rgb(k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px,
-                                        v_t_term, v_alphas, slot_grads)
+                _composite_backward_rgb(
+                    k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_alphas, slot_grads
+                )
                 _geometry_backward(k, slot_f, x0, y0, start, count, pair_px, pair_vis, v_alphas, slot_grads)
 
 
 @njit(inline="always", **_OPTS)
-def _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans, behind,
-                 v_px, v_t_term) -> None:
+def _pixel_state(
+    c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_out_colors, v_out_alphas, trans, behind, v_px, v_t_term
+) -> None:
     """A tile's per-pixel state before its first splat (tile-local p): trans = 1, behind [tile px, D] = the colour all
     splats added, v_px [tile px, D] = the colour gradient and v_t_term = T_final * d loss / d T_final."""
     depth = behind.shape[1]
@@ -1157,8 +1343,9 @@ def _pixel_state(c, x0, y0, x1, y1, backgrounds, out_colors, transmittance, v_ou
 
 
 @njit(inline="always", fastmath=_FUSED, **_OPTS)
-def _composite_backward_rgb(k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_alphas,
-                            slot_grads) -> None:
+def _composite_backward_rgb(
+    k, slot_f, slot_c, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_alphas, slot_grads
+) -> None:
     """Slot k's colour gradient (slot_grads[k, 6:9]) and, as it walks the slot's pairs, the pixels' state behind it
     (trans [tile px], behind [tile px, 3]) and d loss / d alpha of each pair whose alpha is not clamped (v_alphas[j] for
     the slot's j-th pair), which `_geometry_backward` reads.
@@ -1245,8 +1432,7 @@ def _add_geometry(sums, p, x0, y0, mx, my, a, b, cc, raw_alpha, vis, v_alpha):
 
 
 @njit(inline="always", fastmath=_FUSED, **_OPTS)
-def _slot_backward(k, slot_f, slot_c, x0, y0, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_color,
-                   slot_grads) -> None:
+def _slot_backward(k, slot_f, slot_c, x0, y0, start, count, pair_px, pair_vis, trans, behind, v_px, v_t_term, v_color, slot_grads) -> None:
     """Slot k's whole gradient row for any colour depth (Stage I's silhouettes have none) in one pass over its pairs."""
     depth = slot_c.shape[1]
     opacity = slot_f[k, SF_OPACITY]

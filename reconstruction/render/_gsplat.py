@@ -12,9 +12,7 @@ def _import_gsplat():
     try:
         import gsplat
     except ImportError as exc:
-        raise ImportError(
-            "CUDA tensors are rasterized by gsplat, which is not installed: pip install 'cadsplat[cuda]'"
-        ) from exc
+        raise ImportError("CUDA tensors are rasterized by gsplat, which is not installed: pip install 'cadsplat[cuda]'") from exc
     return gsplat
 
 
@@ -31,17 +29,40 @@ def _visibility_counts(gsplat, meta: dict[str, Any], render_alphas: Tensor) -> T
     block = meta["tile_size"] ** 2
     n_batches = int(((ends - offsets).max().item() + block - 1) // block) + 1 if offsets.numel() else 1
     gaussian_ids, _, _ = gsplat.rasterize_to_indices_in_range(
-        0, n_batches, torch.ones_like(render_alphas[..., 0]), meta["means2d"], meta["conics"],
-        meta["opacities"], meta["width"], meta["height"], meta["tile_size"], meta["isect_offsets"],
+        0,
+        n_batches,
+        torch.ones_like(render_alphas[..., 0]),
+        meta["means2d"],
+        meta["conics"],
+        meta["opacities"],
+        meta["width"],
+        meta["height"],
+        meta["tile_size"],
+        meta["isect_offsets"],
         meta["flatten_ids"],
     )
     return torch.bincount(gaussian_ids.long(), minlength=n_cams * n)[: n_cams * n].view(n_cams, n)
 
 
 def rasterize_gsplat(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
-    width: int, height: int, *, near_plane: float, far_plane: float, eps2d: float, sh_degree: int | None,
-    backgrounds: Tensor | None, tile_size: int, active: Tensor | None, visibility_counts: bool = False,
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    sh_degree: int | None,
+    backgrounds: Tensor | None,
+    tile_size: int,
+    active: Tensor | None,
+    visibility_counts: bool = False,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Same contract as `reconstruction.render.rasterize`, on CUDA tensors."""
     gsplat = _import_gsplat()
@@ -56,9 +77,24 @@ def rasterize_gsplat(
         colors = colors.new_zeros(*colors.shape[:-1], 1)
         backgrounds = None
     render_colors, render_alphas, meta = gsplat.rasterization(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
-        tile_size=tile_size, backgrounds=backgrounds, rasterize_mode="classic", camera_model="pinhole",
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        sh_degree=sh_degree,
+        packed=False,
+        tile_size=tile_size,
+        backgrounds=backgrounds,
+        rasterize_mode="classic",
+        camera_model="pinhole",
     )
     if alphas_only:
         render_colors = render_colors[..., :0]

@@ -150,13 +150,13 @@ def sh_forward(lo, hi, n_bases, sh, points, origins, colour, out) -> None:
     for block in range(lo, hi):
         g0 = block * BLOCK
         m = min(BLOCK, n - g0)
-        _block_coefficients(n_bases, sh[g0:g0 + m], m, coef)
+        _block_coefficients(n_bases, sh[g0 : g0 + m], m, coef)
         for r in range(origins.shape[0]):
             p = r if points.shape[0] > 1 else 0
-            _directions(points[p, g0:g0 + m], origins[r], m, x, y, z, norm)
+            _directions(points[p, g0 : g0 + m], origins[r], m, x, y, z, norm)
             _bases(n_bases, m, x, y, z, b, b, b, b, False)
             _sh_values(n_bases, m, b, coef, total)
-            out_r = out[r, g0:g0 + m]
+            out_r = out[r, g0 : g0 + m]
             for i in range(m):
                 for c in range(3):
                     value = total[c, i]
@@ -188,7 +188,7 @@ def sh_backward(lo, hi, n_bases, sh, points, origins, colour, v_out, v_sh, v_poi
     for block in range(lo, hi):
         g0 = block * BLOCK
         m = min(BLOCK, n - g0)
-        _block_coefficients(n_bases, sh[g0:g0 + m], m, coef)
+        _block_coefficients(n_bases, sh[g0 : g0 + m], m, coef)
         for k in range(n_bases):
             for c in range(3):
                 for i in range(m):
@@ -198,9 +198,9 @@ def sh_backward(lo, hi, n_bases, sh, points, origins, colour, v_out, v_sh, v_poi
                 v_point[c, i] = 0.0
         for r in range(n_rows):
             p = 0 if shared else r
-            _directions(points[p, g0:g0 + m], origins[r], m, x, y, z, norm)
+            _directions(points[p, g0 : g0 + m], origins[r], m, x, y, z, norm)
             _bases(n_bases, m, x, y, z, b, bx, by, bz, True)
-            v_out_r = v_out[r, g0:g0 + m]
+            v_out_r = v_out[r, g0 : g0 + m]
             if colour:
                 _sh_values(n_bases, m, b, coef, total)
                 for i in range(m):
@@ -251,17 +251,17 @@ def sh_backward(lo, hi, n_bases, sh, points, origins, colour, v_out, v_sh, v_poi
                     v_point[1, i] += vy[i]
                     v_point[2, i] += vz[i]
             else:
-                v_points_r = v_points[r, g0:g0 + m]
+                v_points_r = v_points[r, g0 : g0 + m]
                 for i in range(m):
                     v_points_r[i, 0] = vx[i]
                     v_points_r[i, 1] = vy[i]
                     v_points_r[i, 2] = vz[i]
         if shared:
-            v_points_0 = v_points[0, g0:g0 + m]
+            v_points_0 = v_points[0, g0 : g0 + m]
             for i in range(m):
                 for c in range(3):
                     v_points_0[i, c] = v_point[c, i]
-        v_sh_block = v_sh[g0:g0 + m]
+        v_sh_block = v_sh[g0 : g0 + m]
         for k in range(n_bases):
             for c in range(3):
                 for i in range(m):

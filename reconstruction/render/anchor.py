@@ -85,9 +85,18 @@ def torch_project(means, quats, scales, opacities, viewmat, K, width, height, ep
     q = torch.nn.functional.normalize(quats, dim=-1)
     w, x, y, z = q.unbind(-1)
     R = torch.stack(
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1,
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
     ).reshape(-1, 3, 3)
     M = R * scales[:, None, :]
     Rc, t = viewmat[:3, :3], viewmat[:3, 3]
@@ -215,8 +224,9 @@ def anchor_ms(iters: int = 3) -> float:
     """
     env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
     env["OMP_WAIT_POLICY"] = "PASSIVE"
-    out = subprocess.run([sys.executable, "-m", "reconstruction.render.anchor", "--iters", str(iters)], check=True,
-                         capture_output=True, text=True, env=env).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "reconstruction.render.anchor", "--iters", str(iters)], check=True, capture_output=True, text=True, env=env
+    ).stdout
     return float(json.loads(out.strip().splitlines()[-1])["anchor_ms"])
 
 
@@ -228,8 +238,9 @@ def ratio_line(wall_s: float, anchor: float) -> str:
 def main() -> None:
     import argparse
 
-    ap = argparse.ArgumentParser(description="Time the speed anchor: one forward+backward of the tiled pure-PyTorch rasterizer, "
-                                             "20k splats at 256².")
+    ap = argparse.ArgumentParser(
+        description="Time the speed anchor: one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²."
+    )
     ap.add_argument("--iters", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)

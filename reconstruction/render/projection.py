@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
+from reconstruction.render import _cpu_kernels as kernels
 
 
 class TileFootprints(NamedTuple):
@@ -90,16 +90,38 @@ class _ProjectGaussians(torch.autograd.Function):
         if tile_size:
             tiles = n_cams * -(-width // tile_size) * -(-height // tile_size)
             footprints = TileFootprints(
-                tile_size, np.empty(n), np.empty((n_cams * n, 4), np.int32), np.zeros(n_cams * n, np.int64),
+                tile_size,
+                np.empty(n),
+                np.empty((n_cams * n, 4), np.int32),
+                np.zeros(n_cams * n, np.int64),
                 np.zeros((n_chunks, tiles), np.int64),
             )
         parallel_for(
-            kernels.project_forward, n_chunks, n_chunks,
-            to_numpy(means), to_numpy(quats), to_numpy(scales), to_numpy(opacities), to_numpy(active),
-            to_numpy(viewmats), to_numpy(Ks), width, height, near, far, eps2d, tile_size or 0,
-            means2d, conics, depths, radii,
-            *(footprints[1:] if footprints else (np.empty(0), np.empty((0, 4), np.int32), np.empty(0, np.int64),
-                                                 np.empty((n_chunks, 0), np.int64))),
+            kernels.project_forward,
+            n_chunks,
+            n_chunks,
+            to_numpy(means),
+            to_numpy(quats),
+            to_numpy(scales),
+            to_numpy(opacities),
+            to_numpy(active),
+            to_numpy(viewmats),
+            to_numpy(Ks),
+            width,
+            height,
+            near,
+            far,
+            eps2d,
+            tile_size or 0,
+            means2d,
+            conics,
+            depths,
+            radii,
+            *(
+                footprints[1:]
+                if footprints
+                else (np.empty(0), np.empty((0, 4), np.int32), np.empty(0, np.int64), np.empty((n_chunks, 0), np.int64))
+            ),
         )
         means2d_t, conics_t = torch.from_numpy(means2d), torch.from_numpy(conics)
         depths_t, radii_t = torch.from_numpy(depths), torch.from_numpy(radii)
@@ -126,18 +148,35 @@ class _ProjectGaussians(torch.autograd.Function):
         want_viewmats = ctx.needs_input_grad[3]
         v_view_chunks = np.zeros((n_chunks, n_cams, 3, 4))
         parallel_for(
-            kernels.project_backward, n_chunks, to_numpy(means), to_numpy(quats), to_numpy(scales),
-            to_numpy(viewmats), to_numpy(Ks), *ctx.image_size, to_numpy(radii), to_numpy(conics),
-            v_means2d, v_conics, want_cov, want_viewmats,
-            v_means, v_quats, v_scales, v_view_chunks,
+            kernels.project_backward,
+            n_chunks,
+            to_numpy(means),
+            to_numpy(quats),
+            to_numpy(scales),
+            to_numpy(viewmats),
+            to_numpy(Ks),
+            *ctx.image_size,
+            to_numpy(radii),
+            to_numpy(conics),
+            v_means2d,
+            v_conics,
+            want_cov,
+            want_viewmats,
+            v_means,
+            v_quats,
+            v_scales,
+            v_view_chunks,
         )
         v_viewmats = None
         if want_viewmats:
             v_viewmats = torch.zeros(viewmats.shape, dtype=torch.float64)
             v_viewmats[:, :3, :] = torch.from_numpy(v_view_chunks.sum(axis=0))
         return (
-            torch.from_numpy(v_means), torch.from_numpy(v_quats) if want_cov else None,
-            torch.from_numpy(v_scales) if want_cov else None, v_viewmats, *(None,) * 9,
+            torch.from_numpy(v_means),
+            torch.from_numpy(v_quats) if want_cov else None,
+            torch.from_numpy(v_scales) if want_cov else None,
+            v_viewmats,
+            *(None,) * 9,
         )
 
 
@@ -190,6 +229,12 @@ def project_gaussians(
     return Projection(
         *_ProjectGaussians.apply(
             *to_float64(means, quats, scales, viewmats, opacities, Ks),
-            active, int(width), int(height), float(near_plane), float(far_plane), float(eps2d), int(tile_size or 0),
+            active,
+            int(width),
+            int(height),
+            float(near_plane),
+            float(far_plane),
+            float(eps2d),
+            int(tile_size or 0),
         )
     )

@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.parallel import PARTS_PER_THREAD, num_threads, parallel_for
+from reconstruction.render import _cpu_kernels as kernels
 from reconstruction.render.projection import Projection, project_gaussians, to_float64, to_numpy
 from reconstruction.render.scratch import ScratchPool
 from reconstruction.render.sh import num_sh_bases, sh_colors
@@ -62,7 +62,13 @@ class TileBins:
     def compositing_args(self) -> tuple:
         """Leading arguments of the compositing kernels."""
         return (
-            self.slot_f, self.slot_c, self.slot_i, self.tile_offsets, self.work, self.work_offsets, self.tile_size,
+            self.slot_f,
+            self.slot_c,
+            self.slot_i,
+            self.tile_offsets,
+            self.work,
+            self.work_offsets,
+            self.tile_size,
             self.tiles_x,
         )
 
@@ -107,8 +113,18 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
     depth_bits = depths_np.astype(np.float32).view(np.int32).astype(np.int64)
     keys = np.empty(n_isects, np.int64)
     parallel_for(
-        kernels.scatter_tile_keys, n_chunks, n_chunks, fp.rects, fp.tile_counts, n, depth_bits, tile_size, tiles_x,
-        tiles_per_cam, cursor, keys,
+        kernels.scatter_tile_keys,
+        n_chunks,
+        n_chunks,
+        fp.rects,
+        fp.tile_counts,
+        n,
+        depth_bits,
+        tile_size,
+        tiles_x,
+        tiles_per_cam,
+        cursor,
+        keys,
     )
     slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
     slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
@@ -116,16 +132,44 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
     slot_at = np.empty(n_isects, np.int64)
     slot_areas = np.empty(n_isects, np.int64)
     parallel_for(
-        kernels.tile_slots, n_tiles, tile_offsets, keys, depths_np, n, tile_size, tiles_x, tiles_per_cam, fp.rects,
-        slot_offsets, means2d_np, conics_np, opacities_np, fp.two_logs, to_numpy(colors), slot_f, slot_i, slot_c,
-        slot_at, slot_areas,
+        kernels.tile_slots,
+        n_tiles,
+        tile_offsets,
+        keys,
+        depths_np,
+        n,
+        tile_size,
+        tiles_x,
+        tiles_per_cam,
+        fp.rects,
+        slot_offsets,
+        means2d_np,
+        conics_np,
+        opacities_np,
+        fp.two_logs,
+        to_numpy(colors),
+        slot_f,
+        slot_i,
+        slot_c,
+        slot_at,
+        slot_areas,
     )
     pair_offsets = np.zeros(n_isects + 1, np.int64)
     np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
-        tile_size, tiles_x, tiles_y, slot_f, slot_i, slot_c, slot_offsets, slot_at, pair_offsets, tile_offsets,
-        work, work_offsets,
+        tile_size,
+        tiles_x,
+        tiles_y,
+        slot_f,
+        slot_i,
+        slot_c,
+        slot_offsets,
+        slot_at,
+        pair_offsets,
+        tile_offsets,
+        work,
+        work_offsets,
     )
 
 
@@ -144,9 +188,21 @@ def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int,
     pair_px = _SCRATCH.take("pair_px", bins.pair_offsets[-1], np.uint16)
     pair_vis = _SCRATCH.take("pair_vis", bins.pair_offsets[-1], np.float64)
     parallel_for(
-        kernels.rasterize_forward, bins.n_bins, *bins.compositing_args(), backgrounds, width, height,
-        bins.pair_offsets, out_colors, transmittance, render_colors.numpy(), render_alphas.numpy()[..., 0], slot_starts,
-        slot_counts, pair_px, pair_vis,
+        kernels.rasterize_forward,
+        bins.n_bins,
+        *bins.compositing_args(),
+        backgrounds,
+        width,
+        height,
+        bins.pair_offsets,
+        out_colors,
+        transmittance,
+        render_colors.numpy(),
+        render_alphas.numpy()[..., 0],
+        slot_starts,
+        slot_counts,
+        pair_px,
+        pair_vis,
     )
     return render_colors, render_alphas, out_colors, transmittance, (slot_starts, slot_counts, pair_px, pair_vis)
 
@@ -174,15 +230,10 @@ class _RasterizeToPixels(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(
-        ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs, want_counts
-    ):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, bins: TileBins, width, height, dtype, keep_pairs, want_counts):
         n_cams, n = means2d.shape[:2]
-        render_colors, render_alphas, out_colors, transmittance, pairs = _composite(
-            bins, to_numpy(backgrounds), width, height, dtype
-        )
-        counts = (bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64)) if want_counts
-                  else np.empty(0, np.int64))
+        render_colors, render_alphas, out_colors, transmittance, pairs = _composite(bins, to_numpy(backgrounds), width, height, dtype)
+        counts = bins.sum_slots(kernels.sum_slot_counts, pairs[1], np.empty(n_cams * n, np.int64)) if want_counts else np.empty(0, np.int64)
 
         ctx.save_for_backward(backgrounds)
         ctx.out_dtype = render_colors.numpy().dtype
@@ -212,15 +263,23 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.pairs = None
         depth = bins.slot_c.shape[1]
         n_cols = kernels.N_GRAD_GEOMETRY + depth
-        v_image = (np.zeros((n_cams, height, width, depth), ctx.out_dtype) if v_render_colors is None
-                   else to_numpy(v_render_colors))
-        v_alphas = (np.zeros((n_cams, height, width), ctx.out_dtype) if v_render_alphas is None
-                    else to_numpy(v_render_alphas[..., 0]))
+        v_image = np.zeros((n_cams, height, width, depth), ctx.out_dtype) if v_render_colors is None else to_numpy(v_render_colors)
+        v_alphas = np.zeros((n_cams, height, width), ctx.out_dtype) if v_render_alphas is None else to_numpy(v_render_alphas[..., 0])
         slot_grads = _SCRATCH.take("slot_grads", bins.n_isects * n_cols, np.float64).reshape(bins.n_isects, n_cols)
         kernel = kernels.rasterize_backward_rgb if depth == 3 else kernels.rasterize_backward
         parallel_for(
-            kernel, bins.n_bins, *bins.compositing_args(), to_numpy(backgrounds),
-            width, height, ctx.out_colors, ctx.transmittance, *pairs, v_image, v_alphas, slot_grads,
+            kernel,
+            bins.n_bins,
+            *bins.compositing_args(),
+            to_numpy(backgrounds),
+            width,
+            height,
+            ctx.out_colors,
+            ctx.transmittance,
+            *pairs,
+            v_image,
+            v_alphas,
+            slot_grads,
         )
         _give_back(pairs)
         v_means2d = np.empty((n_cams, n, 2))
@@ -228,8 +287,14 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_opacities = np.empty((n_cams, n))
         v_colors = np.empty((n_cams, n, depth))
         parallel_for(
-            kernels.sum_slot_gradients, bins.n_pairs, slot_grads, bins.slot_offsets, bins.slot_at,
-            v_means2d.reshape(n_cams * n, 2), v_conics.reshape(n_cams * n, 3), v_opacities.reshape(n_cams * n),
+            kernels.sum_slot_gradients,
+            bins.n_pairs,
+            slot_grads,
+            bins.slot_offsets,
+            bins.slot_at,
+            v_means2d.reshape(n_cams * n, 2),
+            v_conics.reshape(n_cams * n, 3),
+            v_opacities.reshape(n_cams * n),
             v_colors.reshape(n_cams * n, depth),
             grain=_GRAIN,
         )
@@ -242,13 +307,19 @@ class _RasterizeToPixels(torch.autograd.Function):
         if ctx.needs_input_grad[4]:
             transmittance = ctx.transmittance
             transmittance[~_covered_pixels(bins, n_cams, width, height)] = 1.0
-            v_backgrounds = torch.einsum(
-                "chw,chwd->cd", torch.from_numpy(transmittance), torch.from_numpy(v_image).to(torch.float64)
-            )
+            v_backgrounds = torch.einsum("chw,chwd->cd", torch.from_numpy(transmittance), torch.from_numpy(v_image).to(torch.float64))
         return (
-            torch.from_numpy(v_means2d), torch.from_numpy(v_conics), torch.from_numpy(v_colors),
-            torch.from_numpy(v_opacities[0] if n_cams == 1 else v_opacities.sum(0)), v_backgrounds,
-            None, None, None, None, None, None,
+            torch.from_numpy(v_means2d),
+            torch.from_numpy(v_conics),
+            torch.from_numpy(v_colors),
+            torch.from_numpy(v_opacities[0] if n_cams == 1 else v_opacities.sum(0)),
+            v_backgrounds,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
         )
 
 
@@ -272,9 +343,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     else:
         bases = num_sh_bases(sh_degree)
         if colors.dim() not in (3, 4) or colors.shape[-3] != n or colors.shape[-2] < bases or colors.shape[-1] != 3:
-            raise ValueError(
-                f"SH colors must be [N, K, 3] or [C, N, K, 3] with N={n}, K>={bases}; got {list(colors.shape)}"
-            )
+            raise ValueError(f"SH colors must be [N, K, 3] or [C, N, K, 3] with N={n}, K>={bases}; got {list(colors.shape)}")
     if width < 1 or height < 1:
         raise ValueError(f"image size must be positive, got {width}x{height}")
     if backgrounds is not None and backgrounds.shape[-1] != (3 if sh_degree is not None else colors.shape[-1]):
@@ -351,9 +420,23 @@ def rasterize(
         from reconstruction.render._gsplat import rasterize_gsplat
 
         return rasterize_gsplat(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
-            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, tile_size=tile_size,
-            active=active, visibility_counts=visibility_counts,
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            eps2d=eps2d,
+            sh_degree=sh_degree,
+            backgrounds=backgrounds,
+            tile_size=tile_size,
+            active=active,
+            visibility_counts=visibility_counts,
         )
 
     # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
@@ -362,8 +445,19 @@ def rasterize(
     means, quats, scales, opacities, colors, viewmats, Ks = to_float64(means, quats, scales, opacities, colors, viewmats, Ks)
     n_cams = viewmats.shape[0]
     proj = project_gaussians(
-        means, quats, scales, opacities, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, active=active, tile_size=tile_size,
+        means,
+        quats,
+        scales,
+        opacities,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        active=active,
+        tile_size=tile_size,
     )
     if sh_degree is not None:
         # gsplat's convention: direction from the camera centre to the mean, DC offset 0.5, clamped at 0.
@@ -379,11 +473,18 @@ def rasterize(
     # The images come out of the kernel in the caller's dtype (float64 for any other than float32).
     out_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float64
     # Without a graph to differentiate (no_grad, or nothing requires grad) the pairs go straight back to the pool.
-    keep_pairs = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (proj.means2d, proj.conics, colors, opacities, backgrounds)
-    )
+    keep_pairs = torch.is_grad_enabled() and any(t.requires_grad for t in (proj.means2d, proj.conics, colors, opacities, backgrounds))
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype, keep_pairs,
+        proj.means2d,
+        proj.conics,
+        colors,
+        opacities,
+        backgrounds,
+        bins,
+        width,
+        height,
+        out_dtype,
+        keep_pairs,
         visibility_counts,
     )
     meta = {

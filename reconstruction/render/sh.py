@@ -15,8 +15,8 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from reconstruction.render import _sh_kernels as kernels
 from reconstruction.parallel import parallel_for
+from reconstruction.render import _sh_kernels as kernels
 
 MAX_SH_DEGREE = 3
 _GRAIN = 2048 // kernels.BLOCK  # blocks of Gaussians
@@ -77,8 +77,7 @@ class _SHValues(torch.autograd.Function):
     def forward(ctx, n_bases, colour, sh, points, origins):
         sh_np, points_np, origins_np = (t.detach().contiguous().numpy() for t in (sh, points, origins))
         out = torch.empty((origins.shape[0], sh.shape[0], 3), dtype=torch.float64)
-        parallel_for(kernels.sh_forward, _blocks(sh), n_bases, sh_np, points_np, origins_np, colour, out.numpy(),
-                     grain=_GRAIN)
+        parallel_for(kernels.sh_forward, _blocks(sh), n_bases, sh_np, points_np, origins_np, colour, out.numpy(), grain=_GRAIN)
         ctx.save_for_backward(sh, points, origins)
         ctx.n_bases, ctx.colour = n_bases, colour
         return out
@@ -91,8 +90,16 @@ class _SHValues(torch.autograd.Function):
         v_points = torch.empty(points.shape, dtype=torch.float64)
         v_origins = np.empty((_blocks(sh), origins.shape[0], 3))
         parallel_for(
-            kernels.sh_backward, _blocks(sh), ctx.n_bases, *(t.detach().contiguous().numpy() for t in (sh, points, origins)),
-            ctx.colour, v_out.contiguous().numpy(), v_sh.numpy(), v_points.numpy(), v_origins, grain=_GRAIN,
+            kernels.sh_backward,
+            _blocks(sh),
+            ctx.n_bases,
+            *(t.detach().contiguous().numpy() for t in (sh, points, origins)),
+            ctx.colour,
+            v_out.contiguous().numpy(),
+            v_sh.numpy(),
+            v_points.numpy(),
+            v_origins,
+            grain=_GRAIN,
         )
         return None, None, v_sh, v_points, torch.from_numpy(v_origins.sum(axis=0))
 

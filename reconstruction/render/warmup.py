@@ -27,7 +27,6 @@ def compile_render_kernels() -> None:
         for grad in (False, True):
             m = means.clone().requires_grad_(grad)
             c = colors.clone().requires_grad_(grad)
-            rgb, alpha, _ = rasterize(m, quats, scales, opacities, c, viewmats, ks, w, h, sh_degree=degree, backgrounds=bg,
-                                      active=keep)
+            rgb, alpha, _ = rasterize(m, quats, scales, opacities, c, viewmats, ks, w, h, sh_degree=degree, backgrounds=bg, active=keep)
             if grad:
                 (rgb.sum() + alpha.sum()).backward()

@@ -11,35 +11,43 @@ def _iteration(t0: float) -> list[Span]:
     """One iteration starting at t0: a labelled rasterizer forward (projection inside it), an SSIM
     forward, the backward of both, an Adam step and unlabelled glue; parents index this list."""
     return [
-        Span(ITERATION, t0, t0 + 100, None),                                      # 0: 10 µs of its own
-        Span("cs:rasterize", t0 + 0, t0 + 30, 0),                                 # 1: 5 own
-        Span("cs:projection", t0 + 0, t0 + 10, 1),                                # 2
-        Span("_ProjectGaussians", t0 + 0, t0 + 10, 2, seq=7),                     # 3: 10 projection
-        Span("_RasterizeToPixels", t0 + 10, t0 + 25, 1, seq=8),                   # 4: 15 compositing
-        Span("cs:ssim", t0 + 30, t0 + 40, 0),                                     # 5: 2 own
-        Span("aten::conv2d", t0 + 32, t0 + 40, 5, seq=9),                         # 6: 8 ssim
-        Span("cs:backward", t0 + 40, t0 + 80, 0),                                 # 7: 4 glue
+        Span(ITERATION, t0, t0 + 100, None),  # 0: 10 µs of its own
+        Span("cs:rasterize", t0 + 0, t0 + 30, 0),  # 1: 5 own
+        Span("cs:projection", t0 + 0, t0 + 10, 1),  # 2
+        Span("_ProjectGaussians", t0 + 0, t0 + 10, 2, seq=7),  # 3: 10 projection
+        Span("_RasterizeToPixels", t0 + 10, t0 + 25, 1, seq=8),  # 4: 15 compositing
+        Span("cs:ssim", t0 + 30, t0 + 40, 0),  # 5: 2 own
+        Span("aten::conv2d", t0 + 32, t0 + 40, 5, seq=9),  # 6: 8 ssim
+        Span("cs:backward", t0 + 40, t0 + 80, 0),  # 7: 4 glue
         Span(BACKWARD_NODE + "ConvolutionBackward0", t0 + 40, t0 + 52, 7, seq=9),  # 8: 1 glue
-        Span("ConvolutionBackward0", t0 + 41, t0 + 52, 8, seq=9),                 # 9: 11 ssim
+        Span("ConvolutionBackward0", t0 + 41, t0 + 52, 8, seq=9),  # 9: 11 ssim
         Span(BACKWARD_NODE + "_RasterizeToPixelsBackward", t0 + 52, t0 + 70, 7, seq=8),  # 10: 1 glue
-        Span("_RasterizeToPixelsBackward", t0 + 53, t0 + 70, 10, seq=8),          # 11: 17 raster bwd
+        Span("_RasterizeToPixelsBackward", t0 + 53, t0 + 70, 10, seq=8),  # 11: 17 raster bwd
         Span(BACKWARD_NODE + "torch::autograd::AccumulateGrad", t0 + 70, t0 + 76, 7),  # 12: 6 glue
-        Span("cs:optimizer", t0 + 80, t0 + 90, 0),                               # 13: 10 optimizer
+        Span("cs:optimizer", t0 + 80, t0 + 90, 0),  # 13: 10 optimizer
     ]
 
 
 def test_attribute_buckets_self_time_by_label_and_backward_by_forward_label():
     spans = _iteration(0.0)
-    second = [Span(s.name, s.start_us, s.end_us, None if s.parent is None else s.parent + len(spans), s.seq)
-              for s in _iteration(1000.0)]
+    second = [Span(s.name, s.start_us, s.end_us, None if s.parent is None else s.parent + len(spans), s.seq) for s in _iteration(1000.0)]
     outside = [Span("aten::add", 2000.0, 2050.0, None, seq=3)]
     per_iter = attribute(spans + second + outside)
     assert len(per_iter) == 2
     first = per_iter[0]
-    assert first == pytest.approx({
-        "wall": 100, "else": 10, "raster_fwd_other": 5, "raster_fwd_projection": 10, "raster_fwd_compositing": 15,
-        "ssim": 2 + 8 + 11, "glue": 4 + 1 + 1 + 6, "raster_bwd": 17, "optimizer": 10,
-    })
+    assert first == pytest.approx(
+        {
+            "wall": 100,
+            "else": 10,
+            "raster_fwd_other": 5,
+            "raster_fwd_projection": 10,
+            "raster_fwd_compositing": 15,
+            "ssim": 2 + 8 + 11,
+            "glue": 4 + 1 + 1 + 6,
+            "raster_bwd": 17,
+            "optimizer": 10,
+        }
+    )
     # Every microsecond of the iteration lands in exactly one bucket.
     assert sum(v for k, v in first.items() if k != "wall") == pytest.approx(first["wall"])
     assert per_iter[1] == pytest.approx(first)
@@ -59,8 +67,16 @@ def test_cores_busy_is_cpu_over_wall_per_stage_without_its_warm_up():
     marks = IterationMarks(profiled=False)
     # (stage, iteration, wall s, CPU s) at each progress call, made as each iteration ends: the interval up to a
     # call is that call's iteration.
-    calls = [("pose", 1, 0.0, 0.0), ("pose", 2, 1.0, 1.0), ("pose", 3, 2.0, 2.0), ("pose", 4, 3.0, 4.0),
-             ("photo", 1, 4.0, 5.5), ("photo", 2, 5.0, 7.5), ("photo", 3, 6.0, 9.5), ("photo", 4, 8.0, 12.5)]
+    calls = [
+        ("pose", 1, 0.0, 0.0),
+        ("pose", 2, 1.0, 1.0),
+        ("pose", 3, 2.0, 2.0),
+        ("pose", 4, 3.0, 4.0),
+        ("photo", 1, 4.0, 5.5),
+        ("photo", 2, 5.0, 7.5),
+        ("photo", 3, 6.0, 9.5),
+        ("photo", 4, 8.0, 12.5),
+    ]
     marks.calls = [(s, i) for s, i, _, _ in calls]
     marks.times = [t for *_, t, _ in calls]
     marks.cpu_times = [c for *_, c in calls]

@@ -27,8 +27,7 @@ def test_exact_camera_capture_records_the_true_poses_in_the_rig_frame(tmp_path):
         frames.append({"file_path": f"images/{i}.png", "transform_matrix": (c2w @ opengl).tolist()})
     intrinsics = {"fl_x": 300.0, "fl_y": 300.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240}
     (scene / "train" / "transforms.json").write_text(json.dumps({**intrinsics, "frames": frames}))
-    (scene / "gt.json").write_text(json.dumps({"sim3_rig_to_object": sim3.to_dict(),
-                                               "train": {"c2w_opencv_object": true_obj.tolist()}}))
+    (scene / "gt.json").write_text(json.dumps({"sim3_rig_to_object": sim3.to_dict(), "train": {"c2w_opencv_object": true_obj.tolist()}}))
     out = exact_camera_capture(scene, tmp_path / "exact")
     got = np.stack([f.camera.c2w for f in read_capture(out).frames])
     np.testing.assert_allclose(sim3.apply_to_c2w(got), true_obj, atol=1e-9)
@@ -43,11 +42,19 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
     monkeypatch.setattr(bench, "RESULTS", tmp_path / "results")
     mean = {"fgpsnr": 27.0, "iou": 0.97, "psnr": 28.0, "ssim": 0.9, "lpips": 0.1}
     # A reused twin records None: its time was taken on another day's machine.
-    for variant, walls, machine in (("new-cpu-vall", (60.0, 64.0, 70.0, 75.0), (1600.0, 1700.0, 2000.0, None)),
-                                    ("old-cpu-vall", (25.0, 27.0, 30.0), None)):
+    for variant, walls, machine in (
+        ("new-cpu-vall", (60.0, 64.0, 70.0, 75.0), (1600.0, 1700.0, 2000.0, None)),
+        ("old-cpu-vall", (25.0, 27.0, 30.0), None),
+    ):
         for i, wall in enumerate(walls):
-            doc = {"scene": bench.SCENES[i], "variant": variant, "train_wall_s": wall, "load": 1.0, "mean": mean,
-                   "mean_refined": mean if machine else None}
+            doc = {
+                "scene": bench.SCENES[i],
+                "variant": variant,
+                "train_wall_s": wall,
+                "load": 1.0,
+                "mean": mean,
+                "mean_refined": mean if machine else None,
+            }
             if machine:
                 doc["machine_ref_ms"] = machine[i]
                 doc["cpu"] = None if machine[i] is None else "AMD EPYC, 2 cores, AVX2 (no AVX-512), no native bfloat16"
@@ -55,7 +62,9 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
             run.parent.mkdir(parents=True, exist_ok=True)
             run.write_text(json.dumps(doc))
     text = bench.write_report(tmp_path, 0)
-    rows = {line.split(" | ")[0][2:]: line.split(" | ") for line in text.splitlines() if line.startswith("| new-") or line.startswith("| old-")}
+    rows = {
+        line.split(" | ")[0][2:]: line.split(" | ") for line in text.splitlines() if line.startswith("| new-") or line.startswith("| old-")
+    }
     header = next(line for line in text.splitlines() if line.startswith("| variant")).split(" | ")
     median, machine = header.index("median s"), header.index("anchor ms")
     assert rows["new-cpu-vall"][median] == "67.0" and rows["new-cpu-vall"][machine] == "1700"

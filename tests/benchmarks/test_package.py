@@ -34,7 +34,9 @@ def test_every_benchmark_module_imports():
     """Import only (nothing runs: each script's work is under `if __name__ == "__main__"`), in a child
     process so import-time settings (MUJOCO_GL) stay out of the test session."""
     mods = [f"benchmarks.{n}" for n in benchmark_modules()]
-    code = ("import importlib, sys\nfailed = []\nfor m in sys.argv[1:]:\n    try:\n        importlib.import_module(m)\n"
-            "    except Exception as e:\n        failed.append(f'{m}: {e!r}')\nprint('\\n'.join(failed))\nsys.exit(1 if failed else 0)\n")
+    code = (
+        "import importlib, sys\nfailed = []\nfor m in sys.argv[1:]:\n    try:\n        importlib.import_module(m)\n"
+        "    except Exception as e:\n        failed.append(f'{m}: {e!r}')\nprint('\\n'.join(failed))\nsys.exit(1 if failed else 0)\n"
+    )
     res = subprocess.run([sys.executable, "-c", code, *mods], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -24,7 +24,12 @@ def small_frames(n=3, w=40, h=30, dist=()):
 
 def test_roundtrip_is_lossless_and_verified(tmp_path):
     frames = small_frames()
-    cap = write_capture(tmp_path / "cap", frames, backgrounds={"cam00": frames[0].image}, meta={"rig_id": "r1", "calibration_id": "c7", "trigger": {"seq": 4}})
+    cap = write_capture(
+        tmp_path / "cap",
+        frames,
+        backgrounds={"cam00": frames[0].image},
+        meta={"rig_id": "r1", "calibration_id": "c7", "trigger": {"seq": 4}},
+    )
     assert len(cap) == 3 and cap.has_masks
     again = read_capture(tmp_path / "cap")
     for i, f in enumerate(frames):
@@ -34,7 +39,15 @@ def test_roundtrip_is_lossless_and_verified(tmp_path):
         assert again.frames[i].camera_id == f.camera_id and again.frames[i].timestamp_ns == 1000 + i
     # No units given, none written: the scale of this rig frame is unknown.
     assert again.meta["calibration_id"] == "c7" and "units" not in again.meta
-    assert set(again.meta["sha256"]) == {"images/cam00.png", "images/cam01.png", "images/cam02.png", "masks/cam00.png", "masks/cam01.png", "masks/cam02.png", "background/cam00.png"}
+    assert set(again.meta["sha256"]) == {
+        "images/cam00.png",
+        "images/cam01.png",
+        "images/cam02.png",
+        "masks/cam00.png",
+        "masks/cam01.png",
+        "masks/cam02.png",
+        "background/cam00.png",
+    }
     np.testing.assert_array_equal((again.background("cam00") * 255).round().astype(np.uint8), frames[0].image)
     images, masks, cams = load_views(again, [2, 0])
     assert images.shape == (2, 30, 40, 3) and images.dtype == np.float32 and masks.shape == (2, 30, 40)
@@ -131,7 +144,12 @@ def test_blender_nerf_synthetic_variant(tmp_path):
     write_capture(tmp_path / "cap", frames)
     doc = {
         "camera_angle_x": 2 * np.arctan(20 / 50.0),
-        "frames": [{"file_path": "./images/cam00", "transform_matrix": json.loads((tmp_path / "cap/transforms.json").read_text())["frames"][0]["transform_matrix"]}],
+        "frames": [
+            {
+                "file_path": "./images/cam00",
+                "transform_matrix": json.loads((tmp_path / "cap/transforms.json").read_text())["frames"][0]["transform_matrix"],
+            }
+        ],
     }
     (tmp_path / "cap/transforms.json").write_text(json.dumps(doc))
     cap = read_capture(tmp_path / "cap")
@@ -231,8 +249,12 @@ def png_bomb(path, width: int, height: int) -> int:
     for _ in range(height):
         idat.append(z.compress(row))
     idat.append(z.flush())
-    data = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", b"".join(idat)) + chunk(b"IEND", b""))
+    data = (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+        + chunk(b"IDAT", b"".join(idat))
+        + chunk(b"IEND", b"")
+    )
     path.write_bytes(data)
     return len(data)
 

@@ -43,7 +43,9 @@ def test_no_false_alarms_over_100_captures_with_noise_and_lighting(rig):
     worst = 0.0
     for _ in range(100):
         gain, offset = rng.uniform(0.7, 1.3), rng.uniform(-0.06, 0.06)
-        result = assess(calib, {n: sensor(img, rng, noise=0.015, gain=gain, offset=offset) for n, img in clean.items()}, refs, KeeperConfig())
+        result = assess(
+            calib, {n: sensor(img, rng, noise=0.015, gain=gain, offset=offset) for n, img in clean.items()}, refs, KeeperConfig()
+        )
         assert result.status == OK, result
         worst = max(worst, max(c.effect_px for c in result.cameras.values()))
     assert worst < 0.25

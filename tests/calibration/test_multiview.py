@@ -61,7 +61,8 @@ def test_opencv_stereo_pair_agrees_with_stereo_calibrate():
     folder = require_shared("calibration", "opencv_chessboard")
     spec = parse_board("chessboard:9x6:0.025")
     dets = {
-        side: {p.stem[len(side) :]: detect_board(spec, cv2.imread(str(p))) for p in sorted(folder.glob(f"{side}*.jpg"))} for side in ("left", "right")
+        side: {p.stem[len(side) :]: detect_board(spec, cv2.imread(str(p))) for p in sorted(folder.glob(f"{side}*.jpg"))}
+        for side in ("left", "right")
     }
     rig = calibrate_rig(dets, {"left": (640, 480), "right": (640, 480)}, cross_validate=False)
     assert rig.rms_px["left"] <= 0.409 and rig.rms_px["right"] <= 0.459
@@ -72,7 +73,9 @@ def test_opencv_stereo_pair_agrees_with_stereo_calibrate():
     k, d = {}, {}
     for s in dets:
         _, k[s], d[s], _, _ = cv2.calibrateCamera(obj, pts[s], (640, 480), None, None)
-    rms, *_, r, t, _, _ = cv2.stereoCalibrate(obj, pts["left"], pts["right"], k["left"], d["left"], k["right"], d["right"], (640, 480), flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    rms, *_, r, t, _, _ = cv2.stereoCalibrate(
+        obj, pts["left"], pts["right"], k["left"], d["left"], k["right"], d["right"], (640, 480), flags=cv2.CALIB_USE_INTRINSIC_GUESS
+    )
     right_viewmat = invert_rigid(rig.cameras["right"].c2w)  # rig frame = left camera
     assert geodesic_angle_deg(right_viewmat[:3, :3], r) < 0.1
     assert np.linalg.norm(right_viewmat[:3, 3] - t.ravel()) < 0.002  # metres, baseline ~ 0.083

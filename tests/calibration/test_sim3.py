@@ -13,7 +13,9 @@ from calibration.so3 import (
 
 
 def random_sim3(rng, scale=None) -> Sim3:
-    return Sim3(scale if scale is not None else float(np.exp(rng.normal())), axis_angle_to_matrix(rng.normal(0, 1.5, 3)), rng.normal(0, 3, 3))
+    return Sim3(
+        scale if scale is not None else float(np.exp(rng.normal())), axis_angle_to_matrix(rng.normal(0, 1.5, 3)), rng.normal(0, 3, 3)
+    )
 
 
 def test_compose_inverse_and_apply():

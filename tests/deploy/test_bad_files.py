@@ -45,14 +45,28 @@ def world(tmp_path_factory):
 
 # command (with {twin} {capture} {lib} {calibration} {out} placeholders) -> the files of each kind it reads
 CASES = {
-    "render": (["render", "{twin}", "--orbit", "2", "--out", "{out}"], ["twin/twin.json", "twin/splats.ply", "twin/splats_canonical.npz", "twin/manifest.json"]),
-    "export-ply": (["export", "{twin}", "--format", "ply", "--out", "{out}.ply"], ["twin/twin.json", "twin/splats.ply", "twin/manifest.json"]),
+    "render": (
+        ["render", "{twin}", "--orbit", "2", "--out", "{out}"],
+        ["twin/twin.json", "twin/splats.ply", "twin/splats_canonical.npz", "twin/manifest.json"],
+    ),
+    "export-ply": (
+        ["export", "{twin}", "--format", "ply", "--out", "{out}.ply"],
+        ["twin/twin.json", "twin/splats.ply", "twin/manifest.json"],
+    ),
     "export-mjcf": (["export", "{twin}", "--format", "mjcf", "--out", "{out}"], ["twin/twin.json", "twin/mesh_cad.glb", "twin/splats.ply"]),
-    "evaluate": (["evaluate", "{twin}", "--views", "{capture}", "--out", "{out}.json", "--refine-steps", "0"],
-                 ["twin/splats.ply", "capture/transforms.json", "capture/images/v0.png", "capture/masks/v1.png"]),
-    "reconstruct": (["reconstruct", "{capture}", "--library", "{lib}", "--out", "{out}"], ["capture/transforms.json", "capture/images/v1.png", "lib/library.json"]),
+    "evaluate": (
+        ["evaluate", "{twin}", "--views", "{capture}", "--out", "{out}.json", "--refine-steps", "0"],
+        ["twin/splats.ply", "capture/transforms.json", "capture/images/v0.png", "capture/masks/v1.png"],
+    ),
+    "reconstruct": (
+        ["reconstruct", "{capture}", "--library", "{lib}", "--out", "{out}"],
+        ["capture/transforms.json", "capture/images/v1.png", "lib/library.json"],
+    ),
     "register": (["register", "{capture}", "--library", "{lib}", "--out", "{out}.json"], ["capture/transforms.json", "lib/library.json"]),
-    "calibrate-check": (["calibrate", "check", "{capture}", "--calibration", "{calibration}"], ["calibration.json", "capture/transforms.json"]),
+    "calibrate-check": (
+        ["calibrate", "check", "{capture}", "--calibration", "{calibration}"],
+        ["calibration.json", "capture/transforms.json"],
+    ),
 }
 
 
@@ -193,8 +207,13 @@ MALFORMED = {
     "units-a-list": lambda d: d["cadsplat"].update(units=[]),
     "calibration_uncertainty-text": lambda d: d["cadsplat"].update(calibration_uncertainty={"rotation_deg": "small"}),
 }
-READERS = {"register": CASES["register"][0], "reconstruct": CASES["reconstruct"][0], "evaluate": CASES["evaluate"][0],
-           "calibrate-check": CASES["calibrate-check"][0], "render": ["render", "{twin}", "--views", "{capture}", "--out", "{out}"]}
+READERS = {
+    "register": CASES["register"][0],
+    "reconstruct": CASES["reconstruct"][0],
+    "evaluate": CASES["evaluate"][0],
+    "calibrate-check": CASES["calibrate-check"][0],
+    "render": ["render", "{twin}", "--views", "{capture}", "--out", "{out}"],
+}
 
 
 @pytest.mark.parametrize("command", list(READERS))
@@ -210,7 +229,9 @@ def test_wrong_json_types_in_transforms_json_are_one_sentence(world, tmp_path, c
         MALFORMED[spoil](doc)
     (capture / "transforms.json").write_text(json.dumps(doc))
     out = tmp_path / "out"
-    argv = [a.format(out=out, twin=world["twin"], capture=capture, lib=world["lib"], calibration=world["calibration"]) for a in READERS[command]]
+    argv = [
+        a.format(out=out, twin=world["twin"], capture=capture, lib=world["lib"], calibration=world["calibration"]) for a in READERS[command]
+    ]
     rc = main(argv)
     captured = capsys.readouterr()
     err = captured.err.strip()
@@ -232,8 +253,15 @@ def test_the_installed_entry_point_prints_one_line(world, tmp_path, spoil):
     MALFORMED[spoil](doc)
     (capture / "transforms.json").write_text(json.dumps(doc))
     repo = Path(__file__).resolve().parents[2]
-    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "register", str(capture), "--library", str(world["lib"]), "--out", str(tmp_path / "r.json")],
-                          capture_output=True, text=True, cwd=repo, env={**os.environ, "PYTHONPATH": str(repo)}, timeout=300, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "deploy.cli", "register", str(capture), "--library", str(world["lib"]), "--out", str(tmp_path / "r.json")],
+        capture_output=True,
+        text=True,
+        cwd=repo,
+        env={**os.environ, "PYTHONPATH": str(repo)},
+        timeout=300,
+        check=False,
+    )
     assert proc.returncode != 0 and "Traceback" not in proc.stderr + proc.stdout
     assert len(proc.stderr.strip().splitlines()) == 1 and "transforms.json" in proc.stderr, proc.stderr
 

@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 
+from calibration.board import parse_board
 from calibration.camera import Camera
 from calibration.capture import FrameData, write_capture
 from calibration.fileio import atomic_write_png
-from calibration.simulated import rig_board_views, rig_frame_scene, render_planes, ring_rig, sensor
-from calibration.board import parse_board
+from calibration.simulated import render_planes, rig_board_views, rig_frame_scene, ring_rig, sensor
 from deploy.cli import main
 
 SPEC = "charuco:11x8:0.025:0.015:DICT_5X5_100"

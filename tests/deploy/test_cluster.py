@@ -63,7 +63,7 @@ def _listening(pids: list[int]) -> list[tuple[str, int]]:
             except OSError:
                 continue
             if target.startswith("socket:["):
-                inodes.add(target[len("socket:["):-1])
+                inodes.add(target[len("socket:[") : -1])
     out = []
     for table, family in (("tcp", socket.AF_INET), ("tcp6", socket.AF_INET6)):
         for row in Path(f"/proc/net/{table}").read_text().splitlines()[1:]:
@@ -71,7 +71,7 @@ def _listening(pids: list[int]) -> list[tuple[str, int]]:
             if f[3] == "0A" and f[9] in inodes:  # 0A: LISTEN
                 ip, port = f[1].split(":")
                 raw = bytes.fromhex(ip)
-                raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))  # each 32-bit word in host order
+                raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))  # each 32-bit word in host order
                 out.append((socket.inet_ntop(family, raw), int(port, 16)))
     return out
 
@@ -126,8 +126,17 @@ def test_three_captures_on_local_ray_match_single_process(local_ray, tmp_path):
     captures = [repo / "sample" / "train"]
     for k, start in enumerate((1, 2)):
         idx = list(range(start, len(heldout), 4))[:8]
-        frames = [FrameData(Path(heldout.frames[i].file_path).stem, (heldout.image(i) * 255).round().astype(np.uint8),
-                            heldout.camera(i), heldout.frames[i].camera_id, None, heldout.mask(i)) for i in idx]
+        frames = [
+            FrameData(
+                Path(heldout.frames[i].file_path).stem,
+                (heldout.image(i) * 255).round().astype(np.uint8),
+                heldout.camera(i),
+                heldout.frames[i].camera_id,
+                None,
+                heldout.mask(i),
+            )
+            for i in idx
+        ]
         captures.append(write_capture(tmp_path / f"orbit{k}", frames, meta={"rig_id": "sample", "calibration_id": "gt"}).root)
     build_library(repo / "sample" / "library_meshes", tmp_path / "lib", progress=False)
     cfg = PipelineConfig(str(tmp_path / "lib"), "preview", export_formats=("ply",))
@@ -155,5 +164,5 @@ def test_worker_join_asks_for_token_authentication(monkeypatch):
     with pytest.raises(SystemExit) as stop:  # `ray start --block`'s exit status is the command's
         main(["worker", "join", "--cluster", "10.0.0.1:6379"])
     assert stop.value.code == 0
-    (cmd, env), = calls
+    ((cmd, env),) = calls
     assert cmd[1:3] == ["start", "--address=10.0.0.1:6379"] and env["RAY_AUTH_MODE"] == "token"

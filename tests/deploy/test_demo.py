@@ -92,17 +92,23 @@ def test_demo_runs_the_shared_protocol_and_prints_its_record(tmp_path, monkeypat
         calls.append((capture, heldout, library, out_dir, kw))
         twin = SimpleNamespace(model_id="medium_clamp_cad", num_splats=1234)
         reg = {"rotation_deg_median": 1.25, "center_pct_median": 2.5}
-        return ProtocolResult(twin=twin, registration=None, heldout_views=list(range(12)),
-                              report={"mean": {"fgpsnr": 28.33, "iou": 0.984, "psnr": 28.31}}, reg_init=reg,
-                              reg_refined={"rotation_deg_median": 0.99, "center_pct_median": 1.11}, reg_raw=None,
-                              timings_s={"reconstruct": 60.0, "evaluate": 5.0})
+        return ProtocolResult(
+            twin=twin,
+            registration=None,
+            heldout_views=list(range(12)),
+            report={"mean": {"fgpsnr": 28.33, "iou": 0.984, "psnr": 28.31}},
+            reg_init=reg,
+            reg_refined={"rotation_deg_median": 0.99, "center_pct_median": 1.11},
+            reg_raw=None,
+            timings_s={"reconstruct": 60.0, "evaluate": 5.0},
+        )
 
     monkeypatch.setattr("reconstruction.evaluation.run_protocol", protocol)
     monkeypatch.setattr("reconstruction.library.build_library", lambda *a, **k: None)
     monkeypatch.setattr("reconstruction.render.anchor.anchor_ms", lambda: 2000.0)
     assert main(["demo", "--work", str(tmp_path / "work")]) == 0
     out = capsys.readouterr().out
-    (capture, heldout, library, twin_dir, kw), = calls
+    ((capture, heldout, library, twin_dir, kw),) = calls
     root = bundled_sample_dir()
     work = tmp_path / "work"
     assert (capture, heldout, library, twin_dir) == (root / "train", root / "heldout", work / "library", work / "twin")

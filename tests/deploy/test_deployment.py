@@ -23,7 +23,13 @@ DATA, SPOOL = "/var/lib/cadsplat", "/var/spool/cadsplat"  # the data disk and th
 def render_unit(path: Path, data: Path, spool: Path, rig_toml: Path) -> dict[str, list[str]]:
     """A unit's keys (each a list of its values), with Environment's CADSPLAT_DATA set to `data` and expanded
     as systemd does in ExecStart; `spool` and `rig_toml` stand in for the system paths the units name."""
-    text = path.read_text().replace("\\\n", " ").replace(DATA, str(data)).replace(SPOOL, str(spool)).replace("/etc/cadsplat/rig.toml", str(rig_toml))
+    text = (
+        path.read_text()
+        .replace("\\\n", " ")
+        .replace(DATA, str(data))
+        .replace(SPOOL, str(spool))
+        .replace("/etc/cadsplat/rig.toml", str(rig_toml))
+    )
     keys: dict[str, list[str]] = {}
     for line in text.splitlines():
         if "=" in line and not line.lstrip().startswith(("#", "[")):
@@ -78,8 +84,12 @@ def test_the_units_and_the_example_rig_toml_share_one_data_layout(deployed):
     assert option(argv(rig), "--config") == option(argv(kiosk), "--config")
     # The spill is off the data disk, and every unit may write what it writes.
     assert spill is not None and not spill.is_relative_to(data)
-    for unit, paths in ((rig, [store, spill]), (kiosk, [store, spill, option(argv(kiosk), "--work")]),
-                        (pipeline, [option(argv(pipeline), "--work")]), (check, [option(argv(check), "--calibration")])):
+    for unit, paths in (
+        (rig, [store, spill]),
+        (kiosk, [store, spill, option(argv(kiosk), "--work")]),
+        (pipeline, [option(argv(pipeline), "--work")]),
+        (check, [option(argv(check), "--calibration")]),
+    ):
         assert all(writable(unit, p) for p in paths), (unit["Description"], paths, unit.get("ReadWritePaths"))
     # The kiosk runs the rig and its own pipeline: starting it stops the rig and pipeline services.
     conflicts = " ".join(kiosk["Conflicts"]).split()
@@ -94,10 +104,39 @@ def test_the_documented_flow_makes_a_twin_in_the_rendered_layout(deployed, libra
     from reconstruction import presets
 
     data, _, cfg, units = deployed
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "rig", "watch", "--simulate", "--store", str(cfg.storage.root),
-                        "--spill", str(cfg.storage.spill), "--trigger", "can", "--rate", "3", "--max-captures", "1",
-                        "--views", "4", "--size", "128", "96", "--min-free-gb", "0"],
-                       capture_output=True, text=True, check=False, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deploy.cli",
+            "rig",
+            "watch",
+            "--simulate",
+            "--store",
+            str(cfg.storage.root),
+            "--spill",
+            str(cfg.storage.spill),
+            "--trigger",
+            "can",
+            "--rate",
+            "3",
+            "--max-captures",
+            "1",
+            "--views",
+            "4",
+            "--size",
+            "128",
+            "96",
+            "--min-free-gb",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        cwd=REPO,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     shutil.copytree(library, data / "library")  # `cadsplat library build ... --out ${CADSPLAT_DATA}/library`
     original = presets.resolve_preset

@@ -14,8 +14,8 @@ from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
 from deploy.cli import main
 from reconstruction.evaluation import METRIC_KEYS
-from reconstruction.symmetry import rotation_about
 from reconstruction.mesh_io import MeshParts
+from reconstruction.symmetry import rotation_about
 from reconstruction.twin import save_twin
 from tests.reconstruction.test_evaluation import make_twin, orbit_camera, photograph, shifted
 
@@ -50,8 +50,20 @@ def _digest(path):
 def test_evaluate_writes_metrics_per_view_and_averaged(scene, capsys):
     before = _digest(scene / "twin")
     out = scene / "metrics.json"
-    rc = main(["evaluate", str(scene / "twin"), "--views", str(scene / "heldout"), "--out", str(out),
-               "--refine-steps", "8", "--gt", str(scene / "gt.json")])
+    rc = main(
+        [
+            "evaluate",
+            str(scene / "twin"),
+            "--views",
+            str(scene / "heldout"),
+            "--out",
+            str(out),
+            "--refine-steps",
+            "8",
+            "--gt",
+            str(scene / "gt.json"),
+        ]
+    )
     assert rc == 0
     doc = json.loads(out.read_text())
     assert doc["num_views"] == 3 and doc["refine_steps"] == 8 and doc["num_splats"] == 1200
@@ -74,21 +86,39 @@ def test_evaluate_writes_metrics_per_view_and_averaged(scene, capsys):
 
 def test_evaluate_max_views_without_refinement(scene, tmp_path):
     out = tmp_path / "m.json"
-    assert main(["evaluate", str(scene / "twin"), "--views", str(scene / "heldout"), "--out", str(out),
-                 "--refine-steps", "0", "--max-views", "2"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                str(scene / "twin"),
+                "--views",
+                str(scene / "heldout"),
+                "--out",
+                str(out),
+                "--refine-steps",
+                "0",
+                "--max-views",
+                "2",
+            ]
+        )
+        == 0
+    )
     doc = json.loads(out.read_text())
     assert [v["name"] for v in doc["views"]] == ["orbit00", "orbit02"]
     assert "mean_refined" not in doc and "metrics_refined" not in doc["views"][0]
 
 
-@pytest.mark.parametrize("case, fragment", [
-    ("no_twin", "twin.json"),
-    ("no_views", "transforms.json"),
-    ("bad_gt", "--gt"),
-    ("out_is_dir", "is a directory"),
-    ("symmetry_without_gt", "need --gt"),
-    ("near_symmetries_without_cad", "mesh_cad.glb"),
-])
+@pytest.mark.parametrize(
+    "case, fragment",
+    [
+        ("no_twin", "twin.json"),
+        ("no_views", "transforms.json"),
+        ("bad_gt", "--gt"),
+        ("out_is_dir", "is a directory"),
+        ("symmetry_without_gt", "need --gt"),
+        ("near_symmetries_without_cad", "mesh_cad.glb"),
+    ],
+)
 def test_evaluate_bad_input_is_one_sentence(scene, tmp_path, capsys, case, fragment):
     twin, views, out = scene / "twin", scene / "heldout", tmp_path / "m.json"
     extra: list[str] = []
@@ -123,8 +153,18 @@ def test_evaluate_forgives_a_turn_the_cad_model_cannot_show(scene, tmp_path, cap
     turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi, np.array([0.02, 0.0, 0.0]))
     truth = turn @ twin.cameras[0].c2w_object_opencv  # the camera sees the object turned by `turn`
     (tmp_path / "gt.json").write_text(json.dumps({"train_c2w_object": [truth.tolist()]}))
-    args = ["evaluate", str(tmp_path / "twin"), "--views", str(scene / "heldout"), "--refine-steps", "0", "--max-views", "1",
-            "--gt", str(tmp_path / "gt.json")]
+    args = [
+        "evaluate",
+        str(tmp_path / "twin"),
+        "--views",
+        str(scene / "heldout"),
+        "--refine-steps",
+        "0",
+        "--max-views",
+        "1",
+        "--gt",
+        str(tmp_path / "gt.json"),
+    ]
     assert main([*args, "--out", str(tmp_path / "raw.json")]) == 0
     assert json.loads((tmp_path / "raw.json").read_text())["registration"]["rotation_deg_median"] == pytest.approx(180.0)
     assert main([*args, "--out", str(tmp_path / "sym.json"), "--near-symmetries", "3"]) == 0

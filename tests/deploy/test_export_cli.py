@@ -195,7 +195,9 @@ def test_mjcf_density_from_rig_toml_unless_a_flag_says_otherwise(twin_dir, tmp_p
     assert main(["export", str(twin_dir), "--format", "mjcf", "--out", str(tmp_path / "a"), "--rig", str(rig)]) == 0
     body = json.loads((tmp_path / "a" / "manifest.json").read_text())["bodies"][0]
     assert body["density"] == {"kg_m3": 2700.0, "material": "aluminium", "source": "rig.toml"}
-    assert body["mass_kg"] == pytest.approx(2700.0 * body["volume_m3"]) and body["volume_m3"] == pytest.approx(0.14 * 0.02 * 0.016 + 0.03 * 0.07 * 0.024)
+    assert body["mass_kg"] == pytest.approx(2700.0 * body["volume_m3"]) and body["volume_m3"] == pytest.approx(
+        0.14 * 0.02 * 0.016 + 0.03 * 0.07 * 0.024
+    )
     assert len(body["principal_inertia_kg_m2"]) == 3 and body["collision"]["hausdorff_m"] > 0
     assert main(["export", str(twin_dir), "--format", "mjcf", "--out", str(tmp_path / "b"), "--rig", str(rig), "--density", "900"]) == 0
     assert json.loads((tmp_path / "b" / "manifest.json").read_text())["bodies"][0]["density"]["source"] == "flag"

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
 from calibration.calibfile import CalibrationDoc, CalibrationStore
+from calibration.camera import Camera
 from calibration.keeper import Keeper
 from deploy.commands.store import verify_store
 from deploy.jobs import STEPS
@@ -101,7 +101,9 @@ def test_erofs_at_every_write_site_holds_the_frames_until_the_store_is_writable(
         outs, _ = _run_rig(root, FaultyDisk(root, fail_at=n, errno_=errno.EROFS, persistent=True), heal=True)
         statuses = [o.status for o in outs]
         held += statuses.count("held")
-        assert "failed" not in statuses and statuses.count("held") == sum(1 for o in outs if o.status == "committed" and "written after" in o.reason)
+        assert "failed" not in statuses and statuses.count("held") == sum(
+            1 for o in outs if o.status == "committed" and "written after" in o.reason
+        )
         assert all("\n" not in o.reason for o in outs)
         settled = [o for o in outs if o.status != "held"]
         _assert_nothing_lost(root, settled)
@@ -231,8 +233,15 @@ def test_enospc_at_every_write_site_of_the_service_stops_then_resumes(tmp_path):
         disk = FaultyDisk(work, fail_at=n, persistent=True)
         with disk.active():
             try:
-                svc = PipelineService(tmp_path / "store", work, _Steps(), min_free_bytes=1 << 20, resume_margin_bytes=1 << 20,
-                                      free_bytes=lambda _p: free["b"], on_event=events.append)
+                svc = PipelineService(
+                    tmp_path / "store",
+                    work,
+                    _Steps(),
+                    min_free_bytes=1 << 20,
+                    resume_margin_bytes=1 << 20,
+                    free_bytes=lambda _p: free["b"],
+                    on_event=events.append,
+                )
             except (RuntimeError, OSError) as e:  # the work dir or job store could not be created: one sentence, at start
                 assert "\n" not in str(e) and ("cannot open the job store" in str(e) or "No space left" in str(e))
                 continue

@@ -12,8 +12,8 @@ from calibration.camera import look_at_c2w
 from calibration.fileio import sha256_file
 from calibration.sim3 import Sim3
 from deploy.cli import main
-from reconstruction.splats import init_splats
 from reconstruction.mesh_io import MeshParts
+from reconstruction.splats import init_splats
 from reconstruction.twin import Twin, TwinCamera, save_twin
 
 
@@ -45,12 +45,25 @@ def make_twin(root, name, deformed: MeshParts | None, elevations=(-35.0, 35.0)):
     k = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
     centre = np.array([0.02, 0.0, 0.0])
     for el in np.radians(elevations):
-        for i, az in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False)):
+        for az in np.linspace(0, 2 * np.pi, 6, endpoint=False):
             eye = centre + 0.4 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
             cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", k, 640, 480, look_at_c2w(eye, centre)))
-    twin = Twin(model_id="ball_and_peg", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=cams,
-                preset="test", choices={}, timings_s={}, losses={}, gaussians=s.gaussians, means_canonical=s.means, face_index=s.face_index,
-                barycentrics=s.barycentrics, part_label=s.part_label, part_names=parts.part_names)
+    twin = Twin(
+        model_id="ball_and_peg",
+        sim3_rig_to_object_init=Sim3.identity(),
+        sim3_rig_to_object=Sim3.identity(),
+        cameras=cams,
+        preset="test",
+        choices={},
+        timings_s={},
+        losses={},
+        gaussians=s.gaussians,
+        means_canonical=s.means,
+        face_index=s.face_index,
+        barycentrics=s.barycentrics,
+        part_label=s.part_label,
+        part_names=parts.part_names,
+    )
     return save_twin(twin, root / name, mesh_cad=parts, mesh_deformed=deformed)
 
 
@@ -154,8 +167,11 @@ def test_the_job_record_and_the_history_carry_the_verdict_per_part_id(tmp_path, 
     assert inspect_step(work, PipelineConfig("unused-library", inspection_tolerance_mm=5.0)) == record
 
     store = JobStore(tmp_path / "jobs.sqlite")
-    outputs = [("cap-0001", "ball_and_peg", record), ("cap-0002", "ball_and_peg", {**record, "status": "PASS", "line": "PASS max 0.3 mm (tolerance 1 mm)"}),
-               ("cap-0003", "bracket", {**record, "status": "UNCERTAIN", "line": "UNCERTAIN 40 % of the surface unseen"})]
+    outputs = [
+        ("cap-0001", "ball_and_peg", record),
+        ("cap-0002", "ball_and_peg", {**record, "status": "PASS", "line": "PASS max 0.3 mm (tolerance 1 mm)"}),
+        ("cap-0003", "bracket", {**record, "status": "UNCERTAIN", "line": "UNCERTAIN 40 % of the surface unseen"}),
+    ]
     for i, (capture, model, insp) in enumerate(outputs, 1):
         store.add(capture, tmp_path / capture)
         store.claim_next()
@@ -177,7 +193,9 @@ def test_the_kiosk_shows_the_part_verdict():
     from deploy.kiosk_state import ApplianceState, Verdict
 
     line = "FAIL part 'ball' -2.0 mm at (0.0, -38.0, 0.0) mm"
-    screen = render_work(ApplianceState(last_twin=Verdict("cap-0001", "ball_and_peg", 0.9, 0.95, "Good", "Twin is ready to use.", "", line)))
+    screen = render_work(
+        ApplianceState(last_twin=Verdict("cap-0001", "ball_and_peg", 0.9, 0.95, "Good", "Twin is ready to use.", "", line))
+    )
     assert f"PART {line}" in screen and max(len(s) for s in screen.splitlines()) <= 78
     assert "PART" not in render_work(ApplianceState(last_twin=Verdict("c", "m", 0.9, 0.95, "Good", "ok")))
 
@@ -190,8 +208,12 @@ def test_rig_toml_turns_inspection_on():
     cfg = parse_config({**cams, "inspection": {"tolerance_mm": 0.5}})
     assert (cfg.inspection.tolerance_mm, cfg.inspection.max_unseen_pct) == (0.5, None)
     assert parse_config({**cams, "inspection": {"tolerance_mm": 1, "max_unseen_pct": 30}}).inspection.max_unseen_pct == 30.0
-    for bad, message in [({}, "inspection.tolerance_mm is required"), ({"tolerance_mm": 0}, "inspection.tolerance_mm must be"),
-                         ({"tolerance_mm": 1, "max_unseen_pct": 120}, "inspection.max_unseen_pct"), ({"tolerance_mm": 1, "tol": 2}, "unknown key")]:
+    for bad, message in [
+        ({}, "inspection.tolerance_mm is required"),
+        ({"tolerance_mm": 0}, "inspection.tolerance_mm must be"),
+        ({"tolerance_mm": 1, "max_unseen_pct": 120}, "inspection.max_unseen_pct"),
+        ({"tolerance_mm": 1, "tol": 2}, "unknown key"),
+    ]:
         with pytest.raises(ConfigError, match=message):
             parse_config({**cams, "inspection": bad})
 
@@ -202,9 +224,11 @@ def test_a_synthetic_dent_fails_at_its_place_and_the_undented_part_passes(tmp_pa
     at about -1.6 mm is never passed at a 1.5 mm tolerance (FAIL, or UNCERTAIN naming it when its uncertainty reaches
     the tolerance); the undented part, read at about 1 mm +-0.7, is never failed (PASS, or UNCERTAIN near the tolerance)."""
     from benchmarks.bench_dent import run
-    from deploy.commands.inspect import DEFAULT_MAX_UNSEEN_PCT
+    from deploy.inspection_report import DEFAULT_MAX_UNSEEN_PCT
 
-    res = run(tmp_path, preset="cpu", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None)
+    res = run(
+        tmp_path, preset="cpu", depth_mm=2.0, radius_mm=8.0, tolerance_mm=1.5, max_unseen_pct=DEFAULT_MAX_UNSEEN_PCT, log=lambda *_: None
+    )
     assert res["nominal"]["exit_code"] in (0, 4), res["nominal"]["line"]
     assert res["dented"]["exit_code"] in (1, 4) and res["dented"]["distance_to_dent_mm"] < 8.0, res["dented"]["line"]
 
@@ -213,8 +237,12 @@ def test_the_benchmark_dent_pushes_in_by_its_depth_and_keeps_the_obj_texture():
     from benchmarks.bench_dent import dent, read_obj_positions, write_obj_positions
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.04)
-    text = "mtllib textured.mtl\n" + "".join(f"v {x} {y} {z}\nvt 0.5 0.5\n" for x, y, z in ball.vertices) + "vn 0 0 1\n" + \
-        "".join(f"f {a + 1}/{a + 1}/1 {b + 1}/{b + 1}/1 {c + 1}/{c + 1}/1\n" for a, b, c in ball.faces)
+    text = (
+        "mtllib textured.mtl\n"
+        + "".join(f"v {x} {y} {z}\nvt 0.5 0.5\n" for x, y, z in ball.vertices)
+        + "vn 0 0 1\n"
+        + "".join(f"f {a + 1}/{a + 1}/1 {b + 1}/{b + 1}/1 {c + 1}/{c + 1}/1\n" for a, b, c in ball.faces)
+    )
     v, f = read_obj_positions(text)
     np.testing.assert_allclose(v, ball.vertices)
     top = int(np.argmax(v[:, 2]))
@@ -248,8 +276,20 @@ def test_the_capture_masks_refine_the_map_and_a_capture_without_the_twins_views_
         cv2.imwrite(str(capture / "masks" / name), (255 * mask).astype(np.uint8))
         cv2.imwrite(str(capture / "images" / name), np.full((cam.height, cam.width, 3), 128, np.uint8))
         gl = cam.c2w_object_opencv @ np.diag([1.0, -1.0, -1.0, 1.0])
-        frames.append({"file_path": cam.file_path, "mask_path": f"masks/{name}", "transform_matrix": gl.tolist(), "camera_id": cam.camera_id,
-                       "fl_x": cam.K[0, 0], "fl_y": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2], "w": cam.width, "h": cam.height})
+        frames.append(
+            {
+                "file_path": cam.file_path,
+                "mask_path": f"masks/{name}",
+                "transform_matrix": gl.tolist(),
+                "camera_id": cam.camera_id,
+                "fl_x": cam.K[0, 0],
+                "fl_y": cam.K[1, 1],
+                "cx": cam.K[0, 2],
+                "cy": cam.K[1, 2],
+                "w": cam.width,
+                "h": cam.height,
+            }
+        )
     (capture / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames, "cadsplat": {"units": "m"}}))
     out = tmp_path / "report"
     assert main(["inspect", str(twin), "--out", str(out), "--turntable", "0", "--tolerance", "2", "--capture", str(capture)]) == 0

@@ -18,8 +18,11 @@ def test_rig_watch_killed_at_random_points_loses_no_reported_capture(tmp_path):
     rng = random.Random(16)
     committed: list[str] = []
     for _ in range(3):
-        out, killed = run_until_killed(cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "6", "--store", str(store), *SMALL),
-                                       rng.uniform(0.0, 1.5), ready=("reference", "committed"))
+        out, killed = run_until_killed(
+            cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "6", "--store", str(store), *SMALL),
+            rng.uniform(0.0, 1.5),
+            ready=("reference", "committed"),
+        )
         assert killed
         committed += reported(out)
         store_after_kill(store, committed)
@@ -36,12 +39,29 @@ def test_service_run_killed_at_random_points_finishes_every_job(tmp_path):
     from reconstruction.library import build_library
 
     store, work, lib = tmp_path / "S", tmp_path / "W", tmp_path / "L"
-    out, _ = run_until_killed(cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "4", "--max-captures", "1",
-                                       "--store", str(store), *SMALL), 300)
+    out, _ = run_until_killed(
+        cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "4", "--max-captures", "1", "--store", str(store), *SMALL), 300
+    )
     assert len(reported(out)) == 1
     build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
-    run = cadsplat("service", "run", "--store", str(store), "--work", str(work), "--library", str(lib), "--preset", "preview",
-                   "--poll", "0.2", "--min-free-gb", "0", "--max-jobs", "1")
+    run = cadsplat(
+        "service",
+        "run",
+        "--store",
+        str(store),
+        "--work",
+        str(work),
+        "--library",
+        str(lib),
+        "--preset",
+        "preview",
+        "--poll",
+        "0.2",
+        "--min-free-gb",
+        "0",
+        "--max-jobs",
+        "1",
+    )
     rng = random.Random(16)
     for _ in range(2):
         run_until_killed(run, rng.uniform(3.0, 12.0))

@@ -75,8 +75,12 @@ def test_disk_full_is_a_state_on_screen_and_in_the_rig_log(capsys):
     assert text.splitlines()[0] == "RIG STOPPED: disk full"
     ev = lambda seq: TriggerEvent(seq, "can", 0)  # noqa: E731
     why = "STOPPED: disk full: no room to reserve 0.1 MB for the next capture; captures resume when space is freed"
-    for out in (Outcome("refused", ev(7), reason=why, state_change="stopped"), Outcome("refused", ev(8), reason=why),
-                Outcome("refused", ev(9), reason=why), Outcome("committed", ev(10), "000004-x", state_change="resumed")):
+    for out in (
+        Outcome("refused", ev(7), reason=why, state_change="stopped"),
+        Outcome("refused", ev(8), reason=why),
+        Outcome("refused", ev(9), reason=why),
+        Outcome("committed", ev(10), "000004-x", state_change="resumed"),
+    ):
         _report(out)
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 3 and lines[0].startswith("STOPPED: disk full") and "trigger 7 and those after it" in lines[0]

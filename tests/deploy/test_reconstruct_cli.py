@@ -40,15 +40,37 @@ def short_preview():
 
 def test_reconstruct_render_export(tmp_path, library, short_preview, capsys):
     twin_dir = tmp_path / "twin"
-    rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(twin_dir), "--preset", "preview",
-               "--views", "0,2,4,6,8"])
+    rc = main(
+        [
+            "reconstruct",
+            str(SAMPLE / "train"),
+            "--library",
+            str(library),
+            "--out",
+            str(twin_dir),
+            "--preset",
+            "preview",
+            "--views",
+            "0,2,4,6,8",
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "Twin of 'medium_clamp_cad'" in out
     twin = load_twin(twin_dir)
     assert twin.model_id == "medium_clamp_cad" and len(twin.cameras) == 5 and twin.preset == "preview"
     doc = json.loads((twin_dir / "twin.json").read_text())
-    for key in ("model_id", "sim3_rig_to_object_init", "sim3_rig_to_object", "cameras", "preset", "choices", "timings_s", "losses", "versions"):
+    for key in (
+        "model_id",
+        "sim3_rig_to_object_init",
+        "sim3_rig_to_object",
+        "cameras",
+        "preset",
+        "choices",
+        "timings_s",
+        "losses",
+        "versions",
+    ):
         assert key in doc
     assert {"num_splats", "sh_degree", "pose_mode", "sh_init", "iterations"} <= set(doc["choices"])
     assert all(np.isfinite(v) for v in doc["timings_s"].values())
@@ -80,8 +102,22 @@ def test_sphere_init_and_ablation_switches(tmp_path, short_preview, capsys):
     """The paper's baselines run through the engine itself: no library is read for the sphere, and the
     ablation leaves the registration's pose untouched."""
     twin_dir = tmp_path / "sphere"
-    rc = main(["reconstruct", str(SAMPLE / "train"), "--init", "sphere", "--ablate", "no-pose", "--out", str(twin_dir),
-               "--preset", "preview", "--views", "0,2,4,6,8"])
+    rc = main(
+        [
+            "reconstruct",
+            str(SAMPLE / "train"),
+            "--init",
+            "sphere",
+            "--ablate",
+            "no-pose",
+            "--out",
+            str(twin_dir),
+            "--preset",
+            "preview",
+            "--views",
+            "0,2,4,6,8",
+        ]
+    )
     assert rc == 0, capsys.readouterr()
     twin = load_twin(twin_dir)
     assert twin.model_id == "sphere" and twin.choices["init"]["value"] == "sphere"
@@ -93,6 +129,7 @@ def test_sphere_init_and_ablation_switches(tmp_path, short_preview, capsys):
     assert 0.2 < twin.choices["registration"]["value"]["score"] < 1.0  # area-matched, so it overlaps the clamp, but is no clamp
     assert main(["reconstruct", str(SAMPLE / "train"), "--out", str(tmp_path / "t")]) != 0
     assert "--library is required" in capsys.readouterr().err
+
 
 def test_bad_input_is_one_sentence(tmp_path, library, capsys):
     assert main(["reconstruct", str(tmp_path / "nope"), "--library", str(library), "--out", str(tmp_path / "t")]) != 0
@@ -141,12 +178,22 @@ def test_all_white_masks_are_refused_not_a_confident_wrong_twin(tmp_path, librar
     from calibration.capture import FrameData, write_capture
 
     cap = read_capture(SAMPLE / "train")
-    frames = [FrameData(Path(cap.frames[i].file_path).stem, (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
-                        cap.camera(i, undistorted=False), cap.frames[i].camera_id, None, np.ones((cap.frames[i].camera.height, cap.frames[i].camera.width), bool))
-              for i in (0, 2, 4, 6)]
+    frames = [
+        FrameData(
+            Path(cap.frames[i].file_path).stem,
+            (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
+            cap.camera(i, undistorted=False),
+            cap.frames[i].camera_id,
+            None,
+            np.ones((cap.frames[i].camera.height, cap.frames[i].camera.width), bool),
+        )
+        for i in (0, 2, 4, 6)
+    ]
     white = write_capture(tmp_path / "white", frames).root
-    for argv in (["reconstruct", str(white), "--library", str(library), "--out", str(tmp_path / "twin"), "--preset", "preview"],
-                 ["register", str(white), "--library", str(library), "--out", str(tmp_path / "reg.json")]):
+    for argv in (
+        ["reconstruct", str(white), "--library", str(library), "--out", str(tmp_path / "twin"), "--preset", "preview"],
+        ["register", str(white), "--library", str(library), "--out", str(tmp_path / "reg.json")],
+    ):
         assert main(argv) != 0
         err = capsys.readouterr().err.strip()
         assert err.startswith("Error: masks refused: view 0 (") and "covers 100% of the image" in err and len(err.splitlines()) == 1
@@ -167,8 +214,22 @@ def test_reconstruct_uses_a_register_output_as_given(tmp_path, library, reg_json
 
     monkeypatch.setattr("reconstruction.registration.register", no_second_registration)
     capsys.readouterr()
-    rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--registration", str(reg_json), "--out", str(tmp_path / "twin"),
-               "--preset", "preview", "--views", "0,2,4,6,8"])
+    rc = main(
+        [
+            "reconstruct",
+            str(SAMPLE / "train"),
+            "--library",
+            str(library),
+            "--registration",
+            str(reg_json),
+            "--out",
+            str(tmp_path / "twin"),
+            "--preset",
+            "preview",
+            "--views",
+            "0,2,4,6,8",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     twin = load_twin(tmp_path / "twin")
     reg = json.loads(reg_json.read_text())
@@ -190,17 +251,37 @@ def test_a_registration_of_another_capture_or_library_is_refused_in_one_sentence
 
     train, held = read_capture(SAMPLE / "train"), read_capture(SAMPLE / "heldout")
     # Another capture of the rig: as many views, named alike, other photographs and poses.
-    frames = [FrameData(Path(train.frames[i].file_path).stem, (held.image(i, undistort=False) * 255).round().astype(np.uint8),
-                        held.camera(i, undistorted=False), train.frames[i].camera_id, None, held.mask(i, undistort=False))
-              for i in range(len(train))]
+    frames = [
+        FrameData(
+            Path(train.frames[i].file_path).stem,
+            (held.image(i, undistort=False) * 255).round().astype(np.uint8),
+            held.camera(i, undistorted=False),
+            train.frames[i].camera_id,
+            None,
+            held.mask(i, undistort=False),
+        )
+        for i in range(len(train))
+    ]
     other = write_capture(tmp_path / "other", frames, meta={"units": "m"}).root
     fewer = write_capture(tmp_path / "fewer", frames[:4], meta={"units": "m"}).root
     meshes = tmp_path / "meshes"
     meshes.mkdir()
     (meshes / "medium_clamp_cad.ply").write_bytes((SAMPLE / "library_meshes" / "scissors.ply").read_bytes())
     build_library(meshes, tmp_path / "otherlib", progress=False, log=lambda _m: None)
+
     def run(capture, lib, reg=reg_json):
-        return ["reconstruct", str(capture), "--library", str(lib), "--registration", str(reg), "--out", str(tmp_path / "twin"), "--preset", "preview"]
+        return [
+            "reconstruct",
+            str(capture),
+            "--library",
+            str(lib),
+            "--registration",
+            str(reg),
+            "--out",
+            str(tmp_path / "twin"),
+            "--preset",
+            "preview",
+        ]
 
     capsys.readouterr()
     assert "was made from another capture than the one at" in _refused(run(other, library), capsys)
@@ -214,13 +295,29 @@ def test_a_registration_of_another_capture_or_library_is_refused_in_one_sentence
 
 def test_a_malformed_registration_is_refused_in_one_sentence(tmp_path, library, reg_json, capsys):
     doc = json.loads(reg_json.read_text())
-    cases = {"garbage.json": "not json {", "list.json": "[1, 2]", "empty.json": "{}",
-             "noscale.json": json.dumps({k: v for k, v in doc.items() if k != "scale"}),
-             "badsim3.json": json.dumps({**doc, "sim3_rig_to_object": {**doc["sim3_rig_to_object"], "scale": -1}})}
+    cases = {
+        "garbage.json": "not json {",
+        "list.json": "[1, 2]",
+        "empty.json": "{}",
+        "noscale.json": json.dumps({k: v for k, v in doc.items() if k != "scale"}),
+        "badsim3.json": json.dumps({**doc, "sim3_rig_to_object": {**doc["sim3_rig_to_object"], "scale": -1}}),
+    }
     capsys.readouterr()
     for name, text in cases.items():
         (tmp_path / name).write_text(text)
-        err = _refused(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--registration", str(tmp_path / name), "--out", str(tmp_path / "twin")], capsys)
+        err = _refused(
+            [
+                "reconstruct",
+                str(SAMPLE / "train"),
+                "--library",
+                str(library),
+                "--registration",
+                str(tmp_path / name),
+                "--out",
+                str(tmp_path / "twin"),
+            ],
+            capsys,
+        )
         assert "is not a registration document" in err, err
     assert not (tmp_path / "twin").exists()
 
@@ -234,8 +331,9 @@ def portrait(frame: FrameData) -> FrameData:
     c2w = cam.c2w.copy()
     c2w[:3, :3] = cam.c2w[:3, :3] @ turn.T
     camera = Camera(k, cam.height, cam.width, cam.dist, c2w)
-    return replace(frame, image=np.ascontiguousarray(np.rot90(frame.image, -1)), camera=camera,
-                   mask=np.ascontiguousarray(np.rot90(frame.mask, -1)))
+    return replace(
+        frame, image=np.ascontiguousarray(np.rot90(frame.image, -1)), camera=camera, mask=np.ascontiguousarray(np.rot90(frame.mask, -1))
+    )
 
 
 def test_photos_of_mixed_sizes_train_together(tmp_path, library, short_preview, capsys):
@@ -261,8 +359,25 @@ def test_photos_of_mixed_sizes_train_together(tmp_path, library, short_preview, 
 def test_like_trains_a_twin_again_from_its_own_record(tmp_path, library, short_preview, capsys):
     """`--like TWIN` takes the recorded configuration, seed, views and registration: the same twin again."""
     first = tmp_path / "first"
-    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(first), "--preset", "preview",
-                 "--views", "1,4,7", "--seed", "3"]) == 0, capsys.readouterr().err
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(SAMPLE / "train"),
+                "--library",
+                str(library),
+                "--out",
+                str(first),
+                "--preset",
+                "preview",
+                "--views",
+                "1,4,7",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    ), capsys.readouterr().err
     capsys.readouterr()
     again = tmp_path / "again"
     rc = main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(again), "--like", str(first)])
@@ -277,8 +392,23 @@ def test_like_trains_a_twin_again_from_its_own_record(tmp_path, library, short_p
         assert b.losses[stage]["total_last_window"] == pytest.approx(a.losses[stage]["total_last_window"], rel=1e-5)
     assert {k: v["value"] for k, v in b.choices.items() if k in a.config} == {k: v["value"] for k, v in a.choices.items() if k in a.config}
     capsys.readouterr()
-    assert main(["reconstruct", str(SAMPLE / "train"), "--library", str(library), "--out", str(tmp_path / "x"), "--like", str(first),
-                 "--views", "0,1"]) != 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(SAMPLE / "train"),
+                "--library",
+                str(library),
+                "--out",
+                str(tmp_path / "x"),
+                "--like",
+                str(first),
+                "--views",
+                "0,1",
+            ]
+        )
+        != 0
+    )
     assert "--like takes the configuration" in capsys.readouterr().err
 
 
@@ -298,9 +428,29 @@ def test_a_planted_checkpoint_that_would_run_code_is_refused_not_run(tmp_path, l
     (tmp_path / ".twin.checkpoint.pt").write_bytes(pickle.dumps({"fingerprint": Payload()}))
     repo = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(repo)}
-    out = subprocess.run([sys.executable, "-m", "deploy.cli", "reconstruct", str(SAMPLE / "train"), "--library", str(library),
-                          "--out", str(tmp_path / "twin"), "--preset", "preview", "--views", "0,3,6"],
-                         capture_output=True, text=True, env=env, cwd=repo, timeout=900, check=False)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deploy.cli",
+            "reconstruct",
+            str(SAMPLE / "train"),
+            "--library",
+            str(library),
+            "--out",
+            str(tmp_path / "twin"),
+            "--preset",
+            "preview",
+            "--views",
+            "0,3,6",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=repo,
+        timeout=900,
+        check=False,
+    )
     assert out.returncode != 0 and not marker.exists()
     err = out.stderr.strip()
     assert "Traceback" not in err and len(err.splitlines()) == 1, err

@@ -33,7 +33,9 @@ def world(tmp_path_factory):
     trimesh.util.concatenate(parts).export(meshes / "bracket.stl")
     trimesh.creation.cylinder(0.02, 0.15, sections=32).export(meshes / "rod.stl")
     (meshes / "broken.stl").write_bytes(b"solid nothing\nendsolid nothing\n")
-    gt = synth_dataset(meshes / "bracket.stl", root / "scene", views=9, heldout=0, size=(240, 180), seed=4, calib_noise_deg=0.3, calib_noise_mm=2.0)
+    gt = synth_dataset(
+        meshes / "bracket.stl", root / "scene", views=9, heldout=0, size=(240, 180), seed=4, calib_noise_deg=0.3, calib_noise_mm=2.0
+    )
     return root, gt
 
 
@@ -113,7 +115,11 @@ def test_register_a_capture_of_mixed_sizes(world, tmp_path):
     cap = read_capture(root / "scene" / "train")
     frames = []
     for i, f in enumerate(cap.frames):
-        image, mask, cam = (cap.image(i, undistort=False) * 255).round().astype(np.uint8), cap.mask(i, undistort=False), cap.camera(i, undistorted=False)
+        image, mask, cam = (
+            (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
+            cap.mask(i, undistort=False),
+            cap.camera(i, undistorted=False),
+        )
         if i == 0:
             image = cv2.resize(image, (2 * cam.width, 2 * cam.height), interpolation=cv2.INTER_LINEAR)
             mask = cv2.resize(mask.astype(np.uint8), (2 * cam.width, 2 * cam.height), interpolation=cv2.INTER_NEAREST) > 0

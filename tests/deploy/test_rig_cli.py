@@ -32,8 +32,14 @@ def _committed(stdout: str) -> list[str]:
 def watching(store: Path, *args: str):
     """`rig watch --simulate` on `store` (a subprocess), yielded once it has committed its first capture; on exit it
     is stopped with SIGTERM and `.result` holds (returncode, stdout, stderr)."""
-    proc = subprocess.Popen(_cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--store", str(store), *(args or ("--rate", "4", *SMALL))),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=REPO)
+    proc = subprocess.Popen(
+        _cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--store", str(store), *(args or ("--rate", "4", *SMALL))),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+    )
     lines = []
     try:
         deadline = time.monotonic() + 180
@@ -52,8 +58,14 @@ def watching(store: Path, *args: str):
 
 def test_watch_simulate_can_ends_after_max_captures(tmp_path):
     store = tmp_path / "store"
-    r = subprocess.run(_cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "3", "--max-captures", "2", "--store", str(store), *SMALL),
-                       capture_output=True, text=True, env=_env(), cwd=REPO, timeout=180)
+    r = subprocess.run(
+        _cadsplat("rig", "watch", "--simulate", "--trigger", "can", "--rate", "3", "--max-captures", "2", "--store", str(store), *SMALL),
+        capture_output=True,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+        timeout=180,
+    )
     assert r.returncode == 0, r.stderr
     ids = _committed(r.stdout)
     assert len(ids) == 2 and assert_store_sound(store, ids) == sorted(ids)
@@ -62,8 +74,14 @@ def test_watch_simulate_can_ends_after_max_captures(tmp_path):
 
 def test_watch_simulate_serial_stops_cleanly_on_sigterm(tmp_path):
     store = tmp_path / "store"
-    proc = subprocess.Popen(_cadsplat("rig", "watch", "--simulate", "--trigger", "serial", "--rate", "4", "--store", str(store), *SMALL),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=REPO)
+    proc = subprocess.Popen(
+        _cadsplat("rig", "watch", "--simulate", "--trigger", "serial", "--rate", "4", "--store", str(store), *SMALL),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+    )
     lines = []
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -84,7 +102,14 @@ def test_capture_from_config_with_pattern_cameras(tmp_path):
         'rig_id = "bench"\n[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 64\nheight = 48\n'
         '[[cameras]]\nid = "b"\ndriver = "pattern"\nwidth = 64\nheight = 48\n[storage]\nroot = "caps"\nmin_free_gb = 0\n'
     )
-    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120)
+    r = subprocess.run(
+        _cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")),
+        capture_output=True,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     ids = _committed(r.stdout)
     assert len(ids) == 1 and assert_store_sound(tmp_path / "caps", ids) == ids
@@ -94,7 +119,14 @@ def test_bad_input_is_one_sentence_and_nonzero(tmp_path):
     r = subprocess.run(_cadsplat("rig", "capture"), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=60)
     assert r.returncode != 0 and r.stderr.strip() == "Error: give --config rig.toml, or --simulate to run on the synthetic rig"
     (tmp_path / "rig.toml").write_text('[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 0\n')
-    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=60)
+    r = subprocess.run(
+        _cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")),
+        capture_output=True,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+        timeout=60,
+    )
     assert r.returncode != 0 and "cameras[0].width must be an integer" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
@@ -104,8 +136,15 @@ def test_a_second_writer_on_one_store_is_refused_naming_the_first(tmp_path):
     store = tmp_path / "store"
     with watching(store) as first:
         for argv in (("watch", "--simulate", "--rate", "4", "--max-captures", "2"), ("capture", "--simulate")):
-            r = subprocess.run(_cadsplat("rig", *argv, "--store", str(store), *SMALL), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=180,
-                               check=False)
+            r = subprocess.run(
+                _cadsplat("rig", *argv, "--store", str(store), *SMALL),
+                capture_output=True,
+                text=True,
+                env=_env(),
+                cwd=REPO,
+                timeout=180,
+                check=False,
+            )
             assert r.returncode != 0 and not _committed(r.stdout), r.stdout
             assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
             assert f"is in use by rig watch (pid {first.pid})" in r.stderr, r.stderr
@@ -124,7 +163,9 @@ def _calibrated_rig(tmp_path: Path) -> Path:
     from calibration.camera import Camera
 
     k = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
-    CalibrationStore(tmp_path / "calibration.json").commit(CalibrationDoc({c: Camera(k, 64, 48, np.zeros(0), np.eye(4)) for c in "ab"}, source="board"))
+    CalibrationStore(tmp_path / "calibration.json").commit(
+        CalibrationDoc({c: Camera(k, 64, 48, np.zeros(0), np.eye(4)) for c in "ab"}, source="board")
+    )
     (tmp_path / "rig.toml").write_text(
         'rig_id = "bench"\ncalibration = "calibration.json"\n[[cameras]]\nid = "a"\ndriver = "pattern"\nwidth = 64\nheight = 48\n'
         '[[cameras]]\nid = "b"\ndriver = "pattern"\nwidth = 64\nheight = 48\n[storage]\nroot = "caps"\nmin_free_gb = 0\n'
@@ -139,8 +180,15 @@ def test_a_calibration_in_unknown_units_stops_the_rig_at_start_in_one_sentence(t
     _calibrated_rig(tmp_path)
     doc = json.loads((tmp_path / "calibration.json").read_text())
     (tmp_path / "calibration.json").write_text(json.dumps({**doc, "units": "meters"}))
-    r = subprocess.run(_cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")), capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120,
-                       check=False)
+    r = subprocess.run(
+        _cadsplat("rig", "capture", "--config", str(tmp_path / "rig.toml")),
+        capture_output=True,
+        text=True,
+        env=_env(),
+        cwd=REPO,
+        timeout=120,
+        check=False,
+    )
     assert r.returncode != 0 and not _committed(r.stdout) and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert f"{tmp_path / 'calibration.json'}: units 'meters' is not a unit cadsplat knows (one of m, mm, cm, in" in r.stderr
     assert not (tmp_path / "caps" / "captures").exists() or not any((tmp_path / "caps" / "captures").iterdir())
@@ -156,8 +204,9 @@ def test_the_kiosk_on_the_store_of_a_running_rig_is_refused_naming_it(tmp_path):
     from rig.store import writer_holds
 
     config = _calibrated_rig(tmp_path)
-    rig = subprocess.Popen(_cadsplat("rig", "watch", "--config", str(config)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                           env=_env(), cwd=REPO)
+    rig = subprocess.Popen(
+        _cadsplat("rig", "watch", "--config", str(config)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=REPO
+    )
     try:
         deadline = time.monotonic() + 120
         while not writer_holds(tmp_path / "caps") and rig.poll() is None and time.monotonic() < deadline:

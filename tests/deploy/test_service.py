@@ -19,7 +19,9 @@ def make_captures(store: Path, n: int) -> list[Path]:
     paths = []
     for i in range(n):
         img = np.full((16, 16, 3), 100 + i, np.uint8)
-        paths.append(write_capture(store / "captures" / f"{i:06d}-20261121T000000Z", [FrameData("cam0", img, Camera(k, 16, 16), "cam0")]).root)
+        paths.append(
+            write_capture(store / "captures" / f"{i:06d}-20261121T000000Z", [FrameData("cam0", img, Camera(k, 16, 16), "cam0")]).root
+        )
     return paths
 
 
@@ -139,21 +141,72 @@ def test_readme_flow_rig_watch_then_service_run_makes_a_twin_of_every_capture(tm
     if not (REPO / "sample" / "library_meshes").exists():
         pytest.skip("the bundled sample's library meshes are absent")
     store, work, lib = tmp_path / "S", tmp_path / "W", tmp_path / "L"
-    r = subprocess.run([sys.executable, "-c", "import sys; from deploy.cli import main; sys.exit(main())", "rig", "watch", "--simulate",
-                        "--trigger", "can", "--rate", "3", "--max-captures", "2", "--store", str(store), "--views", "4",
-                        "--size", "128", "96", "--min-free-gb", "0"],
-                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=180)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from deploy.cli import main; sys.exit(main())",
+            "rig",
+            "watch",
+            "--simulate",
+            "--trigger",
+            "can",
+            "--rate",
+            "3",
+            "--max-captures",
+            "2",
+            "--store",
+            str(store),
+            "--views",
+            "4",
+            "--size",
+            "128",
+            "96",
+            "--min-free-gb",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        cwd=REPO,
+        timeout=180,
+    )
     assert r.returncode == 0, r.stderr
     ids = [line.split()[1] for line in r.stdout.splitlines() if line.startswith("committed ")]
     assert len(ids) == 2 and assert_store_sound(store, ids) == sorted(ids)
     assert r.stdout.startswith("reference reference-v0001: empty-rig frames taken")
     build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
     original = presets.resolve_preset
-    monkeypatch.setattr("reconstruction.pipeline.resolve_preset",
-                        lambda name, stats: (lambda p, c: (replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c))(*original(name, stats)))
+    monkeypatch.setattr(
+        "reconstruction.pipeline.resolve_preset",
+        lambda name, stats: (lambda p, c: (replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c))(
+            *original(name, stats)
+        ),
+    )
     capsys.readouterr()
-    assert main(["service", "run", "--store", str(store), "--work", str(work), "--library", str(lib), "--preset", "preview",
-                 "--max-jobs", "2", "--poll", "0.1", "--min-free-gb", "0"]) == 0
+    assert (
+        main(
+            [
+                "service",
+                "run",
+                "--store",
+                str(store),
+                "--work",
+                str(work),
+                "--library",
+                str(lib),
+                "--preset",
+                "preview",
+                "--max-jobs",
+                "2",
+                "--poll",
+                "0.1",
+                "--min-free-gb",
+                "0",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert out.count("job-done") == 2 and "job-failed" not in out and "job-retry" not in out, out
     jobs = JobStore(work / "jobs.sqlite").jobs()
@@ -184,7 +237,9 @@ def test_read_only_work_dir_is_one_sentence(tmp_path, capsys):
     try:
         (mnt / "W").mkdir()
         subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True, capture_output=True)
-        rc = main(["service", "run", "--store", str(tmp_path / "S"), "--work", str(mnt / "W"), "--library", str(tmp_path), "--max-jobs", "1"])
+        rc = main(
+            ["service", "run", "--store", str(tmp_path / "S"), "--work", str(mnt / "W"), "--library", str(tmp_path), "--max-jobs", "1"]
+        )
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
     err = capsys.readouterr().err.strip()
@@ -206,8 +261,15 @@ def test_full_disk_stops_the_service_without_failing_a_job_and_resumes(tmp_path)
     make_captures(tmp_path / "store", 2)
     free = {"b": 10 << 20}
     events = []
-    svc = PipelineService(tmp_path / "store", tmp_path / "work", CountingRunner(), min_free_bytes=50 << 20, resume_margin_bytes=1 << 20,
-                          free_bytes=lambda _p: free["b"], on_event=events.append)
+    svc = PipelineService(
+        tmp_path / "store",
+        tmp_path / "work",
+        CountingRunner(),
+        min_free_bytes=50 << 20,
+        resume_margin_bytes=1 << 20,
+        free_bytes=lambda _p: free["b"],
+        on_event=events.append,
+    )
     assert not svc.run_once() and not svc.run_once()
     assert svc.state.startswith("STOPPED: disk full") and [e.kind for e in events] == ["stopped"]
     free["b"] = 100 << 20
@@ -244,9 +306,13 @@ def test_a_second_service_on_one_work_dir_is_refused_and_leaves_the_running_job_
         while time.time() < deadline and not log.exists():
             time.sleep(0.05)
         assert log.read_text() == "register"
-        for argv in (["service", "status", "--work", str(work)],
-                     ["service", "run", "--store", str(store), "--work", str(work), "--library", str(tmp_path), "--max-jobs", "1"]):
-            r = subprocess.run([sys.executable, "-m", "deploy.cli", *argv], env=env, capture_output=True, text=True, check=False, timeout=120)
+        for argv in (
+            ["service", "status", "--work", str(work)],
+            ["service", "run", "--store", str(store), "--work", str(work), "--library", str(tmp_path), "--max-jobs", "1"],
+        ):
+            r = subprocess.run(
+                [sys.executable, "-m", "deploy.cli", *argv], env=env, capture_output=True, text=True, check=False, timeout=120
+            )
             if argv[1] == "run":
                 assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
                 assert f"pid {first.pid}" in r.stderr and "Traceback" not in r.stderr
@@ -281,7 +347,9 @@ def test_a_job_that_kills_the_service_is_given_up_after_max_attempts_and_the_nex
     script = tmp_path / "svc.py"
     script.write_text(POISON)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    codes = [subprocess.run([sys.executable, str(script), str(store), str(work)], check=False, env=env, timeout=120).returncode for _ in range(4)]
+    codes = [
+        subprocess.run([sys.executable, str(script), str(store), str(work)], check=False, env=env, timeout=120).returncode for _ in range(4)
+    ]
     assert codes == [137, 137, 137, 0]  # as under systemd's Restart=: three deaths, then the queue moves on
     poison, nxt = JobStore(work / "jobs.sqlite").jobs()
     assert poison.status == "failed" and poison.attempts == 3
@@ -289,4 +357,3 @@ def test_a_job_that_kills_the_service_is_given_up_after_max_attempts_and_the_nex
     assert nxt.status == "done"
     assert main(["service", "history", "--work", str(work)]) == 0
     assert f"job {poison.id:<4} {poison.capture_id:<28} FAILED {poison.error}" in capsys.readouterr().out
-

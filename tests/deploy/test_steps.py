@@ -38,11 +38,20 @@ def short_preview(monkeypatch):
 def rig_capture(root: Path, *, masks: bool) -> Path:
     """Five views of the sample with its empty-rig frames, and with (`masks`) or without masks/."""
     cap = read_capture(SAMPLE / "train")
-    frames = [FrameData(Path(cap.frames[i].file_path).stem, (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
-                        cap.camera(i, undistorted=False), cap.frames[i].camera_id, None, cap.mask(i, undistort=False) if masks else None)
-              for i in VIEWS]
-    backgrounds = {cap.frames[i].camera_id: (cap.background(cap.frames[i].camera_id, undistort=False) * 255).round().astype(np.uint8)
-                   for i in VIEWS}
+    frames = [
+        FrameData(
+            Path(cap.frames[i].file_path).stem,
+            (cap.image(i, undistort=False) * 255).round().astype(np.uint8),
+            cap.camera(i, undistorted=False),
+            cap.frames[i].camera_id,
+            None,
+            cap.mask(i, undistort=False) if masks else None,
+        )
+        for i in VIEWS
+    ]
+    backgrounds = {
+        cap.frames[i].camera_id: (cap.background(cap.frames[i].camera_id, undistort=False) * 255).round().astype(np.uint8) for i in VIEWS
+    }
     meta = {k: cap.meta[k] for k in ("units", "rig_id", "calibration_id")}
     return write_capture(root, frames, backgrounds=backgrounds, meta=meta).root
 
@@ -63,16 +72,23 @@ def decodes(monkeypatch):
 
 def test_a_service_job_decodes_each_image_once_and_masks_and_registers_once(tmp_path, library, short_preview, decodes, monkeypatch):
     store = tmp_path / "store"
-    captures = [rig_capture(store / "captures" / "000001-background", masks=False), rig_capture(store / "captures" / "000002-masks", masks=True)]
+    captures = [
+        rig_capture(store / "captures" / "000001-background", masks=False),
+        rig_capture(store / "captures" / "000002-masks", masks=True),
+    ]
     registered: list[int] = []
     masked: list[int] = []
     import reconstruction.masks
     import reconstruction.registration
 
-    for module, name, calls in ((reconstruction.registration, "register_views", registered), (reconstruction.masks, "capture_masks", masked)):
+    for module, name, calls in (
+        (reconstruction.registration, "register_views", registered),
+        (reconstruction.masks, "capture_masks", masked),
+    ):
         original = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _o=original, _c=calls, **k: (_c.append(1), _o(*a, **k))[1])
     import PIL.Image
+
     import reconstruction.twin
 
     verified: list[Path] = []
@@ -80,13 +96,16 @@ def test_a_service_job_decodes_each_image_once_and_masks_and_registers_once(tmp_
     original_verify, original_open = reconstruction.twin.verify_twin, PIL.Image.open
     monkeypatch.setattr(reconstruction.twin, "verify_twin", lambda root: (verified.append(root), original_verify(root))[1])
     monkeypatch.setattr(PIL.Image, "open", lambda fp, *a, **k: (png_reads.append(str(fp)), original_open(fp, *a, **k))[1])
-    cfg = PipelineConfig(library=str(library), preset="preview", export_formats=())
+    cfg = PipelineConfig(library=str(library), preset="preview", export_formats=("ply", "glb"), inspection_tolerance_mm=1.0)
     svc = PipelineService(store, tmp_path / "work", make_step_runner(cfg), min_free_bytes=0)
     assert svc.run_once() and svc.run_once()
     assert [j.status for j in svc.jobs.jobs()] == ["done", "done"]
-    # The twin trained in the job stays in memory: register and reconstruct neither load nor verify it, and the fit
-    # is scored from the renders in memory, not from the PNGs just written.
+    # The twin trained in the job stays in memory through inspection and export: no step loads or verifies it again,
+    # and the fit is scored from the renders in memory, not from the PNGs just written.
     assert verified == [] and not any("renders" in p for p in png_reads)
+    for job in svc.jobs.jobs():
+        assert {Path(p).name for p in job.steps["export"]["output"].values()} == {"twin.ply", "twin.glb"}
+        assert job.steps["reconstruct"]["output"]["inspection"]["status"] in ("PASS", "FAIL", "UNCERTAIN")
     for cap in captures:
         files = [(cap / f).resolve() for f in json.loads((cap / "transforms.json").read_text())["cadsplat"]["sha256"]]
         # With masks/, the empty-rig frames are not needed at all.
@@ -188,3 +207,23 @@ def test_a_kiosk_capture_on_a_known_part_line_registers_the_known_part(tmp_path,
     work.mkdir()
     assert register_step(cap, work, cfg)["method"] == "known_part"
     assert json.loads((work / REGISTRATION_JSON).read_text())["registration"]["method"] == "known_part" and calls == [True]
+
+
+def test_the_pipeline_config_of_a_line_is_its_rig_toml_with_the_flags_over_it(tmp_path):
+    """One place reads rig.toml for the service and the kiosk: [registration], [inspection] and [limits]."""
+    from deploy.steps import pipeline_config
+    from rig.config import load_config
+
+    toml = tmp_path / "rig.toml"
+    toml.write_text(
+        'rig_id = "line-3"\n[[cameras]]\nid = "cam00"\ndriver = "pattern"\n'
+        '[registration]\nknown_part = "bracket_v3"\nscale_tolerance = 0.05\n'
+        "[inspection]\ntolerance_mm = 0.5\nmax_unseen_pct = 30.0\n[limits]\nmax_image_pixels = 20000000\n"
+    )
+    rig = load_config(toml)
+    cfg = pipeline_config("lib", "cpu", rig=rig, rig_toml=toml)
+    assert cfg.registration.known_part == "bracket_v3" and cfg.registration.scale_tolerance == 0.05
+    assert (cfg.inspection_tolerance_mm, cfg.inspection_max_unseen_pct, cfg.max_image_pixels) == (0.5, 30.0, 20_000_000)
+    flagged = pipeline_config("lib", "cpu", rig=rig, rig_toml=toml, inspection_tolerance_mm=1.5, inspection_max_unseen_pct=None)
+    assert flagged.inspection_tolerance_mm == 1.5 and flagged.inspection_max_unseen_pct == 30.0
+    assert pipeline_config("lib").registration.known_part in ("", None) and pipeline_config("lib").inspection_tolerance_mm is None

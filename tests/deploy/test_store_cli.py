@@ -54,8 +54,27 @@ def test_import_spill_refuses_what_is_not_a_store_in_one_sentence(tmp_path, caps
 def test_the_rig_imports_the_spill_when_it_starts(tmp_path, capsys):
     root, ids = _spilled_store(tmp_path)
     capsys.readouterr()
-    assert main(["rig", "capture", "--simulate", "--store", str(root), "--spill", str(spill_of(root).root),
-                 "--views", "3", "--size", "96", "72", "--min-free-gb", "0"]) == 0
+    assert (
+        main(
+            [
+                "rig",
+                "capture",
+                "--simulate",
+                "--store",
+                str(root),
+                "--spill",
+                str(spill_of(root).root),
+                "--views",
+                "3",
+                "--size",
+                "96",
+                "72",
+                "--min-free-gb",
+                "0",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert [line.split()[1] for line in out.splitlines() if line.startswith("imported ")] == ids
     assert spill_of(root).entries() == [] and set(ids) <= set(assert_store_sound(root, ids))
@@ -67,8 +86,15 @@ def test_import_spill_while_the_rig_writes_is_refused_and_quarantines_nothing(tm
     store = tmp_path / "store"
     with watching(store, "--rate", "8", *SMALL) as rig:
         for _ in range(3):
-            r = subprocess.run(_cadsplat("store", "import-spill", str(store), "--spill", str(tmp_path / "spill")), capture_output=True, text=True,
-                               env=_env(), cwd=REPO, timeout=120, check=False)
+            r = subprocess.run(
+                _cadsplat("store", "import-spill", str(store), "--spill", str(tmp_path / "spill")),
+                capture_output=True,
+                text=True,
+                env=_env(),
+                cwd=REPO,
+                timeout=120,
+                check=False,
+            )
             assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
             assert f"is in use by rig watch (pid {rig.pid})" in r.stderr and "imports the spill itself when it starts" in r.stderr
     code, out, err = rig.result

@@ -27,8 +27,29 @@ def torus_obj(tmp_path_factory):
 
 def test_synth_writes_captures_and_truth(torus_obj, tmp_path, capsys):
     out = tmp_path / "run"
-    rc = main(["synth", str(torus_obj), "--out", str(out), "--views", "4", "--heldout", "6", "--size", "96x72", "--seed", "2",
-                "--calib-noise-deg", "0.3", "--calib-noise-mm", "1", "--backdrop", "--noise", "0.01"])
+    rc = main(
+        [
+            "synth",
+            str(torus_obj),
+            "--out",
+            str(out),
+            "--views",
+            "4",
+            "--heldout",
+            "6",
+            "--size",
+            "96x72",
+            "--seed",
+            "2",
+            "--calib-noise-deg",
+            "0.3",
+            "--calib-noise-mm",
+            "1",
+            "--backdrop",
+            "--noise",
+            "0.01",
+        ]
+    )
     assert rc == 0
     printed = capsys.readouterr().out
     assert "4 train + 6 held-out views at 96x72" in printed

@@ -68,9 +68,22 @@ def make_twin(path, dent_m: float = 0.0):
         for az in np.linspace(0, 2 * np.pi, 4, endpoint=False):
             eye = centre + 0.35 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
             cams.append(TwinCamera(f"images/c{len(cams):02d}.png", f"c{len(cams):02d}", K, 320, 240, look_at_c2w(eye, centre)))
-    twin = Twin(model_id="ball_and_block", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=cams,
-                preset="test", choices={}, timings_s={}, losses={}, gaussians=g, means_canonical=s.means, face_index=s.face_index,
-                barycentrics=s.barycentrics, part_label=s.part_label, part_names=parts.part_names)
+    twin = Twin(
+        model_id="ball_and_block",
+        sim3_rig_to_object_init=Sim3.identity(),
+        sim3_rig_to_object=Sim3.identity(),
+        cameras=cams,
+        preset="test",
+        choices={},
+        timings_s={},
+        losses={},
+        gaussians=g,
+        means_canonical=s.means,
+        face_index=s.face_index,
+        barycentrics=s.barycentrics,
+        part_label=s.part_label,
+        part_names=parts.part_names,
+    )
     save_twin(twin, path, mesh_cad=parts, mesh_deformed=ball_and_block(dent_m))
     return twin
 
@@ -130,8 +143,18 @@ def test_refuses_every_path_outside_the_twin(tmp_path):
     (twin / ".twin.incoming").mkdir()
     (twin / ".twin.incoming" / "twin.json").write_text("{}")
     roots = ViewRoots(twin)
-    for path in ("/twin/../secret/key.txt", "/twin/%2e%2e/secret/key.txt", "/twin/out/key.txt", "/twin/key.txt", "/twin//etc/passwd",
-                 "/twin/.twin.incoming/twin.json", "/twin/", "/etc/passwd", "/inspection/inspection.json", "/web/../../calibration/guard.py"):
+    for path in (
+        "/twin/../secret/key.txt",
+        "/twin/%2e%2e/secret/key.txt",
+        "/twin/out/key.txt",
+        "/twin/key.txt",
+        "/twin//etc/passwd",
+        "/twin/.twin.incoming/twin.json",
+        "/twin/",
+        "/etc/passwd",
+        "/inspection/inspection.json",
+        "/web/../../calibration/guard.py",
+    ):
         assert resolve_url_path(roots, path) is None, path
     with Serving(ViewServer(roots)) as server:
         for path in ("/twin/../secret/key.txt", "/twin/%2e%2e/secret/key.txt", "/twin/out/key.txt", "/twin/key.txt"):
@@ -235,12 +258,15 @@ def test_the_page_at_a_training_camera_is_the_engine_render(twin, chromium, inde
     assert iou(want_alpha > 0.5, alpha > 0.5) >= 0.95
     assert psnr_over(rgb, want, obj) >= 25.0
     g = twin.gaussians
-    broken = {"SH degree 1 negated": Gaussians.from_arrays(g.means, g.quats, g.log_scales, g.opacity_logits,
-                                                           np.concatenate([g.sh[:, :1], -g.sh[:, 1:4], g.sh[:, 4:]], 1)),
-              "quaternions read xyzw": Gaussians.from_arrays(g.means, g.quats[:, [1, 2, 3, 0]], g.log_scales, g.opacity_logits, g.sh)}
+    broken = {
+        "SH degree 1 negated": Gaussians.from_arrays(
+            g.means, g.quats, g.log_scales, g.opacity_logits, np.concatenate([g.sh[:, :1], -g.sh[:, 1:4], g.sh[:, 4:]], 1)
+        ),
+        "quaternions read xyzw": Gaussians.from_arrays(g.means, g.quats[:, [1, 2, 3, 0]], g.log_scales, g.opacity_logits, g.sh),
+    }
     for name, wrong in broken.items():
         assert psnr_over(rgb, engine(wrong)[0], obj) < 25.0, name
-    assert psnr_over(rgb, want ** 2.2, obj) < 25.0, "colours read as linear"
+    assert psnr_over(rgb, want**2.2, obj) < 25.0, "colours read as linear"
 
 
 @needs_vendor
@@ -248,7 +274,7 @@ def test_the_page_at_a_training_camera_is_the_engine_render(twin, chromium, inde
 def test_the_heat_map_shows_the_inspection_colours_and_verdict(tmp_path, chromium):
     from plyfile import PlyData
 
-    from deploy.commands.inspect import inspect_twin_dir
+    from deploy.inspection_report import inspect_twin_dir
     from reconstruction.inspect import rasterize_mesh
 
     twin = make_twin(tmp_path / "twin", dent_m=0.003)
@@ -261,8 +287,9 @@ def test_the_heat_map_shows_the_inspection_colours_and_verdict(tmp_path, chromiu
     faces = np.stack(ply["face"]["vertex_indices"]).astype(np.int64)
     cam = twin.cameras[0].camera
     with Serving(ViewServer(ViewRoots(twin.root, twin.root / "inspection"))) as server:
-        shot, verdict = chromium.screenshot(server.url("camera=0&layers=heatmap"), cam.width, cam.height,
-                                            probe="document.getElementById('verdict').textContent")
+        shot, verdict = chromium.screenshot(
+            server.url("camera=0&layers=heatmap"), cam.width, cam.height, probe="document.getElementById('verdict').textContent"
+        )
     assert verdict == doc["verdict"]["line"]
     _, face_id, bary = rasterize_mesh(vertices, faces, cam)
     hit = face_id >= 0

@@ -23,11 +23,11 @@ def _groups(params: list[torch.Tensor]) -> list[dict]:
 def _train(opt, params: list[torch.Tensor], steps: range, gen: torch.Generator) -> None:
     """A run as training makes one: a schedule on one group's rate, a group frozen for a while, a state reset."""
     for step in steps:
-        opt.param_groups[1]["lr"] = 3e-3 * 0.9 ** step
+        opt.param_groups[1]["lr"] = 3e-3 * 0.9**step
         opt.zero_grad(set_to_none=True)
         loss = sum((p.sin() * torch.randn(p.shape, generator=gen)).sum() for p in params[:2])
         if step >= 3:
-            loss = loss + sum((p ** 2 * torch.rand(p.shape, generator=gen)).sum() for p in params[2:])
+            loss = loss + sum((p**2 * torch.rand(p.shape, generator=gen)).sum() for p in params[2:])
         loss.backward()
         opt.step()
         if step == 7:
@@ -65,11 +65,13 @@ def test_a_checkpoint_for_other_groups_is_refused():
 
 
 def test_stepping_does_not_import_torch_dynamo():
-    code = ("import sys, torch\n"
-            "from reconstruction.adam import Adam\n"
-            "p = torch.zeros(3, requires_grad=True)\n"
-            "opt = Adam([p], lr=0.1, fused=True)\n"
-            "p.sum().backward(); opt.step(); opt.zero_grad(); opt.load_state_dict(opt.state_dict())\n"
-            "print('torch._dynamo' in sys.modules, float(p[0]))\n")
+    code = (
+        "import sys, torch\n"
+        "from reconstruction.adam import Adam\n"
+        "p = torch.zeros(3, requires_grad=True)\n"
+        "opt = Adam([p], lr=0.1, fused=True)\n"
+        "p.sum().backward(); opt.step(); opt.zero_grad(); opt.load_state_dict(opt.state_dict())\n"
+        "print('torch._dynamo' in sys.modules, float(p[0]))\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "False" and float(out[1]) == pytest.approx(-0.1)

@@ -76,6 +76,7 @@ def test_sphere_radius_is_exact_for_centred_views():
 
 def test_sphere_rejects_degenerate_rigs():
     cams = rig(4)
+
     def moved(i: int) -> Camera:
         c2w = cams[0].c2w.copy()
         c2w[i, 3] += 0.1
@@ -138,8 +139,9 @@ def test_vanilla_3dgs_schedule_densifies_resets_and_prunes(tmp_path):
     images, masks = np.stack([s[0] for s in shots]), np.stack([s[1] for s in shots])
     # A short schedule; faint initial Gaussians (opacity 0.01) so that the ones in the visual hull's
     # excess, which the random background drives transparent, cross the prune threshold within it.
-    cfg = VanillaConfig(iterations=40, init_points=300, init_opacity=0.01, sh_interval=10, refine_start=5,
-                        refine_stop=35, refine_every=15, reset_every=30)
+    cfg = VanillaConfig(
+        iterations=40, init_points=300, init_opacity=0.01, sh_interval=10, refine_start=5, refine_stop=35, refine_every=15, reset_every=30
+    )
     result = train_vanilla_3dgs(images, masks, cams, cfg, seed=0)
     counts = [n for _, n in result.num_gaussians]
     assert counts[0] == 300

@@ -8,7 +8,7 @@ import torch
 
 torch.set_num_threads(1)  # the CI box is shared; one thread avoids oversubscription stalls
 
-from reconstruction.deformation import (
+from reconstruction.deformation import (  # noqa: E402
     DeformationField,
     FieldConfig,
     farthest_point_indices,
@@ -27,7 +27,7 @@ def test_encoding_has_10_bands():
     e = positional_encoding(x, 10)
     assert e.shape == (5, 63)
     torch.testing.assert_close(e[:, :3], x)
-    torch.testing.assert_close(e[:, 3 + 3 * 9: 6 + 3 * 9], torch.sin(x * 512 * np.pi))
+    torch.testing.assert_close(e[:, 3 + 3 * 9 : 6 + 3 * 9], torch.sin(x * 512 * np.pi))
 
 
 @pytest.mark.parametrize("anchors", [None, 256])

@@ -40,10 +40,20 @@ def make_twin(n: int = 2500, seed: int = 0) -> Twin:
     g.log_scales[:, :2] += np.log(1.6)  # overlap the disks so the silhouette has no holes
     cam = TwinCamera("images/cam00.png", "cam00", orbit_camera(0.0).K, W, H, orbit_camera(0.0).c2w)
     return Twin(
-        model_id="sphere", sim3_rig_to_object_init=Sim3.identity(), sim3_rig_to_object=Sim3.identity(), cameras=[cam],
-        preset="test", choices={}, timings_s={}, losses={},
-        gaussians=replace(g, opacity_logits=np.full(n, 4.0, np.float32)), means_canonical=s.means,
-        face_index=s.face_index, barycentrics=s.barycentrics, part_label=s.part_label, part_names=["body"],
+        model_id="sphere",
+        sim3_rig_to_object_init=Sim3.identity(),
+        sim3_rig_to_object=Sim3.identity(),
+        cameras=[cam],
+        preset="test",
+        choices={},
+        timings_s={},
+        losses={},
+        gaussians=replace(g, opacity_logits=np.full(n, 4.0, np.float32)),
+        means_canonical=s.means,
+        face_index=s.face_index,
+        barycentrics=s.barycentrics,
+        part_label=s.part_label,
+        part_names=["body"],
     )
 
 
@@ -143,26 +153,29 @@ def test_registration_against_gt_matches_cameras_by_name(twin):
     truth = [orbit_camera(a).c2w for a in (0.0, 90.0, 180.0, 270.0)]
     off = truth[2].copy()
     off[:3, :3] = off[:3, :3] @ axis_angle_to_matrix(np.radians([0.0, 0.0, 3.0]))
-    cams = [TwinCamera("images/cam02.png", "cam02", twin.cameras[0].K, W, H, off),
-            TwinCamera("images/cam00.png", "cam00", twin.cameras[0].K, W, H, truth[0])]
+    cams = [
+        TwinCamera("images/cam02.png", "cam02", twin.cameras[0].K, W, H, off),
+        TwinCamera("images/cam00.png", "cam00", twin.cameras[0].K, W, H, truth[0]),
+    ]
     est, ref, names = gt_train_poses(cams, {"train_c2w_object": [c.tolist() for c in truth]})
     assert names == ["cam02", "cam00"] and np.array_equal(ref[0], truth[2])
     twin2 = make_twin(n=500)
     twin2.cameras = cams
     g = twin2.gaussians
     img, mask = photograph(g, orbit_camera(10.0))
-    rep = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0,
-                        gt={"train_c2w_object": [c.tolist() for c in truth]})["registration"]
+    rep = evaluate_twin(
+        twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt={"train_c2w_object": [c.tolist() for c in truth]}
+    )["registration"]
     assert rep["rotation_deg"] == pytest.approx([3.0, 0.0], abs=1e-9)
     assert rep["center_pct"] == pytest.approx([0.0, 0.0], abs=1e-9)
     # A registration turned 180 deg about the object's z axis is right for a z-symmetric object.
-    flipped = [TwinCamera(c.file_path, c.camera_id, c.K, W, H, np.diag([-1.0, -1.0, 1.0, 1.0]) @ truth[int(c.camera_id[3:])])
-               for c in cams]
+    flipped = [TwinCamera(c.file_path, c.camera_id, c.K, W, H, np.diag([-1.0, -1.0, 1.0, 1.0]) @ truth[int(c.camera_id[3:])]) for c in cams]
     twin2.cameras = flipped
     gt = {"train_c2w_object": [c.tolist() for c in truth]}
     plain = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt=gt)["registration"]
-    sym = evaluate_twin(twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt=gt,
-                        symmetries=[half_turn("x"), half_turn("z")])["registration"]
+    sym = evaluate_twin(
+        twin2, [orbit_camera(10.0)], img[None], mask[None], refine_steps=0, gt=gt, symmetries=[half_turn("x"), half_turn("z")]
+    )["registration"]
     assert plain["rotation_deg_median"] == pytest.approx(180.0) and plain["symmetry"] is None
     assert sym["rotation_deg_median"] == pytest.approx(0.0, abs=1e-9) and sym["symmetry"] == 1
     assert sym["center_pct_median"] == pytest.approx(0.0, abs=1e-9)
@@ -208,10 +221,26 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
     build_library(meshes, tmp_path / "library", progress=False, log=lambda _m: None)
     gt = json.loads((sample / "gt.json").read_text())
     scored: list[tuple[int, int]] = []
-    run = run_protocol(sample / "train", sample / "heldout", tmp_path / "library", tmp_path / "twin", preset="preview",
-                       overrides={"num_splats": 1000, "iters_pose": 5, "iters_deform": 3, "iters_photo": 5, "dropout_anneal": 3,
-                                  "field": {"num_anchors": 256}, "lr": {"pose": 1e-3}},
-                       heldout_views=2, refine_steps=3, gt=gt, heldout_progress=lambda done, n: scored.append((done, n)))
+    run = run_protocol(
+        sample / "train",
+        sample / "heldout",
+        tmp_path / "library",
+        tmp_path / "twin",
+        preset="preview",
+        overrides={
+            "num_splats": 1000,
+            "iters_pose": 5,
+            "iters_deform": 3,
+            "iters_photo": 5,
+            "dropout_anneal": 3,
+            "field": {"num_anchors": 256},
+            "lr": {"pose": 1e-3},
+        },
+        heldout_views=2,
+        refine_steps=3,
+        gt=gt,
+        heldout_progress=lambda done, n: scored.append((done, n)),
+    )
     assert run.twin.model_id == run.registration.model_id == "medium_clamp_cad"
     # Nested overrides merge into the resolved preset: the rest of the field and of the rates stay.
     field = run.twin.config["field"]
@@ -227,8 +256,9 @@ def test_run_protocol_record_on_the_bundled_sample(tmp_path):
     assert run.reg_init["rotation_deg_median"] < 10 and run.reg_refined["rotation_deg_median"] < 10
 
     written = (tmp_path / "twin" / "twin.json").stat().st_mtime_ns
-    again = run_protocol(sample / "train", sample / "heldout", tmp_path / "library", tmp_path / "twin", heldout_views=[3],
-                         refine_steps=0, reuse=True)
+    again = run_protocol(
+        sample / "train", sample / "heldout", tmp_path / "library", tmp_path / "twin", heldout_views=[3], refine_steps=0, reuse=True
+    )
     assert (tmp_path / "twin" / "twin.json").stat().st_mtime_ns == written and again.registration is None
     assert again.heldout_views == [3] and again.mean_refined is None and again.reg_init is None
     assert again.timings_s["reconstruct"] == run.timings_s["reconstruct"] and again.twin.num_splats == run.twin.num_splats

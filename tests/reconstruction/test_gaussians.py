@@ -19,8 +19,13 @@ from reconstruction.render import rasterize
 def random_gaussians(n: int = 400, degree: int = 3, seed: int = 0) -> Gaussians:
     rng = np.random.default_rng(seed)
     k = (degree + 1) ** 2
-    return Gaussians.from_arrays(rng.normal(size=(n, 3)) * 0.05, rng.normal(size=(n, 4)), rng.normal(size=(n, 3)) * 0.2 - 4.0,
-                                 rng.normal(size=n), rng.normal(size=(n, k, 3)) * 0.4)
+    return Gaussians.from_arrays(
+        rng.normal(size=(n, 3)) * 0.05,
+        rng.normal(size=(n, 4)),
+        rng.normal(size=(n, 3)) * 0.2 - 4.0,
+        rng.normal(size=n),
+        rng.normal(size=(n, k, 3)) * 0.4,
+    )
 
 
 def camera() -> Camera:
@@ -51,8 +56,9 @@ def test_sh_rotation_is_a_representation():
 def test_activation_keeps_gradients_and_never_writes_back():
     g = random_gaussians(n=50, degree=1)
     log_scales = torch.tensor(np.asarray(g.log_scales), requires_grad=True)
-    trained = Gaussians(torch.as_tensor(g.means), torch.as_tensor(g.quats), log_scales, torch.as_tensor(g.opacity_logits),
-                        torch.as_tensor(g.sh))
+    trained = Gaussians(
+        torch.as_tensor(g.means), torch.as_tensor(g.quats), log_scales, torch.as_tensor(g.opacity_logits), torch.as_tensor(g.sh)
+    )
     rgb, alpha = render(trained, *camera_batch(camera()))
     alpha.sum().backward()
     assert log_scales.grad is not None and float(log_scales.grad.abs().sum()) > 0
@@ -98,8 +104,12 @@ def test_a_set_is_drawn_with_the_dilation_it_was_fitted_with():
     # Less dilation draws each splat smaller: less coverage, and a different image.
     assert float(alpha_sharp.sum()) < float(alpha_3dgs.sum())
     # Every derived set keeps it, so a twin moved, cut or padded still draws what was fitted.
-    for derived in (sharp.subset(np.arange(50)), sharp.with_sh_degree(3), sharp.transformed(Sim3.identity()),
-                    Gaussians.from_arrays(sharp.means, sharp.quats, sharp.log_scales, sharp.opacity_logits, sharp.sh, sharp.eps2d)):
+    for derived in (
+        sharp.subset(np.arange(50)),
+        sharp.with_sh_degree(3),
+        sharp.transformed(Sim3.identity()),
+        Gaussians.from_arrays(sharp.means, sharp.quats, sharp.log_scales, sharp.opacity_logits, sharp.sh, sharp.eps2d),
+    ):
         assert derived.eps2d == 0.1
     assert Gaussians.concatenate([sharp, g]).eps2d == 0.1
     for bad in (-0.1, float("nan"), float("inf")):

@@ -5,9 +5,23 @@ import pytest
 import trimesh
 
 from calibration.camera import Camera, look_at_c2w
-from reconstruction.inspect import (EXIT_CODES, EXIT_NEAR_TOLERANCE, MIN_SIN, Inspection, inspect_meshes, line_deviation,
-                                    local_fit_residual, part_reports, point_visibility, projection_sigma, rasterize_mesh,
-                                    surface_distance, tolerance_calls, vertex_normals, verdict)
+from reconstruction.inspect import (
+    EXIT_CODES,
+    EXIT_NEAR_TOLERANCE,
+    MIN_SIN,
+    Inspection,
+    inspect_meshes,
+    line_deviation,
+    local_fit_residual,
+    part_reports,
+    point_visibility,
+    projection_sigma,
+    rasterize_mesh,
+    surface_distance,
+    tolerance_calls,
+    verdict,
+    vertex_normals,
+)
 from reconstruction.inspect_silhouette import signed_distance
 
 
@@ -107,10 +121,16 @@ def test_visibility_counts_views_and_hides_what_is_behind_or_occluded():
 def _inspection(deviation, views, part=None, names=("a",), uncertainty=None):
     deviation = np.asarray(deviation, float)
     k = len(deviation)
-    return Inspection(vertices_mm=np.arange(3 * k, dtype=float).reshape(k, 3), deviation_mm=deviation, views=np.asarray(views),
-                      best_angle_deg=np.where(np.asarray(views) > 0, 10.0, np.nan), area_mm2=np.ones(k),
-                      part=np.zeros(k, np.int64) if part is None else np.asarray(part), part_names=list(names),
-                      uncertainty_mm=None if uncertainty is None else np.asarray(uncertainty, float))
+    return Inspection(
+        vertices_mm=np.arange(3 * k, dtype=float).reshape(k, 3),
+        deviation_mm=deviation,
+        views=np.asarray(views),
+        best_angle_deg=np.where(np.asarray(views) > 0, 10.0, np.nan),
+        area_mm2=np.ones(k),
+        part=np.zeros(k, np.int64) if part is None else np.asarray(part),
+        part_names=list(names),
+        uncertainty_mm=None if uncertainty is None else np.asarray(uncertainty, float),
+    )
 
 
 def test_unseen_surface_in_no_cameras_view_is_told_apart_from_surface_hidden_by_the_part():
@@ -128,8 +148,9 @@ def test_unseen_surface_in_no_cameras_view_is_told_apart_from_surface_hidden_by_
     insp = inspect_meshes(both_v, both_f, np.zeros(len(both_f), np.int64), ["ball"], both_v, both_f, cams)
     assert 0 < insp.out_of_view_pct() < insp.unseen_pct()
     unsure = verdict(insp, 1.0, 10.0)
-    assert unsure.line.startswith(f"UNCERTAIN {insp.unseen_pct():.0f} % of the surface unseen "
-                                  f"({insp.out_of_view_pct():.0f} % in no camera's view)")
+    assert unsure.line.startswith(
+        f"UNCERTAIN {insp.unseen_pct():.0f} % of the surface unseen ({insp.out_of_view_pct():.0f} % in no camera's view)"
+    )
     assert unsure.out_of_view_pct == insp.out_of_view_pct()
 
 
@@ -177,13 +198,20 @@ def test_pass_needs_every_seen_vertex_inside_the_tolerance_by_more_than_its_unce
     assert (ok.status, ok.exit_code, ok.straddling) == ("PASS", 0, ())
     assert ok.line == "PASS max 0.7 +-0.25 mm (tolerance 1 mm), 25 % of the surface unseen"
     # The same map with one vertex's uncertainty reaching the tolerance: UNCERTAIN, and that vertex is named.
-    near = verdict(_inspection([0.2, -0.7, 0.5, 9.0], [2, 3, 1, 0], part=[0, 1, 0, 1], names=("body", "jaw"),
-                               uncertainty=[0.1, 0.35, 0.3, np.nan]), 1.0, 30.0)
+    near = verdict(
+        _inspection([0.2, -0.7, 0.5, 9.0], [2, 3, 1, 0], part=[0, 1, 0, 1], names=("body", "jaw"), uncertainty=[0.1, 0.35, 0.3, np.nan]),
+        1.0,
+        30.0,
+    )
     assert (near.status, near.exit_code, near.reason) == ("UNCERTAIN", EXIT_NEAR_TOLERANCE, "near tolerance")
     assert [v.vertex for v in near.straddling] == [1] and near.straddling[0].part == "jaw"
-    assert near.line == ("UNCERTAIN 1 seen vertices (25.0 % of the surface) lie within their uncertainty of the 1 mm tolerance: "
-                         "vertex 1 of part 'jaw' -0.70 +-0.35 mm at (3.0, 4.0, 5.0) mm")
-    assert near.to_dict()["straddling"] == [{"vertex": 1, "part": "jaw", "deviation_mm": -0.7, "uncertainty_mm": 0.35, "at_mm": [3.0, 4.0, 5.0]}]
+    assert near.line == (
+        "UNCERTAIN 1 seen vertices (25.0 % of the surface) lie within their uncertainty of the 1 mm tolerance: "
+        "vertex 1 of part 'jaw' -0.70 +-0.35 mm at (3.0, 4.0, 5.0) mm"
+    )
+    assert near.to_dict()["straddling"] == [
+        {"vertex": 1, "part": "jaw", "deviation_mm": -0.7, "uncertainty_mm": 0.35, "at_mm": [3.0, 4.0, 5.0]}
+    ]
     # Beyond the tolerance but within its uncertainty of it: not a FAIL, the vertex is named.
     over = verdict(_inspection([1.2, 0.1], [2, 2], uncertainty=[0.3, 0.1]), 1.0, 25.0)
     assert over.status == "UNCERTAIN" and [v.vertex for v in over.straddling] == [0]
@@ -198,8 +226,9 @@ def test_an_uncertain_line_names_the_largest_deviations_first_and_counts_the_res
 
 
 def test_fail_needs_a_departure_beyond_the_tolerance_plus_its_uncertainty_and_names_the_worst():
-    insp = _inspection([0.2, 1.6, -3.0, 2.2, 0.1], [2, 2, 1, 3, 2], part=[0, 0, 1, 0, 0], names=("body", "jaw"),
-                       uncertainty=[0.1, 0.8, 0.5, 0.4, 0.1])
+    insp = _inspection(
+        [0.2, 1.6, -3.0, 2.2, 0.1], [2, 2, 1, 3, 2], part=[0, 0, 1, 0, 0], names=("body", "jaw"), uncertainty=[0.1, 0.8, 0.5, 0.4, 0.1]
+    )
     bad = verdict(insp, 1.0, 25.0)
     # Vertex 1 (1.6 +-0.8) straddles; 2 and 3 are out beyond doubt; the worst of those, the jaw's -3.0, is named.
     assert (bad.status, bad.exit_code, bad.part, bad.deviation_mm, bad.uncertainty_mm) == ("FAIL", 1, "jaw", -3.0, 0.5)
@@ -228,7 +257,9 @@ def test_projection_sigma_from_angles_pixel_size_and_views():
     np.testing.assert_allclose(projection_sigma(np.array([[True, True]]), np.array([[0.0, 1.0]]), fp, 0.5), [0.0005, 0.0005 / MIN_SIN])
     # Twice the pixel size, twice the uncertainty; the best view decides (one fit explains them all: no 1/sqrt(n)
     # from views that share its errors); an unseen point has none.
-    two = projection_sigma(np.array([[True], [True], [False]]), np.array([[0.0], [0.8], [0.0]]), np.array([[0.002], [0.001], [0.0001]]), 0.5)
+    two = projection_sigma(
+        np.array([[True], [True], [False]]), np.array([[0.0], [0.8], [0.0]]), np.array([[0.002], [0.001], [0.0001]]), 0.5
+    )
     np.testing.assert_allclose(two, [0.5 * 0.001 / 0.6])
     assert np.isnan(projection_sigma(np.array([[False]]), np.zeros((1, 1)), fp[:, :1], 0.5))[0]
 

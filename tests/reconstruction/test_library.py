@@ -157,7 +157,9 @@ def test_a_replaced_mesh_is_refused_on_load_naming_its_model(tmp_path, monkeypat
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("models", [[1, 2], [{"id": "plate"}], [{"id": "p", "file": 7, "unit": "m", "sha256": "0", "shard": "x", "extent_m": [1, 1, 1]}]])
+@pytest.mark.parametrize(
+    "models", [[1, 2], [{"id": "plate"}], [{"id": "p", "file": 7, "unit": "m", "sha256": "0", "shard": "x", "extent_m": [1, 1, 1]}]]
+)
 def test_malformed_library_json_is_one_sentence(tmp_path, models):
     root = _one_box_library(tmp_path)
     doc = json.loads((root / "library.json").read_text())

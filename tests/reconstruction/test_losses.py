@@ -193,8 +193,11 @@ def test_pixels_beyond_a_photo_pull_on_nothing():
     rgb, alpha, _ = rasterize(means, quats, scales, opac, colors, torch.eye(4)[None], ks, w, h, backgrounds=bg)
     assert alpha[0, :, photo_w:].sum() > 1 and alpha[0, :, :photo_w].sum() > 1
     support = (alpha.detach()[..., 0] > 0) | (mask > 0)
-    for loss in (mask_l1(alpha, mask, valid), photometric_loss(rgb, target, support=support, valid=valid),
-                 photometric_loss(rgb, target, valid=valid)):
+    for loss in (
+        mask_l1(alpha, mask, valid),
+        photometric_loss(rgb, target, support=support, valid=valid),
+        photometric_loss(rgb, target, valid=valid),
+    ):
         g_means, g_colors = torch.autograd.grad(loss, (means, colors), retain_graph=True)
         assert g_means[1].abs().max() == 0 and g_colors[1].abs().max() == 0
         assert g_means[0].abs().max() > 0  # the splat on the photo still learns

@@ -54,7 +54,9 @@ def test_one_piece_stl_is_one_part_unless_split():
 
 
 def test_glb_round_trip_keeps_parts_in_the_object_frame(tmp_path):
-    mesh = MeshParts(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]), np.array([0, 1]), ["floor", "wall"])
+    mesh = MeshParts(
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]), np.array([0, 1]), ["floor", "wall"]
+    )
     (tmp_path / "m.glb").write_bytes(parts_glb_bytes(mesh))
     back = read_mesh_parts(tmp_path / "m.glb")
     assert sorted(back.part_names) == ["floor", "wall"]

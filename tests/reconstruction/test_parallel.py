@@ -84,4 +84,3 @@ def test_openmp_spins_briefly_unless_the_user_chose_how_it_waits():
         environ = dict(chosen)
         parallel.configure_openmp(environ)
         assert environ == chosen
-

@@ -39,8 +39,12 @@ def test_samples_at_pixel_centres_are_the_pixels():
     # Points at depth 1 projecting exactly onto pixel centres (u, v) = (10.5, 20.5) and (50.5, 3.5).
     uv = np.array([[10.5, 20.5], [50.5, 3.5]])
     pts = np.concatenate([(uv - K[:2, 2]) / F, np.ones((2, 1))], 1)
-    out = sample_colors(img, torch.tensor(pts, dtype=torch.float32), torch.tensor(np.linalg.inv(c2w), dtype=torch.float32)[None],
-                        torch.tensor(K, dtype=torch.float32)[None])
+    out = sample_colors(
+        img,
+        torch.tensor(pts, dtype=torch.float32),
+        torch.tensor(np.linalg.inv(c2w), dtype=torch.float32)[None],
+        torch.tensor(K, dtype=torch.float32)[None],
+    )
     np.testing.assert_allclose(out[0].numpy(), img[0, [20, 3], [10, 50]].numpy(), atol=1e-6)
 
 
@@ -119,8 +123,12 @@ def test_fused_sampler_equals_grid_sample_and_its_gradients():
         upstream = torch.randn(out.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
         return (out, *torch.autograd.grad(out, (pts, viewmats), upstream))
 
-    pts = torch.cat([torch.rand(500, 3, generator=gen, dtype=torch.float64) * 0.3 - 0.15,
-                     torch.tensor([[5.0, 0.0, 0.0], [0.0, -4.0, 0.1]], dtype=torch.float64)])
+    pts = torch.cat(
+        [
+            torch.rand(500, 3, generator=gen, dtype=torch.float64) * 0.3 - 0.15,
+            torch.tensor([[5.0, 0.0, 0.0], [0.0, -4.0, 0.1]], dtype=torch.float64),
+        ]
+    )
     for got, want in zip(run(images, pts), run(images.clone().requires_grad_(True), pts)):
         torch.testing.assert_close(got, want, rtol=1e-7, atol=1e-9)
     # Behind the cameras: the border's colour, and no gradient (torch's form divides by the clamped depth there).

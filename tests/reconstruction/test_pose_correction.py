@@ -9,15 +9,14 @@ import torch
 from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix, is_rotation
-from reconstruction.presets import ConfigInputs, SceneStats, choose_pose_mode
 from reconstruction.pose_correction import (
-    PoseCorrection,
     POSE_MODES,
+    PoseCorrection,
     extrinsics_error_px,
     rotation_6d_to_matrix,
     viewmats_from_c2w,
 )
-
+from reconstruction.presets import ConfigInputs, SceneStats, choose_pose_mode
 
 STATS = SceneStats(5, 320, 240, (5000,) * 5, 120.0)
 
@@ -153,14 +152,15 @@ def test_cli_offers_every_pose_mode():
     assert POSE_MODE_NAMES == POSE_MODES
 
 
-
 def test_capture_states_its_calibration_uncertainty_in_its_own_units():
     from calibration.camera import Camera
     from reconstruction.pipeline import calibration_error_px
 
     # A rig in millimetres: cameras 400 mm from the object, f = 400 px.
-    cams = [Camera.from_fov(2 * np.arctan(320 / 400), 640, 480, look_at_c2w(400.0 * np.array([np.cos(a), np.sin(a), 0.0]), np.zeros(3)))
-            for a in (0.0, 2.0)]
+    cams = [
+        Camera.from_fov(2 * np.arctan(320 / 400), 640, 480, look_at_c2w(400.0 * np.array([np.cos(a), np.sin(a), 0.0]), np.zeros(3)))
+        for a in (0.0, 2.0)
+    ]
     meta = {"units": "mm", "calibration_uncertainty": {"rotation_deg": 0.0, "translation_mm": 2.0}}
     assert calibration_error_px(meta, cams, np.zeros(3)) == pytest.approx(400.0 * 2.0 / 400.0)
     assert calibration_error_px({"units": "mm"}, cams, np.zeros(3)) is None

@@ -38,9 +38,7 @@ def test_camera_centres_and_centre_error() -> None:
 
 def _rig(n: int = 5) -> np.ndarray:
     """n ground-truth cameras about 2 m from the origin, each with a different orientation."""
-    return np.stack(
-        [_viewmat(_rot("y", 360 * k / n) @ _rot("x", 15), np.array([np.sin(k), 0.5, 2.0])) for k in range(n)]
-    )
+    return np.stack([_viewmat(_rot("y", 360 * k / n) @ _rot("x", 15), np.array([np.sin(k), 0.5, 2.0])) for k in range(n)])
 
 
 def test_registration_errors_are_medians_over_cameras() -> None:

@@ -8,8 +8,20 @@ from dataclasses import replace
 
 import pytest
 
-from reconstruction.presets import (ABLATIONS, PAPER, ConfigInputs, LearningRates, Preset, SceneStats, StageRates, ablation_reason,
-                                    apply_ablations, reasons, resolve_config, resolve_preset)
+from reconstruction.presets import (
+    ABLATIONS,
+    PAPER,
+    ConfigInputs,
+    LearningRates,
+    Preset,
+    SceneStats,
+    StageRates,
+    ablation_reason,
+    apply_ablations,
+    reasons,
+    resolve_config,
+    resolve_preset,
+)
 
 STATS = SceneStats(num_views=9, width=320, height=240, foreground_px=(6000,) * 9, coverage_deg=150.0)
 
@@ -82,7 +94,9 @@ def test_init_metric_scale_and_overrides_are_inputs_too():
     sphere, why = resolve("cpu", STATS, init="sphere")
     assert sphere.iters_deform == 4 * cad.iters_deform and "carve" in why["iteration_caps"]["why"]
     assert cad.field.projection_keeps_scale and not resolve("cpu", STATS, metric=False)[0].field.projection_keeps_scale
-    over, why = resolve("cpu", STATS, overrides={"iters_photo": 7, "field": {"num_anchors": 64}, "lr": {"sh0": 0.5, "pose": {"photo": 1e-4}}})
+    over, why = resolve(
+        "cpu", STATS, overrides={"iters_photo": 7, "field": {"num_anchors": 64}, "lr": {"sh0": 0.5, "pose": {"photo": 1e-4}}}
+    )
     assert over.iters_photo == 7 and over.field.num_anchors == 64 and over.field.width == cad.field.width
     assert over.lr.sh0 == StageRates.constant(0.5) and over.lr.pose == StageRates(cad.lr.pose.pose, cad.lr.pose.deform, 1e-4)
     assert why["overrides"]["value"]["iters_photo"] == 7
@@ -100,7 +114,9 @@ def test_the_resolved_configuration_round_trips_and_its_reasons_are_read_from_it
     # Every reason's value is the configuration's own: change the configuration and the reason follows.
     assert why["num_splats"]["value"] == cfg.num_splats and why["eps2d"]["value"] == cfg.eps2d
     other = replace(cfg, num_splats=1234, eps2d=0.2)
-    assert reasons(other, ConfigInputs(STATS))["num_splats"]["value"] == 1234 and reasons(other, ConfigInputs(STATS))["eps2d"]["value"] == 0.2
+    assert (
+        reasons(other, ConfigInputs(STATS))["num_splats"]["value"] == 1234 and reasons(other, ConfigInputs(STATS))["eps2d"]["value"] == 0.2
+    )
     with pytest.raises(ValueError, match="does not know"):
         Preset.from_dict({**doc, "colour": 1})
 

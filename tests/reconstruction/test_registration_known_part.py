@@ -124,7 +124,7 @@ def test_scores_do_not_depend_on_threads_and_a_cut_short_score_keeps_its_views(m
     done = np.flatnonzero(cut_obj)
     assert 0 < len(done) < len(cams) and np.array_equal(done, np.arange(len(done)))
     np.testing.assert_array_equal(cut_obj[done], one[1][done])
-    assert not cut_iou[len(done):].any()
+    assert not cut_iou[len(done) :].any()
 
 
 def test_images_tell_a_near_symmetric_turn_from_the_true_pose():

@@ -74,8 +74,24 @@ def _ref_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return (b[..., :, None] * sh[..., : b.shape[-1], :]).sum(dim=-2)
 
 
-def reference_render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane=0.01,
-                     far_plane=1e10, eps2d=0.3, sh_degree=None, backgrounds=None, active=None):
+def reference_render(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    *,
+    near_plane=0.01,
+    far_plane=1e10,
+    eps2d=0.3,
+    sh_degree=None,
+    backgrounds=None,
+    active=None,
+):
     """Dense per-pixel gsplat-classic rendering; every input is used in float64."""
     means, quats, scales, opacities = (t.double() for t in (means, quats, scales, opacities))
     colors, viewmats, Ks = colors.double(), viewmats.double(), Ks.double()
@@ -106,9 +122,7 @@ def reference_render(means, quats, scales, opacities, colors, viewmats, Ks, widt
         tx = z_safe * torch.clamp(mc[:, 0] / z_safe, min=-(cx / fx + lim_x), max=(width - cx) / fx + lim_x)
         ty = z_safe * torch.clamp(mc[:, 1] / z_safe, min=-(cy / fy + lim_y), max=(height - cy) / fy + lim_y)
         zero = torch.zeros_like(z)
-        J = torch.stack(
-            [fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1
-        ).reshape(n, 2, 3)
+        J = torch.stack([fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1).reshape(n, 2, 3)
         cov2 = J @ R @ cov3 @ R.T @ J.transpose(-1, -2) + eps2d * torch.eye(2, dtype=torch.float64)
         det = torch.linalg.det(cov2)
         valid = in_depth & (det > 0) & (opacities >= 1.0 / 255.0) & active
@@ -160,9 +174,7 @@ def random_scene(n, *, seed, n_cams=2, width=45, height=37, sh_degree=None, spre
         "quats": torch.randn(n, 4, generator=g),
         "scales": torch.exp(torch.randn(n, 3, generator=g) * 0.6 - 2.2),
         "opacities": torch.rand(n, generator=g) * 0.98 + 0.01,
-        "colors": torch.randn(n, num_sh_bases(sh_degree), 3, generator=g) * 0.4
-        if sh_degree is not None
-        else torch.rand(n, 3, generator=g),
+        "colors": torch.randn(n, num_sh_bases(sh_degree), 3, generator=g) * 0.4 if sh_degree is not None else torch.rand(n, 3, generator=g),
     }
     eyes = [(0.3, -0.4, -5.0), (4.0, 1.0, -3.0), (-3.0, -2.0, 3.5)][:n_cams]
     scene["viewmats"] = torch.stack([look_at(e, (0.0, 0.0, 0.0)) for e in eyes])
@@ -221,11 +233,13 @@ def test_random_scene_matches_reference(sh_degree):
     assert alphas.max() > 0.9  # the scene is not trivially empty
     assert "visibility_counts" not in meta  # training does not read them: counted only on request
     args = [scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")]
-    counted_colors, _, counted = rasterize(*args, scene["width"], scene["height"], sh_degree=sh_degree,
-                                           backgrounds=scene["backgrounds"], visibility_counts=True)
+    counted_colors, _, counted = rasterize(
+        *args, scene["width"], scene["height"], sh_degree=sh_degree, backgrounds=scene["backgrounds"], visibility_counts=True
+    )
     assert counted["visibility_counts"].shape == (2, 150) and counted["visibility_counts"].sum() > 0
-    assert torch.equal(counted_colors, rasterize(*args, scene["width"], scene["height"], sh_degree=sh_degree,
-                                                 backgrounds=scene["backgrounds"])[0])
+    assert torch.equal(
+        counted_colors, rasterize(*args, scene["width"], scene["height"], sh_degree=sh_degree, backgrounds=scene["backgrounds"])[0]
+    )
 
 
 def test_batched_views_with_empty_tiles_match_reference():
@@ -269,21 +283,32 @@ def test_behind_camera_and_near_plane():
 def test_extreme_shapes_and_opacities():
     scene = random_scene(8, seed=6, n_cams=2, width=31, height=23)
     scene["means"] = torch.tensor(
-        [[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [-0.4, 0.1, 0.2], [0.1, 0.4, -0.3],
-         [0.2, 0.2, 0.2], [-0.2, -0.3, 0.0], [0.5, 0.0, -0.1], [0.0, -0.5, 0.3]]
-    )
-    scene["scales"] = torch.tensor(
         [
-            [1e-4, 1.0, 1.0],  # scale ratio 1e4: a disc seen at an angle
-            [2e-5, 2e-5, 2e-5],  # sub-pixel: eps2d dominates
-            [8.0, 6.0, 7.0],  # covers the whole image
-            [1e-4, 1e-4, 1.0],  # needle
-            [0.1, 0.1, 0.1],
-            [0.2, 0.05, 0.1],
-            [0.3, 0.3, 0.3],
-            [0.15, 0.1, 0.2],
+            [0.0, 0.0, 0.0],
+            [0.3, -0.2, 0.1],
+            [-0.4, 0.1, 0.2],
+            [0.1, 0.4, -0.3],
+            [0.2, 0.2, 0.2],
+            [-0.2, -0.3, 0.0],
+            [0.5, 0.0, -0.1],
+            [0.0, -0.5, 0.3],
         ]
-    ) * 0.5
+    )
+    scene["scales"] = (
+        torch.tensor(
+            [
+                [1e-4, 1.0, 1.0],  # scale ratio 1e4: a disc seen at an angle
+                [2e-5, 2e-5, 2e-5],  # sub-pixel: eps2d dominates
+                [8.0, 6.0, 7.0],  # covers the whole image
+                [1e-4, 1e-4, 1.0],  # needle
+                [0.1, 0.1, 0.1],
+                [0.2, 0.05, 0.1],
+                [0.3, 0.3, 0.3],
+                [0.15, 0.1, 0.2],
+            ]
+        )
+        * 0.5
+    )
     scene["opacities"] = torch.tensor([1.0, 1.0, 0.3, 0.0, 1.0, 0.5, 0.0, 1.0 / 255.0 + 1e-6])
     _, _, meta, grads = assert_matches(scene)
     assert grads["opacities"][6] == 0 and meta["radii"][:, 6].eq(0).all()
@@ -398,7 +423,7 @@ def assert_listing_matches_scan(tile_size: int) -> None:
         slot_f = np.array([[*centre, conic[0, 0], conic[0, 1], conic[1, 1], 0.9, rng.uniform(0.5, 5.0)]])
         slot_i = np.array([[u_lo, u_hi, v_lo, v_hi]], np.int32)
         full = -1 if tile_size == 64 else (1 << tile_size) - 1
-        live = (rng.integers(-2**63, 2**63 - 1, tile_size, dtype=np.int64) | (0 if trial % 2 else -1)) & full
+        live = (rng.integers(-(2**63), 2**63 - 1, tile_size, dtype=np.int64) | (0 if trial % 2 else -1)) & full
         got_p, got_sigma = np.zeros(room, np.int64), np.zeros(room)
         want_p, want_sigma = np.zeros(room, np.int64), np.zeros(room)
         m = _listing(slot_f, slot_i, x0, y0, live, got_p, got_sigma)
@@ -417,12 +442,16 @@ def test_the_listing_keeps_what_a_pixel_by_pixel_scan_keeps(tile_size):
 _HASWELL = "+64bit,+avx,+avx2,+bmi,+bmi2,+cmov,+cx16,+f16c,+fma,+fxsr,+lzcnt,+movbe,+popcnt,+sse,+sse2,+sse3,+sse4.1,+sse4.2,+ssse3"
 
 
-@pytest.mark.parametrize(("cpu", "features", "packing"), [
-    # Without AVX2 LLVM expands the vector compress into scalar moves: no wide register at all.
-    ("x86-64", "", None),
-    # With AVX2 and no AVX-512 each half of four lanes is packed by a table-driven permute (vpermd or vpermps).
-    ("haswell", _HASWELL, "vperm"),
-], ids=["sse2", "avx2"])
+@pytest.mark.parametrize(
+    ("cpu", "features", "packing"),
+    [
+        # Without AVX2 LLVM expands the vector compress into scalar moves: no wide register at all.
+        ("x86-64", "", None),
+        # With AVX2 and no AVX-512 each half of four lanes is packed by a table-driven permute (vpermd or vpermps).
+        ("haswell", _HASWELL, "vperm"),
+    ],
+    ids=["sse2", "avx2"],
+)
 def test_the_listing_lists_the_same_on_a_cpu_without_avx512(tmp_path, cpu, features, packing):
     # Compiled for that CPU in a fresh process and cache, the listing must keep the same pixels, in the same order,
     # with no 512-bit register in its code.
@@ -434,11 +463,19 @@ def test_the_listing_lists_the_same_on_a_cpu_without_avx512(tmp_path, cpu, featu
         "    assert_listing_matches_scan(tile_size)\n"
         "code = '\\n'.join(_listing.inspect_asm().values())\n"
         "assert 'zmm' not in code, 'compiled with 512-bit registers'\n"
-        + (f"assert {packing!r} in code, 'not packed by {packing}'\n" if packing else
-           "assert 'ymm' not in code, 'compiled with wide vectors'\n")
+        + (
+            f"assert {packing!r} in code, 'not packed by {packing}'\n"
+            if packing
+            else "assert 'ymm' not in code, 'compiled with wide vectors'\n"
+        )
     )
-    env = {**os.environ, "NUMBA_CPU_NAME": cpu, "NUMBA_CPU_FEATURES": features, "NUMBA_CACHE_DIR": str(tmp_path),
-           "CADSPLAT_KERNEL_CACHE": str(tmp_path)}
+    env = {
+        **os.environ,
+        "NUMBA_CPU_NAME": cpu,
+        "NUMBA_CPU_FEATURES": features,
+        "NUMBA_CACHE_DIR": str(tmp_path),
+        "CADSPLAT_KERNEL_CACHE": str(tmp_path),
+    }
     root = Path(__file__).resolve().parents[2]
     run = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -521,8 +558,9 @@ def test_renders_in_a_forked_child():
 
 def test_projection_meta_matches_gsplat_box_rule():
     scene = random_scene(100, seed=15, n_cams=1)
-    proj = project_gaussians(*[scene[k] for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")],
-                             scene["width"], scene["height"])
+    proj = project_gaussians(
+        *[scene[k] for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")], scene["width"], scene["height"]
+    )
     vis = proj.radii[0, :, 0] > 0
     assert vis.any()
     cov_xx = proj.conics[0, :, 2] / (proj.conics[0, :, 0] * proj.conics[0, :, 2] - proj.conics[0, :, 1] ** 2)
@@ -629,8 +667,13 @@ def test_cuda_backend_agrees_with_cpu():
     for device in ("cpu", "cuda"):
         inputs = {k: scene[k].to(device).requires_grad_(True) for k in PARAMS}
         colors, alphas, meta = rasterize(
-            *[inputs[k] for k in PARAMS[:-1]], scene["Ks"].to(device), 64, 48, sh_degree=3,
-            backgrounds=inputs["backgrounds"], visibility_counts=True,
+            *[inputs[k] for k in PARAMS[:-1]],
+            scene["Ks"].to(device),
+            64,
+            48,
+            sh_degree=3,
+            backgrounds=inputs["backgrounds"],
+            visibility_counts=True,
         )
         (colors.square().sum() + alphas.sum()).backward()
         outs[device] = (colors, alphas, meta["visibility_counts"], {k: inputs[k].grad for k in PARAMS})
@@ -644,8 +687,9 @@ def test_cuda_backend_agrees_with_cpu():
     alphas_only = {}
     for device in ("cpu", "cuda"):
         args = [scene[k].to(device) for k in PARAMS[:4]]
-        colors, alphas, _ = rasterize(*args, torch.zeros(300, 0, device=device), scene["viewmats"].to(device),
-                                      scene["Ks"].to(device), 64, 48)
+        colors, alphas, _ = rasterize(
+            *args, torch.zeros(300, 0, device=device), scene["viewmats"].to(device), scene["Ks"].to(device), 64, 48
+        )
         assert colors.shape == (2, 48, 64, 0)
         alphas_only[device] = alphas.cpu()
     assert (alphas_only["cpu"] - alphas_only["cuda"]).abs().max() < 1e-4
@@ -688,8 +732,9 @@ def test_a_loss_on_one_image_differentiates_like_zero_weight_on_the_other():
 
     def grads(loss_of):
         inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
-        colors, alphas, _ = rasterize(*[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"],
-                                      backgrounds=inputs["backgrounds"])
+        colors, alphas, _ = rasterize(
+            *[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"], backgrounds=inputs["backgrounds"]
+        )
         loss_of(colors, alphas).backward()
         return {k: inputs[k].grad for k in PARAMS}
 
@@ -713,9 +758,17 @@ def test_alphas_alone_render_and_differentiate_like_a_zero_colour():
 
     def render(depth: int):
         inputs = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "viewmats")}
-        colors, alphas, _ = rasterize(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
-                                      torch.zeros(250, depth), inputs["viewmats"], scene["Ks"], scene["width"],
-                                      scene["height"])
+        colors, alphas, _ = rasterize(
+            inputs["means"],
+            inputs["quats"],
+            inputs["scales"],
+            inputs["opacities"],
+            torch.zeros(250, depth),
+            inputs["viewmats"],
+            scene["Ks"],
+            scene["width"],
+            scene["height"],
+        )
         (alphas * weights).sum().backward()
         return colors, alphas, {k: v.grad for k, v in inputs.items()}
 
@@ -754,8 +807,9 @@ def test_the_three_channel_backward_equals_the_backward_for_any_depth(monkeypatc
 
     def grads():
         inputs = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
-        colors, alphas, _ = rasterize(*[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"],
-                                      sh_degree=2, backgrounds=inputs["backgrounds"])
+        colors, alphas, _ = rasterize(
+            *[inputs[k] for k in PARAMS[:-1]], scene["Ks"], scene["width"], scene["height"], sh_degree=2, backgrounds=inputs["backgrounds"]
+        )
         ((colors * weights).sum() + alphas.sum()).backward()
         return {k: v.grad for k, v in inputs.items()}
 

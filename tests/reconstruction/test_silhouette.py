@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from calibration.camera import Camera, look_at_c2w
-from calibration.camera import project_points
+from calibration.camera import Camera, look_at_c2w, project_points
 from reconstruction.silhouette import closed_winding, fill_triangles, fit_canvas, iou, normalize_silhouette, pack, render_silhouette, unpack
 from reconstruction.silhouette_index import best_iou, count_window, fibonacci_directions, popcount_rows
 from tests.conftest import require_shared
@@ -67,10 +66,7 @@ def test_matches_mujoco_segmentation():
     scene = SyntheticScene.from_mesh(path, texture_size=64)
     mesh = scene.mesh
     center = mesh.bounds.mean(0)
-    cams = [
-        Camera.from_fov(np.radians(45), 160, 120, look_at_c2w(center + 4 * mesh.radius * d, center))
-        for d in fibonacci_directions(4)
-    ]
+    cams = [Camera.from_fov(np.radians(45), 160, 120, look_at_c2w(center + 4 * mesh.radius * d, center)) for d in fibonacci_directions(4)]
     _, masks = scene.render(cams)
     for cam, ref in zip(cams, masks):
         ours = render_silhouette(mesh.vertices, mesh.faces, cam.K, cam.viewmat, cam.width, cam.height)

@@ -205,5 +205,5 @@ def test_alpha_half_reach_follows_the_gaussian_falloff():
     reach = alpha_half_reach(g)
     assert np.isclose(reach[0], sigma * np.sqrt(2 * np.log(1.8)), rtol=1e-6)
     # Exactly where alpha is 1/2:
-    assert np.isclose(0.9 * np.exp(-reach[0] ** 2 / (2 * sigma**2)), 0.5, rtol=1e-6)
+    assert np.isclose(0.9 * np.exp(-(reach[0] ** 2) / (2 * sigma**2)), 0.5, rtol=1e-6)
     assert reach[1] == 0.0  # never reaches alpha 1/2

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from reconstruction.ssim import _ssim_map_torch, gaussian_window, dssim_l1_sums, ssim_map
+from reconstruction.ssim import _ssim_map_torch, dssim_l1_sums, gaussian_window, ssim_map
 
 
 def _pair(dtype: torch.dtype, shape=(2, 23, 31, 3), seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -79,7 +79,10 @@ def _ball_and_cameras():
 
     ball = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
     K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
-    cams = [Camera(K, 320, 240, c2w=look_at_c2w(np.array(eye, float), np.zeros(3))) for eye in ([0.3, 0, 0.05], [0, 0.3, -0.05], [-0.2, -0.2, 0.1])]
+    cams = [
+        Camera(K, 320, 240, c2w=look_at_c2w(np.array(eye, float), np.zeros(3)))
+        for eye in ([0.3, 0, 0.05], [0, 0.3, -0.05], [-0.2, -0.2, 0.1])
+    ]
     return np.asarray(ball.vertices), np.asarray(ball.faces), cams
 
 

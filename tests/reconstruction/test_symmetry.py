@@ -46,7 +46,9 @@ def test_cylinder_is_continuous_about_its_axis_and_flips_end_over_end() -> None:
     v, f = _mesh(trimesh.creation.cylinder(radius=0.02, height=0.15, sections=64), _pose(20.0, [0, 1, 0], [0, 0, 0.1]))
     syms = near_symmetries(v, f, tolerance=0.003, continuous_step_deg=5.0, **FAST)
     continuous = [s for s in syms if s.continuous]
-    spin = [s for s in continuous if s.angle_deg < 179.0 and abs(float(s.axis @ [np.sin(np.radians(20)), 0, np.cos(np.radians(20))])) > 0.999]
+    spin = [
+        s for s in continuous if s.angle_deg < 179.0 and abs(float(s.axis @ [np.sin(np.radians(20)), 0, np.cos(np.radians(20))])) > 0.999
+    ]
     assert len(spin) >= 60  # 5-degree samples of the turn about the long axis
     # The end-over-end flip is there too (a half-turn about an axis across the cylinder).
     across = [s for s in syms if not s.continuous and s.angle_deg > 179.0]

@@ -13,15 +13,15 @@ import torch
 
 torch.set_num_threads(1)  # the CI box is shared; one thread avoids oversubscription stalls
 
-from calibration.capture import load_views, read_capture  # noqa: E402
 from calibration.camera import look_at_c2w  # noqa: E402
+from calibration.capture import load_views, read_capture  # noqa: E402
 from calibration.so3 import axis_angle_to_matrix  # noqa: E402
 from reconstruction.deformation import FieldConfig  # noqa: E402
+from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 from reconstruction.pipeline import FileCheckpoint  # noqa: E402
 from reconstruction.presets import PAPER, PAPER_RATES, ConfigInputs, SceneStats, reasons, resolve_preset  # noqa: E402
 from reconstruction.splats import init_splats  # noqa: E402
 from reconstruction.train import Plateau, Views, _grads_finite, train  # noqa: E402
-from reconstruction.mesh_io import read_mesh_parts  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample"
 
@@ -46,8 +46,17 @@ def sample_scene(n_views=5, noise_deg=3.0, size=None):
 def tiny_preset(pose=25, deform=15, photo=20):
     stats = SceneStats(5, 320, 240, (5000,) * 5, 120.0)
     p = resolve_preset("preview", stats)
-    return replace(p, num_splats=3000, iters_pose=pose, iters_deform=deform, iters_photo=photo, dropout_p0=0.5, dropout_anneal=10,
-                   field=FieldConfig(2, 32, 10, 256), checkpoint_every=10)
+    return replace(
+        p,
+        num_splats=3000,
+        iters_pose=pose,
+        iters_deform=deform,
+        iters_photo=photo,
+        dropout_p0=0.5,
+        dropout_anneal=10,
+        field=FieldConfig(2, 32, 10, 256),
+        checkpoint_every=10,
+    )
 
 
 def finite_model(model) -> bool:
@@ -89,8 +98,12 @@ def test_the_pose_stage_evaluates_the_frozen_splats_once(monkeypatch):
     forward = DeformationField.forward
     monkeypatch.setattr(DeformationField, "forward", lambda self: calls.append(1) or forward(self))
     seen = []
-    res = train(views, splats, tiny_preset(pose=12, deform=0, photo=0),
-                progress=lambda stage, it, cap, loss: seen.append(len(calls)) if stage == "pose" else None)
+    res = train(
+        views,
+        splats,
+        tiny_preset(pose=12, deform=0, photo=0),
+        progress=lambda stage, it, cap, loss: seen.append(len(calls)) if stage == "pose" else None,
+    )
     assert res.iterations["pose"] == 12
     assert len(seen) == 12 and seen[0] == seen[-1] <= 2  # the consistency weights' look, and the stage's one
     assert float(res.model.pose.rig_t.detach().abs().sum()) > 0
@@ -132,9 +145,14 @@ def test_checkpoint_of_other_splats_is_not_resumed(tmp_path):
     ck = FileCheckpoint(tmp_path / "twin")
     views, splats, preset = _interrupted_run(ck)
     order = np.random.default_rng(0).permutation(len(splats))
-    shuffled = replace(splats, gaussians=splats.gaussians.subset(order), normals=splats.normals[order],
-                       face_index=splats.face_index[order], barycentrics=splats.barycentrics[order],
-                       part_label=splats.part_label[order])
+    shuffled = replace(
+        splats,
+        gaussians=splats.gaussians.subset(order),
+        normals=splats.normals[order],
+        face_index=splats.face_index[order],
+        barycentrics=splats.barycentrics[order],
+        part_label=splats.part_label[order],
+    )
     seen = []
     train(views, shuffled, preset, checkpoint=ck, progress=lambda s, i, c, l: seen.append((s, i)))
     assert seen[0] == ("pose", 1)
@@ -205,7 +223,6 @@ def test_stage_without_iterations_reports_null_loss_not_nan():
     assert res.losses["pose"]["total_last_window"] is None and res.losses["deform"]["total_last_window"] is None
     json.dumps(res.losses, allow_nan=False)
     assert finite_model(res.model)
-
 
 
 def test_splats_move_along_their_normals_and_the_mesh_follows_them():
@@ -341,7 +358,10 @@ def test_view_dependent_colour_decays_towards_none_only_when_the_preset_says_so(
     base = tiny_preset(pose=2, deform=2, photo=8)
     plain = train(views, splats, base).model
     decayed = train(views, splats, replace(base, shn_decay=50.0)).model
-    norm = lambda m: float(m.shN.detach().norm())
+
+    def norm(m):
+        return float(m.shN.detach().norm())
+
     assert norm(plain) > 0 and norm(decayed) < 0.5 * norm(plain)
     assert bool(torch.isfinite(decayed.sh0).all())
     stats = SceneStats(10, 320, 240, (5000,) * 10, 120.0)
@@ -357,11 +377,14 @@ def test_training_leaves_torch_dynamo_unimported():
 
     if not (SAMPLE / "train").exists():
         pytest.skip("the bundled sample is absent")
-    code = ("import sys\n"
-            "from tests.reconstruction.test_train import init_splats, sample_scene, tiny_preset, train\n"
-            "views, parts, _ = sample_scene(n_views=3)\n"
-            "train(views, init_splats(parts.vertices, parts.faces, 500, sh_degree=0, seed=0), tiny_preset(pose=2, deform=2, photo=2))\n"
-            "print('torch._dynamo' in sys.modules)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[2]).stdout.split()
+    code = (
+        "import sys\n"
+        "from tests.reconstruction.test_train import init_splats, sample_scene, tiny_preset, train\n"
+        "views, parts, _ = sample_scene(n_views=3)\n"
+        "train(views, init_splats(parts.vertices, parts.faces, 500, sh_degree=0, seed=0), tiny_preset(pose=2, deform=2, photo=2))\n"
+        "print('torch._dynamo' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=Path(__file__).resolve().parents[2]
+    ).stdout.split()
     assert out[-1] == "False"

@@ -31,8 +31,14 @@ def make_twin(n: int = 50, degree: int = 2, seed: int = 0) -> Twin:
     k = (degree + 1) ** 2
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    cam = TwinCamera("images/a.png", "cam0", np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]), 64, 48,
-                     look_at_c2w(np.array([0.5, 0.0, 0.2]), np.zeros(3)))
+    cam = TwinCamera(
+        "images/a.png",
+        "cam0",
+        np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]),
+        64,
+        48,
+        look_at_c2w(np.array([0.5, 0.0, 0.2]), np.zeros(3)),
+    )
     return Twin(
         model_id="m1",
         sim3_rig_to_object_init=Sim3(2.0, axis_angle_to_matrix(np.array([0.1, 0.2, 0.3])), np.array([1.0, 2, 3])),
@@ -42,8 +48,9 @@ def make_twin(n: int = 50, degree: int = 2, seed: int = 0) -> Twin:
         choices={"num_splats": {"value": n, "why": "test"}},
         timings_s={"stage1": 1.5},
         losses={"mask": 0.01},
-        gaussians=Gaussians.from_arrays(rng.normal(size=(n, 3)), q, rng.normal(size=(n, 3)) - 5, rng.normal(size=n),
-                                        rng.normal(size=(n, k, 3))),
+        gaussians=Gaussians.from_arrays(
+            rng.normal(size=(n, 3)), q, rng.normal(size=(n, 3)) - 5, rng.normal(size=n), rng.normal(size=(n, k, 3))
+        ),
         means_canonical=rng.normal(size=(n, 3)),
         face_index=rng.integers(0, 12, n),
         barycentrics=rng.dirichlet([1, 1, 1], n),
@@ -54,10 +61,16 @@ def make_twin(n: int = 50, degree: int = 2, seed: int = 0) -> Twin:
 
 def test_round_trip_and_every_ply_column(tmp_path):
     twin = make_twin()
-    mesh = MeshParts(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]),
-                     np.array([0, 1]), ["body", "lid"])
-    out = save_twin(replace(twin, config={"name": "cpu"}, training={"seed": 3}), tmp_path / "twin", mesh_cad=mesh, mesh_deformed=mesh,
-                    renders={"a.png": np.ones((4, 5, 4), np.float32)})
+    mesh = MeshParts(
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 1, 3]]), np.array([0, 1]), ["body", "lid"]
+    )
+    out = save_twin(
+        replace(twin, config={"name": "cpu"}, training={"seed": 3}),
+        tmp_path / "twin",
+        mesh_cad=mesh,
+        mesh_deformed=mesh,
+        renders={"a.png": np.ones((4, 5, 4), np.float32)},
+    )
     back = load_twin(out)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_allclose(getattr(back.gaussians, name), getattr(twin.gaussians, name), rtol=1e-6, atol=1e-6)
@@ -139,3 +152,19 @@ def test_the_dilation_a_twin_was_fitted_with_comes_back(tmp_path):
         (out / "twin.json").write_text(json.dumps(doc))
         with pytest.raises(TwinError, match="eps2d"):
             load_twin(out, verify=False)
+
+
+def test_a_manifest_entry_outside_the_twin_is_refused(tmp_path):
+    """A manifest naming a file outside the twin (with that file's true digest) must not be read as part of it."""
+    import json
+
+    from calibration.fileio import sha256_file
+    from reconstruction.twin import MANIFEST_JSON, TwinError, verify_twin
+
+    root = tmp_path / "twin"
+    root.mkdir()
+    secret = tmp_path / "secret.txt"
+    secret.write_text("not the twin's")
+    (root / MANIFEST_JSON).write_text(json.dumps({"sha256": {"../secret.txt": sha256_file(secret)}}))
+    with pytest.raises(TwinError, match="outside"):
+        verify_twin(root)

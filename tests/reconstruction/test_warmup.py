@@ -19,7 +19,7 @@ RUN = textwrap.dedent("""
     import gc, json, sys, tempfile
     from pathlib import Path
     import numba
-    from deploy.commands.inspect import inspect_twin_dir
+    from deploy.inspection_report import inspect_twin_dir
     from reconstruction.library import build_library
     from reconstruction.pipeline import reconstruct_capture
     sample, work = Path(sys.argv[1]), Path(tempfile.mkdtemp())
@@ -42,6 +42,5 @@ def test_a_first_reconstruction_after_the_warmup_compiles_nothing(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != ENV}
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "cache")  # as a fresh install: nothing compiled yet
     subprocess.run([sys.executable, "-m", "reconstruction.warmup"], env=env, cwd=REPO, check=True, capture_output=True)
-    out = subprocess.run([sys.executable, "-c", RUN, str(sample)], env=env, cwd=REPO, check=True, capture_output=True,
-                         text=True)
+    out = subprocess.run([sys.executable, "-c", RUN, str(sample)], env=env, cwd=REPO, check=True, capture_output=True, text=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []

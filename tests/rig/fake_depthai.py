@@ -226,7 +226,9 @@ class CalibrationHandler:
         if s is None:
             raise RuntimeError(f"There is no Intrinsic matrix available for the the requested cameraID ({cameraId.name})")
         size = (s.width, s.height) if resizeWidth < 0 else (resizeWidth, resizeHeight)
-        return _scale_crop(_intrinsics(s), (s.width, s.height), size, ImgResizeMode.CROP if keepAspectRatio else ImgResizeMode.STRETCH).tolist()
+        return _scale_crop(
+            _intrinsics(s), (s.width, s.height), size, ImgResizeMode.CROP if keepAspectRatio else ImgResizeMode.STRETCH
+        ).tolist()
 
     def getDistortionCoefficients(self, cameraId):
         return list(self.DIST)
@@ -257,7 +259,7 @@ class MessageQueue:
 class _OutputQueue:
     """Frames of one socket: streamed at `fps` on the host clock, or one burst per FSIN edge in snapshot mode."""
 
-    def __init__(self, device: "Device", node: "_CameraNode", size, resize_mode):
+    def __init__(self, device: Device, node: _CameraNode, size, resize_mode):
         self.device, self.node, self.size, self.resize_mode = device, node, size, resize_mode
         self.closed = False
         self.seq = 0
@@ -453,12 +455,23 @@ class Device:
 
     @classmethod
     def getAllAvailableDevices(cls):
-        return [DeviceInfo(h.device_id, _XLINK[h.platform]) for h in cls._fake.hardware.values() if h.plugged and (h.holder is None or h.holder.isClosed())]
+        return [
+            DeviceInfo(h.device_id, _XLINK[h.platform])
+            for h in cls._fake.hardware.values()
+            if h.plugged and (h.holder is None or h.holder.isClosed())
+        ]
 
     @classmethod
     def getAllConnectedDevices(cls):
-        return [DeviceInfo(h.device_id, _XLINK[h.platform], XLinkDeviceState.X_LINK_UNBOOTED if h.holder is None or h.holder.isClosed() else XLinkDeviceState.X_LINK_BOOTED)
-                for h in cls._fake.hardware.values() if h.plugged]
+        return [
+            DeviceInfo(
+                h.device_id,
+                _XLINK[h.platform],
+                XLinkDeviceState.X_LINK_UNBOOTED if h.holder is None or h.holder.isClosed() else XLinkDeviceState.X_LINK_BOOTED,
+            )
+            for h in cls._fake.hardware.values()
+            if h.plugged
+        ]
 
     def _alive(self):
         if self._closed or self._lost:

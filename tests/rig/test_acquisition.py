@@ -231,8 +231,9 @@ def test_enospc_mid_capture_is_written_into_the_reserve_and_committed(store_root
 
 
 def test_captures_record_the_calibration_they_were_taken_under(store_root):
-    acq = make_acquisition(store_root, calibration_id="calibration-v0003",
-                           calibration_uncertainty={"rotation_deg": 0.04, "translation_mm": 0.4})
+    acq = make_acquisition(
+        store_root, calibration_id="calibration-v0003", calibration_uncertainty={"rotation_deg": 0.04, "translation_mm": 0.4}
+    )
     out = acq.handle(SoftwareTrigger().fire())
     acq.close()
     meta = acq.store.read(out.capture_id).meta

@@ -15,7 +15,9 @@ from rig.synthetic_driver import PatternCamera
 
 def test_rig_reads_the_keepers_calibration_and_names_its_version(tmp_path):
     k = np.array([[500.0, 0, 320.5], [0, 500, 240.5], [0, 0, 1]])
-    cams = {f"cam{i:02d}": Camera(k, 640, 480, np.zeros(5), look_at_c2w(np.array([np.cos(i), np.sin(i), 0.3]), np.zeros(3))) for i in range(3)}
+    cams = {
+        f"cam{i:02d}": Camera(k, 640, 480, np.zeros(5), look_at_c2w(np.array([np.cos(i), np.sin(i), 0.3]), np.zeros(3))) for i in range(3)
+    }
     store = CalibrationStore(tmp_path / "calibration.json")
     store.commit(CalibrationDoc(cams))
     store.commit(CalibrationDoc(cams, source="auto-correction"))
@@ -30,8 +32,10 @@ def test_rig_reads_the_keepers_calibration_and_names_its_version(tmp_path):
 def test_rig_passes_the_calibrations_stated_uncertainty_to_its_captures(tmp_path):
     k = np.array([[500.0, 0, 320.5], [0, 500, 240.5], [0, 0, 1]])
     cams = {f"cam{i}": Camera(k, 640, 480, np.zeros(5), look_at_c2w(np.array([np.cos(i), np.sin(i), 0.3]), np.zeros(3))) for i in range(2)}
-    figures = {"cam0": {"uncertainty": {"extrinsics_cv_rotation_deg": 0.04, "extrinsics_cv_translation_mm": 0.3}},
-               "cam1": {"uncertainty": {"extrinsics_cv_rotation_deg": 0.02, "extrinsics_cv_translation_mm": 0.5}}}
+    figures = {
+        "cam0": {"uncertainty": {"extrinsics_cv_rotation_deg": 0.04, "extrinsics_cv_translation_mm": 0.3}},
+        "cam1": {"uncertainty": {"extrinsics_cv_rotation_deg": 0.02, "extrinsics_cv_translation_mm": 0.5}},
+    }
     CalibrationStore(tmp_path / "calibration.json").commit(CalibrationDoc(cams, figures))
     # The worst camera's figures: the rig is only as good as its worst camera.
     assert load_rig_calibration(tmp_path / "calibration.json").uncertainty == {"rotation_deg": 0.04, "translation_mm": 0.5}
@@ -44,11 +48,15 @@ def test_missing_calibration_is_one_sentence(tmp_path):
 
 def test_every_driver_rig_toml_accepts_is_built_by_name(tmp_path):
     assert set(DRIVERS) == set(CAMERA_DRIVERS)
-    cfg = parse_config({"cameras": [
-        {"id": "a", "driver": "oak", "device": "18443010D1C2A41200", "socket": "CAM_B"},
-        {"id": "b", "driver": "replay", "path": str(tmp_path)},
-        {"id": "c", "driver": "pattern", "width": 320, "height": 240},
-    ]})
+    cfg = parse_config(
+        {
+            "cameras": [
+                {"id": "a", "driver": "oak", "device": "18443010D1C2A41200", "socket": "CAM_B"},
+                {"id": "b", "driver": "replay", "path": str(tmp_path)},
+                {"id": "c", "driver": "pattern", "width": 320, "height": 240},
+            ]
+        }
+    )
     drivers = [build_camera(c, None, i, len(cfg.cameras)) for i, c in enumerate(cfg.cameras)]
     assert [type(d) for d in drivers] == [OakCamera, ReplayCamera, PatternCamera]
     assert [d.camera_id for d in drivers] == ["a", "b", "c"]

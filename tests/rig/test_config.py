@@ -12,7 +12,13 @@ def test_example_config_loads_with_every_section():
     cfg = load_config(REPO / "deploy" / "rig.example.toml")
     assert cfg.rig_id == "line-3" and [c.id for c in cfg.cameras] == ["cam00", "cam01"]
     cam = cfg.cameras[0]
-    assert (cam.driver, cam.device, cam.settings.width, cam.settings.sync, cam.settings.locked) == ("oak", "18443010D1C2A41200", 1280, "fsin", True)
+    assert (cam.driver, cam.device, cam.settings.width, cam.settings.sync, cam.settings.locked) == (
+        "oak",
+        "18443010D1C2A41200",
+        1280,
+        "fsin",
+        True,
+    )
     assert (cfg.trigger.kind, cfg.trigger.arbitration_id, cfg.trigger.min_interval_ms) == ("serial", 0x181, 250.0)
     assert cfg.thresholds.sync_tolerance_ns == 2_000_000 and cfg.storage.min_free_gb == 5.0
     assert str(cfg.storage.spill) == "/var/lib/cadsplat/spill"

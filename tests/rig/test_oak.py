@@ -25,8 +25,16 @@ def ffc_4p(device_id="18443010D1C2A41200", **kw) -> Hardware:
 
 def oak_d(device_id="19443010D1C2A41200") -> Hardware:
     """RGB IMX378 (4056x3040, streams a 16:9 window) and two OV9282."""
-    return Hardware(device_id, "RVC2", [Sensor("CAM_A", "IMX378", 4056, 3040, window=(108, 440, 3840, 2160)),
-                                        Sensor("CAM_B", "OV9282", 1280, 800), Sensor("CAM_C", "OV9282", 1280, 800)], product="OAK-D")
+    return Hardware(
+        device_id,
+        "RVC2",
+        [
+            Sensor("CAM_A", "IMX378", 4056, 3040, window=(108, 440, 3840, 2160)),
+            Sensor("CAM_B", "OV9282", 1280, 800),
+            Sensor("CAM_C", "OV9282", 1280, 800),
+        ],
+        product="OAK-D",
+    )
 
 
 def cam(dai, camera_id="cam0", device_id="18443010D1C2A41200", **kw) -> OakCamera:
@@ -46,7 +54,9 @@ def wait(cond, timeout=5.0) -> bool:
 def test_lists_and_describes_devices():
     dai = FakeDai(ffc_4p(), Hardware("OAK4", "RVC4", [Sensor("CAM_A", "IMX586", 4000, 3000)], product="OAK4-D"))
     assert [(d["device_id"], d["platform"], d["state"]) for d in list_oak_devices(dai)] == [
-        ("18443010D1C2A41200", "RVC2", "X_LINK_UNBOOTED"), ("OAK4", "RVC4", "X_LINK_UNBOOTED")]
+        ("18443010D1C2A41200", "RVC2", "X_LINK_UNBOOTED"),
+        ("OAK4", "RVC4", "X_LINK_UNBOOTED"),
+    ]
     d = describe_oak_device("18443010D1C2A41200", dai)
     assert d["product"] == "OAK-FFC-4P" and [s["socket"] for s in d["sockets"]] == ["CAM_A", "CAM_B", "CAM_C", "CAM_D"]
     assert d["sockets"][0]["sensor"] == "OV9282" and d["sockets"][0]["sync"] == ["software", "fsin (snapshot on FSIN edge)"]
@@ -128,7 +138,11 @@ def test_four_sockets_share_one_device_and_one_pipeline():
 
 
 def test_refusals_are_one_sentence_each():
-    dai = FakeDai(ffc_4p(), oak_d(), Hardware("OAK4", "RVC4", [Sensor("CAM_A", "IMX586", 4000, 3000)], sync_role_error="no FSYNC signal on the M8 input"))
+    dai = FakeDai(
+        ffc_4p(),
+        oak_d(),
+        Hardware("OAK4", "RVC4", [Sensor("CAM_A", "IMX586", 4000, 3000)], sync_role_error="no FSYNC signal on the M8 input"),
+    )
 
     def refusal(fn) -> str:
         with pytest.raises(CameraError) as e:
@@ -138,17 +152,22 @@ def test_refusals_are_one_sentence_each():
     assert refusal(lambda: cam(dai, device_id="NOPE").open()).startswith("cam0: OAK NOPE not found or busy (No available devices")
     assert refusal(lambda: cam(dai, socket="CAM_Z").open()) == "cam0: unknown camera socket 'CAM_Z' (use CAM_A, CAM_B, ...)"
     assert refusal(lambda: cam(dai, device_id="19443010D1C2A41200", socket="CAM_D").open()) == (
-        "cam0: OAK 19443010D1C2A41200 has no camera on CAM_D (connected: CAM_A (IMX378), CAM_B (OV9282), CAM_C (OV9282))")
+        "cam0: OAK 19443010D1C2A41200 has no camera on CAM_D (connected: CAM_A (IMX378), CAM_B (OV9282), CAM_C (OV9282))"
+    )
     rgb = cam(dai, "rgb", device_id="19443010D1C2A41200", socket="CAM_A")
     rgb.open()
     assert refusal(lambda: rgb.configure(CameraSettings(64, 36, sync="fsin", **LOCKED))) == (
-        "rgb: CAM_A is a rolling-shutter IMX378: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'")
-    assert refusal(lambda: rgb.configure(CameraSettings(64, 36, sync="fsin"))).startswith("rgb: sync 'fsin' needs fixed exposure_us, iso and white_balance_k")
+        "rgb: CAM_A is a rolling-shutter IMX378: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
+    )
+    assert refusal(lambda: rgb.configure(CameraSettings(64, 36, sync="fsin"))).startswith(
+        "rgb: sync 'fsin' needs fixed exposure_us, iso and white_balance_k"
+    )
     rgb.close()
     four = cam(dai, "four", device_id="OAK4")
     four.open()
     assert refusal(lambda: four.configure(CameraSettings(64, 48, sync="fsin", **LOCKED))) == (
-        "four: OAK OAK4 refused the external frame-sync role SLAVE (no FSYNC signal on the M8 input); check the M8 sync cable, or use sync = 'software'")
+        "four: OAK OAK4 refused the external frame-sync role SLAVE (no FSYNC signal on the M8 input); check the M8 sync cable, or use sync = 'software'"
+    )
     four.close()
     other_process = dai.Device(dai.DeviceInfo("18443010D1C2A41200"))
     assert "X_LINK_DEVICE_ALREADY_IN_USE" in refusal(lambda: cam(dai).open())
@@ -183,7 +202,9 @@ def test_rvc2_snapshot_one_frame_per_fsin_edge():
     time.sleep(0.02)  # the trigger message reaches the host after the edge
     c.arm(2)
     f = c.grab(1.0)
-    assert abs(f.timestamp_ns - edge - (40_000 + 2 * 33_333_333)) < 1000  # (depthai times are µs timedeltas); the burst's first two (degraded) frames were discarded
+    assert (
+        abs(f.timestamp_ns - edge - (40_000 + 2 * 33_333_333)) < 1000
+    )  # (depthai times are µs timedeltas); the burst's first two (degraded) frames were discarded
     c.close()
 
 
@@ -210,7 +231,9 @@ def test_intrinsics_come_from_the_cropped_output_and_a_mismatch_is_a_warning():
     tr = dai.pipelines[-1].queues[0].get(dt.timedelta(seconds=1)).getTransformation()
     np.testing.assert_allclose(c.camera.K, np.array(tr.getIntrinsicMatrix()) + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
     full = np.array(dai.opened[-1].readCalibration().getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, 640, 360))
-    assert c.camera.K[0, 0] == pytest.approx(0.8 * 4056 * 640 / 3840) and abs(full[0, 0] - c.camera.K[0, 0]) > 25  # the scaled calibration is 5% off
+    assert (
+        c.camera.K[0, 0] == pytest.approx(0.8 * 4056 * 640 / 3840) and abs(full[0, 0] - c.camera.K[0, 0]) > 25
+    )  # the scaled calibration is 5% off
     assert c.camera.dist.size == 4 and c.calibration_warning == ""
     c.close()
     # a rig calibration made from the factory intrinsics scaled to 640x360 does not match what is delivered
@@ -220,7 +243,10 @@ def test_intrinsics_come_from_the_cropped_output_and_a_mismatch_is_a_warning():
     c.configure(CameraSettings(640, 360, **LOCKED))
     c.arm(1)
     f = c.grab(1.0)
-    assert c.calibration_warning.startswith("the delivered 640x360 frames have fx 540.8") and "recalibrate at this output size" in c.calibration_warning
+    assert (
+        c.calibration_warning.startswith("the delivered 640x360 frames have fx 540.8")
+        and "recalibrate at this output size" in c.calibration_warning
+    )
     assert f.settings["calibration_warning"] == c.calibration_warning and "calibration warning" in c.health().detail
     assert c.camera.K[0, 0] == calibrated.K[0, 0]  # the rig calibration stays in force; the warning says it disagrees
     c.close()
@@ -241,7 +267,9 @@ def test_disconnect_then_background_reconnect_with_the_same_settings():
     assert c.reconnecting and not h.ok and "reconnecting" in h.detail
     # what the kiosk shows for it
     text = drift_alarm(CameraStatus("cam0", h.ok, detail=h.detail)).text
-    assert text.startswith("Camera cam0 is not answering (OAK 18443010D1C2A41200 is disconnected (X_LINK_ERROR); reconnecting in the background")
+    assert text.startswith(
+        "Camera cam0 is not answering (OAK 18443010D1C2A41200 is disconnected (X_LINK_ERROR); reconnecting in the background"
+    )
     assert text.endswith(") — captures are refused until it is back; check its cable and power.")
     with pytest.raises(CameraError, match="is disconnected"):
         c.arm(21)
@@ -272,15 +300,21 @@ def test_an_idle_device_that_drops_is_noticed_by_its_health_check():
 def test_sync_refusals_per_platform_and_sensor():
     assert refuse_sync("RVC2", "CAM_A", "OV9282") == "" and refuse_sync("RVC4", "CAM_A", "IMX586") == ""
     assert refuse_sync("RVC2", "CAM_C", "IMX296") == (
-        "CAM_C is a global-shutter IMX296: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'")
-    assert refuse_sync("RVC2", "CAM_D", "S5K33D") == "CAM_D is a S5K33D: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
+        "CAM_C is a global-shutter IMX296: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
+    )
+    assert (
+        refuse_sync("RVC2", "CAM_D", "S5K33D")
+        == "CAM_D is a S5K33D: snapshot sync is not supported (only OV9282, OV9782, AR0234), use sync = 'software'"
+    )
     assert refuse_sync("RVC3", "CAM_A", "OV9282") == "CAM_A: hardware frame sync is not supported on RVC3 devices, use sync = 'software'"
 
 
 def test_mixed_sync_on_one_device_builds_once():
     """OAK-D: the mono pair in snapshot sync, the rolling-shutter RGB streaming (software), one pipeline."""
     dai = FakeDai(oak_d())
-    rgb, left, right = (cam(dai, n, device_id="19443010D1C2A41200", socket=s) for n, s in (("rgb", "CAM_A"), ("left", "CAM_B"), ("right", "CAM_C")))
+    rgb, left, right = (
+        cam(dai, n, device_id="19443010D1C2A41200", socket=s) for n, s in (("rgb", "CAM_A"), ("left", "CAM_B"), ("right", "CAM_C"))
+    )
     for c in (rgb, left, right):
         c.open()
     for c in (left, right):

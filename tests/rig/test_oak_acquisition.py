@@ -17,10 +17,17 @@ from tests.rig.fake_depthai import FakeDai, Hardware, Sensor
 def test_disconnect_mid_watch_refuses_whole_then_the_rig_resumes(store_root):
     hw = Hardware("14442C10D13EABCE00", "RVC2", [Sensor(f"CAM_{c}", "OV9782", 1280, 800) for c in "ABCD"], fail_after=4 * 6)
     dai = FakeDai(hw)
-    cams = [OakCamera(f"cam{i}", hw.device_id, socket=f"CAM_{s}", dai=dai, device_options={"reopen_s": 1.0, "backoff_s": (0.05, 0.2)}) for i, s in enumerate("ABCD")]
+    cams = [
+        OakCamera(f"cam{i}", hw.device_id, socket=f"CAM_{s}", dai=dai, device_options={"reopen_s": 1.0, "backoff_s": (0.05, 0.2)})
+        for i, s in enumerate("ABCD")
+    ]
     open_cameras(cams, CameraSettings(64, 40, exposure_us=4000, iso=200, white_balance_k=5600))
-    acq = Acquisition(cams, CaptureStore(store_root, min_free_bytes=0), settings=CameraSettings(64, 40, exposure_us=4000, iso=200, white_balance_k=5600),
-                      thresholds=Thresholds(sync_tolerance_ns=40_000_000, grab_timeout_s=1.0))
+    acq = Acquisition(
+        cams,
+        CaptureStore(store_root, min_free_bytes=0),
+        settings=CameraSettings(64, 40, exposure_us=4000, iso=200, white_balance_k=5600),
+        thresholds=Thresholds(sync_tolerance_ns=40_000_000, grab_timeout_s=1.0),
+    )
     trig = SoftwareTrigger()
     stop = threading.Event()
     outcomes, alarms = [], []
@@ -34,10 +41,17 @@ def test_disconnect_mid_watch_refuses_whole_then_the_rig_resumes(store_root):
 
     plc = threading.Thread(target=line)
     plc.start()
-    runner = threading.Thread(target=acq.run, args=(trig, stop), kwargs={"on_outcome": lambda o: (outcomes.append(o), alarms.append(acq.camera_alarm))})
+    runner = threading.Thread(
+        target=acq.run, args=(trig, stop), kwargs={"on_outcome": lambda o: (outcomes.append(o), alarms.append(acq.camera_alarm))}
+    )
     runner.start()
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and not (hw.plugged and hw.holder is not None and sum(o.status == "committed" for o in outcomes[-3:]) == 3 and any(o.status == "refused" for o in outcomes)):
+    while time.monotonic() < deadline and not (
+        hw.plugged
+        and hw.holder is not None
+        and sum(o.status == "committed" for o in outcomes[-3:]) == 3
+        and any(o.status == "refused" for o in outcomes)
+    ):
         time.sleep(0.05)
     stop.set()
     runner.join()
@@ -51,7 +65,9 @@ def test_disconnect_mid_watch_refuses_whole_then_the_rig_resumes(store_root):
     refused = [o for o in outcomes if o.status == "refused"]
     assert len(refused) >= 8 and acq.counts["refused"] == len(refused) and "quarantined" not in statuses
     # the in-flight capture names the cameras and is refused whole; the following ones are refused before grabbing
-    assert refused[0].reason.startswith("cameras cam0, cam1, cam2, cam3 are down: OAK 14442C10D13EABCE00 is disconnected (X_LINK_ERROR); reconnecting")
+    assert refused[0].reason.startswith(
+        "cameras cam0, cam1, cam2, cam3 are down: OAK 14442C10D13EABCE00 is disconnected (X_LINK_ERROR); reconnecting"
+    )
     assert refused[0].reason.endswith("the capture in flight was refused whole") and refused[-1].reason.endswith("no capture taken")
     assert all(o.capture_id == "" for o in refused)
     # the rig resumed by itself, and the store holds only whole captures (0 half-stored)

@@ -236,8 +236,9 @@ def test_one_writer_holds_the_store_for_its_life_and_a_reader_can_tell(store_roo
 
     assert not writer_holds(store_root) and not (store_root / LOCK).exists()
     code = f"from rig.store import lock_store; lock_store({str(store_root)!r}, 'rig watch'); print('held', flush=True); input()"
-    rig = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                           env={**os.environ, "PYTHONPATH": str(REPO)})
+    rig = subprocess.Popen(
+        [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}
+    )
     try:
         assert rig.stdout.readline().strip() == "held"
         assert writer_holds(store_root)

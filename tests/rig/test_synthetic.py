@@ -127,7 +127,10 @@ def test_texture_is_mapped_the_right_way_up(torus_scene):
     centroid_xyz = mesh.vertices[mesh.faces].mean(1)
     fuv, _ = cam.project(centroid_xyz)
     fsel = np.isin(mesh.faces, np.where(sel)[0]).all(1)
-    want = tex[((1 - centroid_uv[fsel, 1]) * tex.shape[0]).astype(int).clip(0, tex.shape[0] - 1), (centroid_uv[fsel, 0] * tex.shape[1]).astype(int).clip(0, tex.shape[1] - 1)]
+    want = tex[
+        ((1 - centroid_uv[fsel, 1]) * tex.shape[0]).astype(int).clip(0, tex.shape[0] - 1),
+        (centroid_uv[fsel, 0] * tex.shape[1]).astype(int).clip(0, tex.shape[1] - 1),
+    ]
     got = images[0][np.floor(fuv[fsel, 1]).astype(int), np.floor(fuv[fsel, 0]).astype(int)]
     assert fsel.sum() > 100
     agree = np.mean(np.abs(got.astype(float) - want.astype(float)).max(1) < 40)
@@ -171,7 +174,9 @@ def small_dataset(tmp_path_factory):
     """A 5-view + 6-held-out dataset of a real YCB scan, with calibration error on the recorded train poses."""
     mesh_path = require_shared("objects", "ycb", "011_banana", "textured.obj")
     out = tmp_path_factory.mktemp("synth") / "banana"
-    gt = synth_dataset(mesh_path, out, views=5, heldout=6, size=(128, 96), seed=4, calib_noise_deg=0.5, calib_noise_mm=2.0, texture_size=256)
+    gt = synth_dataset(
+        mesh_path, out, views=5, heldout=6, size=(128, 96), seed=4, calib_noise_deg=0.5, calib_noise_mm=2.0, texture_size=256
+    )
     return mesh_path, out, gt
 
 

@@ -111,7 +111,10 @@ def test_overlapping_parts_are_not_counted_twice():
     "vertices, faces",
     [
         (np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]])),  # open and flat
-        (np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3], [2, 1, 0], [3, 2, 0]])),  # closed, zero volume
+        (
+            np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]),
+            np.array([[0, 1, 2], [0, 2, 3], [2, 1, 0], [3, 2, 0]]),
+        ),  # closed, zero volume
         (np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), np.array([[0, 1, 2]])),  # degenerate
     ],
     ids=["open-sheet", "zero-volume", "degenerate"],
@@ -207,8 +210,16 @@ def test_open_cad_variant_is_closed_without_changing_its_volume():
     assert closed_volume(v, f) == pytest.approx(2.09e-5, rel=0.01)
 
 
-RIG_SCENE_OBJECTS = ["011_banana", "033_spatula", "037_scissors", "043_phillips_screwdriver", "050_medium_clamp", "061_foam_brick",
-                     "072-c_toy_airplane", "077_rubiks_cube"]
+RIG_SCENE_OBJECTS = [
+    "011_banana",
+    "033_spatula",
+    "037_scissors",
+    "043_phillips_screwdriver",
+    "050_medium_clamp",
+    "061_foam_brick",
+    "072-c_toy_airplane",
+    "077_rubiks_cube",
+]
 
 
 @pytest.mark.parametrize("scene", RIG_SCENE_OBJECTS)

@@ -160,7 +160,11 @@ def test_clamp_hangs_on_a_5mm_rod_through_its_opening_which_one_hull_cannot(tmp_
     clamp = build_asset("clamp", MeshParts(m.vertices, m.faces, np.zeros(len(m.faces), int), ["clamp"]))
     rod_mesh = trimesh.creation.capsule(radius=0.0025, height=0.08, count=[16, 16])
     rod_mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # along world y
-    rod = build_asset("rod", MeshParts(rod_mesh.vertices, rod_mesh.faces, np.zeros(len(rod_mesh.faces), int), ["rod"]), density=choose_density(material="steel"))
+    rod = build_asset(
+        "rod",
+        MeshParts(rod_mesh.vertices, rod_mesh.faces, np.zeros(len(rod_mesh.faces), int), ["rod"]),
+        density=choose_density(material="steel"),
+    )
     rod_col = collision_geometry(rod.vertices, rod.faces, rod.mass.volume, decomposition=None)
     assert rod_col.kind == "capsule"
     # The clamp stood on edge, the opening's axis (object z) along the rod; the opening's centre
@@ -171,7 +175,15 @@ def test_clamp_hangs_on_a_5mm_rod_through_its_opening_which_one_hull_cannot(tmp_
     coarse = DecompositionOptions(threshold=0.08, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600)
     heights = {}
     for name, decomposition in [("pieces", coarse), ("hull", None)]:
-        col = collision_geometry(clamp.vertices, clamp.faces, clamp.mass.volume, tolerance=0.1, primitives=(), decomposition=decomposition, measure_hausdorff=False)
+        col = collision_geometry(
+            clamp.vertices,
+            clamp.faces,
+            clamp.mass.volume,
+            tolerance=0.1,
+            primitives=(),
+            decomposition=decomposition,
+            measure_hausdorff=False,
+        )
         assert col.kind == ("decomposition" if decomposition else "hull")
         bodies = [BodySpec(rod, rod_col, np.zeros(3), np.array([1.0, 0, 0, 0]), fixed=True), BodySpec(clamp, col, pos, matrix_to_quat(rot))]
         traj = simulate(load_model(write_mjcf_package(tmp_path / name, bodies, SimOptions(floor=False))), 1.5, fps=20)
@@ -200,8 +212,9 @@ def test_a_killed_parent_takes_its_coacd_child_with_it(tmp_path):
         "print('start', flush=True)\n"
         "decompose(m.vertices, m.faces, DecompositionOptions(threshold=0.001, timeout_s=600))\n"
     )
-    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=REPO,
-                              env={**os.environ, "PYTHONPATH": str(REPO)})
+    parent = subprocess.Popen(
+        [sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}
+    )
     try:
         assert parent.stdout.readline().startswith("start")
         deadline = time.monotonic() + 60

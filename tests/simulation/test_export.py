@@ -23,7 +23,9 @@ def twin_dir(tmp_path_factory):
 def test_export_mjcf_loads_and_rests_on_the_floor(twin_dir, tmp_path):
     xml = export_mjcf(twin_dir, tmp_path / "mjcf", material="steel")
     model = load_model(xml)
-    assert model.body(1).name == "hammer" and model.body_mass[1] == pytest.approx(7850 * (0.14 * 0.02 * 0.016 + 0.03 * 0.07 * 0.024), rel=1e-3)
+    assert model.body(1).name == "hammer" and model.body_mass[1] == pytest.approx(
+        7850 * (0.14 * 0.02 * 0.016 + 0.03 * 0.07 * 0.024), rel=1e-3
+    )
     traj = simulate(model, 0.5, fps=10)
     assert traj.kinetic.max() < 1e-6  # placed resting on the floor: nothing moves
     assert traj.penetration[-1] < 1e-4

@@ -30,7 +30,9 @@ def validate(path) -> dict:
     if checker is None:
         pytest.skip("the Khronos glTF validator (npm gltf-validator) is not installed")
     node, mods = checker
-    res = subprocess.run([node, "-e", VALIDATE_JS, str(path)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=120)
+    res = subprocess.run(
+        [node, "-e", VALIDATE_JS, str(path)], capture_output=True, text=True, env={**os.environ, "NODE_PATH": str(mods)}, timeout=120
+    )
     assert res.returncode == 0, res.stderr
     return json.loads(res.stdout)
 
@@ -40,7 +42,9 @@ def errors_beyond_unknown_extension_semantics(issues: dict) -> list[dict]:
     released validator (2.0.0-dev.3.10) accepts no extension-defined attribute names yet, so it calls
     every `KHR_gaussian_splatting:*` semantic invalid (KhronosGroup/glTF-Validator issue 252)."""
     return [
-        m for m in issues["messages"] if m["severity"] == 0
+        m
+        for m in issues["messages"]
+        if m["severity"] == 0
         and not (m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and m["pointer"].rsplit("/", 1)[-1].startswith(f"{EXTENSION}:"))
     ]
 
@@ -109,7 +113,10 @@ def gaussians_from_glb(data: bytes) -> Gaussians:
     degree = max(int(n.split(":SH_DEGREE_")[1].split("_")[0]) for n in prim["attributes"] if ":SH_DEGREE_" in n)
     opacity = np.clip(get(f"{EXTENSION}:OPACITY")[:, 0], 1e-7, 1 - 1e-7)
     return Gaussians.from_arrays(
-        get("POSITION"), get(f"{EXTENSION}:ROTATION")[:, [3, 0, 1, 2]], np.log(get(f"{EXTENSION}:SCALE")), np.log(opacity / (1 - opacity)),
+        get("POSITION"),
+        get(f"{EXTENSION}:ROTATION")[:, [3, 0, 1, 2]],
+        np.log(get(f"{EXTENSION}:SCALE")),
+        np.log(opacity / (1 - opacity)),
         np.stack([get(n) for n in sh_semantics(degree)], 1),
     )
 

@@ -56,14 +56,26 @@ def test_exact_mesh_inertia_agrees_with_trimesh(where, unit, material, tmp_path)
 def torus_asset():
     t = trimesh.creation.torus(major_radius=0.05, minor_radius=0.015, major_sections=32, minor_sections=16)
     rgb = np.where(t.triangles_center[:, :1] > 0, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
-    return build_asset("torus", MeshParts(t.vertices, t.faces, np.zeros(len(t.faces), int), ["ring"]), face_rgb=rgb, density=choose_density(material="rubber"))
+    return build_asset(
+        "torus",
+        MeshParts(t.vertices, t.faces, np.zeros(len(t.faces), int), ["ring"]),
+        face_rgb=rgb,
+        density=choose_density(material="rubber"),
+    )
 
 
 def test_scene_package_with_decomposition_primitive_and_fixture(tmp_path):
     torus = torus_asset()
-    col = collision_geometry(torus.vertices, torus.faces, torus.mass.volume, decomposition=DecompositionOptions(max_convex_hull=6, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600))
+    col = collision_geometry(
+        torus.vertices,
+        torus.faces,
+        torus.mass.volume,
+        decomposition=DecompositionOptions(max_convex_hull=6, rounds=1, mcts_iterations=20, resolution=500, timeout_s=600),
+    )
     box_mesh = trimesh.creation.box(extents=[0.3, 0.3, 0.02])
-    box = build_asset("plate", MeshParts(box_mesh.vertices, box_mesh.faces, np.zeros(12, int), ["plate"]), density=choose_density(material="wood"))
+    box = build_asset(
+        "plate", MeshParts(box_mesh.vertices, box_mesh.faces, np.zeros(12, int), ["plate"]), density=choose_density(material="wood")
+    )
     box_col = collision_geometry(box.vertices, box.faces, box.mass.volume)
     bodies = [BodySpec(box, box_col, np.array([0, 0, 0.01]), IDENTITY, fixed=True), BodySpec(torus, col, np.array([0, 0, 0.1]), IDENTITY)]
     xml = write_mjcf_package(tmp_path / "scene", bodies)

@@ -13,12 +13,30 @@ from simulation.run import Trajectory, load_model, rest_report, simulate, suppor
 from simulation.scene import euler_xyz_to_quat, resting_position
 from tests.conftest import require_shared
 
-YCB = ["011_banana", "033_spatula", "037_scissors", "043_phillips_screwdriver", "050_medium_clamp", "061_foam_brick", "072-c_toy_airplane", "077_rubiks_cube"]
+YCB = [
+    "011_banana",
+    "033_spatula",
+    "037_scissors",
+    "043_phillips_screwdriver",
+    "050_medium_clamp",
+    "061_foam_brick",
+    "072-c_toy_airplane",
+    "077_rubiks_cube",
+]
 # Declared units of the CAD parts (the files do not say; chosen from their makers' sizes).
 PARTS = {
-    "1002_tray_bottom.STL": "mm", "ADIS16480.STL": "m", "angle_block.STL": "in", "counter.unitsmm.STL": None,
-    "featuretype.STL": "in", "idler_riser.STL": "in", "large_block.STL": "mm", "octagonal_pocket.stl": "m",
-    "plate_holes.STL": "mm", "round.stl": "mm", "torus.STL": "in", "busted.STL": "mm",
+    "1002_tray_bottom.STL": "mm",
+    "ADIS16480.STL": "m",
+    "angle_block.STL": "in",
+    "counter.unitsmm.STL": None,
+    "featuretype.STL": "in",
+    "idler_riser.STL": "in",
+    "large_block.STL": "mm",
+    "octagonal_pocket.stl": "m",
+    "plate_holes.STL": "mm",
+    "round.stl": "mm",
+    "torus.STL": "in",
+    "busted.STL": "mm",
 }
 
 

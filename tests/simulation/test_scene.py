@@ -38,7 +38,10 @@ def test_values_within_their_bounds_are_kept(base):
         (_doc(duration=600.0, timestep=1e-5), r"duration / timestep is 6e\+07 physics steps; at most 10,000,000"),
         (_doc(camera={"width": 100000}), r"camera width must be at most 4096"),
         (_doc(camera={"height": 240.5}), r"camera height must be a whole number"),
-        (_doc(duration=600.0, fps=240, camera={"width": 1920, "height": 1080}), r"rendered pixels, held for the video; at most 500,000,000"),
+        (
+            _doc(duration=600.0, fps=240, camera={"width": 1920, "height": 1080}),
+            r"rendered pixels, held for the video; at most 500,000,000",
+        ),
         (_doc(floor={"size": 1e12}), r"floor size must be at most 1000"),
         ({"twin": [{"path": "m.stl", "name": f"t{i}"} for i in range(101)]}, r"has 101 \[\[twin\]\] entries; at most 100"),
         ({"twin": [3]}, r"each \[\[twin\]\] must be a table"),

@@ -51,8 +51,13 @@ def read_spz(data: bytes) -> dict:
         rest = np.where(skip, rest, rest >> 10)
     quats[np.arange(n), largest] = np.sqrt(np.maximum(1.0 - total, 0.0))
     return {
-        "degree": degree, "flags": flags, "means": fixed / float(1 << frac), "opacity": alpha / 255.0,
-        "dc": (color / 255.0 - 0.5) / 0.15, "log_scales": scale / 16.0 - 10.0, "quats_wxyz": quats[:, [3, 0, 1, 2]],
+        "degree": degree,
+        "flags": flags,
+        "means": fixed / float(1 << frac),
+        "opacity": alpha / 255.0,
+        "dc": (color / 255.0 - 0.5) / 0.15,
+        "log_scales": scale / 16.0 - 10.0,
+        "quats_wxyz": quats[:, [3, 0, 1, 2]],
         "sh_rest": (sh - 128.0) / 128.0,
     }
 
@@ -62,7 +67,9 @@ def gaussians(n: int = 400, degree: int = 2, seed: int = 0) -> Gaussians:
     k = (degree + 1) ** 2
     sh = rng.normal(0, 0.3, (n, k, 3))
     sh[:, 0] = rng.normal(0, 1.0, (n, 3))
-    return Gaussians.from_arrays(rng.uniform(-0.2, 0.2, (n, 3)), rng.normal(size=(n, 4)), rng.uniform(-7, -3, (n, 3)), rng.normal(0, 2, n), sh)
+    return Gaussians.from_arrays(
+        rng.uniform(-0.2, 0.2, (n, 3)), rng.normal(size=(n, 4)), rng.uniform(-7, -3, (n, 3)), rng.normal(0, 2, n), sh
+    )
 
 
 def test_every_attribute_reads_back_within_its_quantisation_step():
@@ -106,8 +113,9 @@ def test_the_file_read_back_renders_as_the_splats_do():
     g = Gaussians.from_arrays(rng.normal(0, 0.03, (n, 3)), rng.normal(size=(n, 4)), rng.uniform(-5.5, -4, (n, 3)), rng.normal(1, 1, n), sh)
     r = read_spz(spz_bytes(g))
     opacity = np.clip(r["opacity"], 1e-6, 1 - 1e-6)
-    back = Gaussians.from_arrays(r["means"], r["quats_wxyz"], r["log_scales"], np.log(opacity / (1 - opacity)),
-                                 np.concatenate([r["dc"][:, None], r["sh_rest"]], 1))
+    back = Gaussians.from_arrays(
+        r["means"], r["quats_wxyz"], r["log_scales"], np.log(opacity / (1 - opacity)), np.concatenate([r["dc"][:, None], r["sh_rest"]], 1)
+    )
     k = np.array([[150.0, 0, 64], [0, 150.0, 48], [0, 0, 1]])
     viewmat = np.linalg.inv(look_at_c2w(np.array([0.2, 0.15, 0.1]), np.zeros(3)))
     want, _ = render(g, viewmat[None], k[None], 128, 96)

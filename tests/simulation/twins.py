@@ -10,8 +10,8 @@ import trimesh
 from calibration.camera import look_at_c2w
 from calibration.sim3 import Sim3
 from reconstruction.gaussians import Gaussians
-from reconstruction.splats import init_splats, rgb_to_sh_dc
 from reconstruction.mesh_io import MeshParts
+from reconstruction.splats import init_splats, rgb_to_sh_dc
 from reconstruction.twin import Twin, TwinCamera, save_twin
 
 
@@ -49,14 +49,22 @@ def skateboard() -> tuple[MeshParts, np.ndarray]:
 
 def hammer() -> tuple[MeshParts, np.ndarray]:
     """A brown handle with a grey steel-coloured head: two parts (a T)."""
-    return assemble([
-        ("handle", box([0.14, 0.02, 0.016], (0, 0, 0)), (0.55, 0.35, 0.15)),
-        ("head", box([0.03, 0.07, 0.024], (0.085, 0, 0)), (0.6, 0.6, 0.65)),
-    ])
+    return assemble(
+        [
+            ("handle", box([0.14, 0.02, 0.016], (0, 0, 0)), (0.55, 0.35, 0.15)),
+            ("head", box([0.03, 0.07, 0.024], (0.085, 0, 0)), (0.6, 0.6, 0.65)),
+        ]
+    )
 
 
 def make_twin(
-    root: Path, model_id: str, parts: MeshParts, face_rgb: np.ndarray, n: int = 3000, seed: int = 0, sim3_rig_to_object: Sim3 | None = None,
+    root: Path,
+    model_id: str,
+    parts: MeshParts,
+    face_rgb: np.ndarray,
+    n: int = 3000,
+    seed: int = 0,
+    sim3_rig_to_object: Sim3 | None = None,
 ) -> Path:
     """Save a twin of `parts` with `n` coloured splats (SH degree 1, a small view-dependent term), registered by
     `sim3_rig_to_object` (default: the identity)."""
@@ -72,10 +80,19 @@ def make_twin(
         k = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
         cams.append(TwinCamera(f"images/view_{i}.png", f"cam{i}", k, 160, 120, look_at_c2w(eye, centre)))
     twin = Twin(
-        model_id=model_id, sim3_rig_to_object_init=sim3, sim3_rig_to_object=sim3,
-        cameras=cams, preset="test", choices={}, timings_s={}, losses={},
+        model_id=model_id,
+        sim3_rig_to_object_init=sim3,
+        sim3_rig_to_object=sim3,
+        cameras=cams,
+        preset="test",
+        choices={},
+        timings_s={},
+        losses={},
         gaussians=Gaussians(s.means, s.gaussians.quats, s.gaussians.log_scales, np.full(n, 4.0, np.float32), sh),
-        means_canonical=s.means, face_index=s.face_index, barycentrics=s.barycentrics, part_label=s.part_label,
+        means_canonical=s.means,
+        face_index=s.face_index,
+        barycentrics=s.barycentrics,
+        part_label=s.part_label,
         part_names=parts.part_names,
     )
     return save_twin(twin, root / model_id, mesh_cad=parts, mesh_deformed=parts)
