@@ -194,7 +194,7 @@ def test_a_service_job_on_a_known_part_line_registers_the_known_part(tmp_path, l
 
 def test_a_kiosk_capture_on_a_known_part_line_registers_the_known_part(tmp_path, library, monkeypatch):
     from deploy.appliance import kiosk_pipeline_config
-    from deploy.steps import register_step, registration_config
+    from deploy.steps import register_step
     from rig.config import load_config
 
     rig = tmp_path / "rig.toml"
@@ -202,7 +202,7 @@ def test_a_kiosk_capture_on_a_known_part_line_registers_the_known_part(tmp_path,
     cap = rig_capture(tmp_path / "store" / "captures" / "000001-masks", masks=True)
     calls = _spy_known_part(monkeypatch)
     # What `Appliance.from_config(rig.toml, ...)` builds for its pipeline.
-    cfg = kiosk_pipeline_config(library, "preview", registration=registration_config(rig, loaded=load_config(rig)))
+    cfg = kiosk_pipeline_config(library, "preview", load_config(rig), rig)
     work = tmp_path / "work"
     work.mkdir()
     assert register_step(cap, work, cfg)["method"] == "known_part"
