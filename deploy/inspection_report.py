@@ -21,6 +21,8 @@ from reconstruction.inspect import MAX_ANGLE_DEG
 
 if TYPE_CHECKING:
     from calibration.capture import Capture
+    from reconstruction.inspect import Inspection, Verdict
+    from reconstruction.mesh_io import MeshParts
     from reconstruction.twin import Twin
 
 DEFAULT_TOLERANCE_MM = 1.0
@@ -228,18 +230,39 @@ def write_inspection(
     root). Raises TwinError/ValueError with one sentence when the twin cannot be inspected or `out_dir` is something
     else than an earlier inspection.
     """
-    from calibration.fileio import atomic_write_bytes, atomic_write_json, encode_png, fsync_dir, publish_dir, sha256_bytes
-    from deploy.commands.render import orbit_cameras
-    from reconstruction.inspect import deviation_colors, inspect_twin, part_reports, render_colored_mesh, verdict
+    from calibration.fileio import sha256_bytes
+    from reconstruction.inspect import deviation_colors, inspect_twin, part_reports, verdict
 
     out = Path(out_dir)
     _check_settings(tolerance_mm, max_unseen_pct, out)
     cad = twin.load_mesh_cad()
-    cams = [c.camera for c in twin.cameras]
     insp = inspect_twin(twin, masks, cad=cad, max_angle_deg=max_angle_deg)
     result = verdict(insp, tolerance_mm, max_unseen_pct)
     range_mm = 2.0 * tolerance_mm
     rgb = (deviation_colors(insp.deviation_mm, insp.seen, range_mm) * 255 + 0.5).astype(np.uint8)
+    files = _report_files(twin, cad, insp, rgb, tolerance_mm, renders=renders, turntable=turntable)
+    doc = {
+        "format": "cadsplat-inspection/1",
+        "twin": twin_label if twin_label is not None else str(twin.root),
+        "model_id": twin.model_id,
+        "verdict": result.to_dict(),
+        "settings": _settings_doc(tolerance_mm, max_unseen_pct, max_angle_deg, refined_by_masks=masks is not None),
+        "surface": _surface_doc(insp, result, num_cameras=len(twin.cameras)),
+        "parts": [r.to_dict() for r in part_reports(insp, tolerance_mm)],
+        "sha256": {name: sha256_bytes(data) for name, data in files.items()},
+    }
+    _publish(out, files, doc, result.line)
+    return doc
+
+
+def _report_files(
+    twin: Twin, cad: MeshParts, insp: Inspection, rgb: np.ndarray, tolerance_mm: float, *, renders: bool, turntable: int
+) -> dict[str, bytes]:
+    """The report's files by relative name: per-part CSVs, the coloured meshes and, with `renders`, the heat maps
+    (training views, then `turntable` orbit views when non-zero) and the legend. rgb: [V, 3] uint8."""
+    from calibration.fileio import encode_png
+    from deploy.commands.render import orbit_cameras
+    from reconstruction.inspect import render_colored_mesh
 
     files: dict[str, bytes] = {}
     taken: set[str] = set()
@@ -254,39 +277,46 @@ def write_inspection(
         for name, cam in views:
             big = cam.scaled(RENDER_SCALE * cam.width, RENDER_SCALE * cam.height)
             files[name] = encode_png(render_colored_mesh(cad.vertices, cad.faces, colors, big))
-        files["legend.png"] = _legend_png(range_mm, tolerance_mm)
-    doc = {
-        "format": "cadsplat-inspection/1",
-        "twin": twin_label if twin_label is not None else str(twin.root),
-        "model_id": twin.model_id,
-        "verdict": result.to_dict(),
-        "settings": {
-            "tolerance_mm": tolerance_mm,
-            "max_unseen_pct": max_unseen_pct,
-            "max_angle_deg": max_angle_deg,
-            "refined_by_masks": masks is not None,
-            "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
-            "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
-            "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
-            "in_view": "as seen, occluded or not: unseen surface in no camera's view is the rig's coverage",
-            "uncertainty": "expanded (k = 2) uncertainty of the deviation, mm: the views that see the vertex (a move along "
-            "the normal shows by sin(angle) / pixel size per view, their information adds) and the map's "
-            "local fit residual; PASS needs every seen vertex inside the tolerance by more than it",
-            "colour_range_mm": [-range_mm, range_mm],
-        },
-        "surface": {
-            "vertices": int(len(insp.views)),
-            "area_mm2": float(insp.area_mm2.sum()),
-            "unseen_pct": result.unseen_pct,
-            "out_of_view_pct": result.out_of_view_pct,
-            "uncertain_pct": result.straddling_pct,
-            "out_pct": result.out_pct,
-            "uncertainty_median_mm": float(np.median(insp.uncertainty_mm[insp.seen])) if insp.seen.any() else None,
-            "views_per_vertex": {str(k): int(n) for k, n in enumerate(np.bincount(insp.views, minlength=len(cams) + 1))},
-        },
-        "parts": [r.to_dict() for r in part_reports(insp, tolerance_mm)],
-        "sha256": {name: sha256_bytes(data) for name, data in files.items()},
+        files["legend.png"] = _legend_png(2.0 * tolerance_mm, tolerance_mm)
+    return files
+
+
+def _settings_doc(tolerance_mm: float, max_unseen_pct: float, max_angle_deg: float, *, refined_by_masks: bool) -> dict:
+    """inspection.json's settings block: the thresholds and what each reported quantity means."""
+    range_mm = 2.0 * tolerance_mm
+    return {
+        "tolerance_mm": tolerance_mm,
+        "max_unseen_pct": max_unseen_pct,
+        "max_angle_deg": max_angle_deg,
+        "refined_by_masks": refined_by_masks,
+        "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
+        "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
+        "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
+        "in_view": "as seen, occluded or not: unseen surface in no camera's view is the rig's coverage",
+        "uncertainty": "expanded (k = 2) uncertainty of the deviation, mm: the views that see the vertex (a move along "
+        "the normal shows by sin(angle) / pixel size per view, their information adds) and the map's "
+        "local fit residual; PASS needs every seen vertex inside the tolerance by more than it",
+        "colour_range_mm": [-range_mm, range_mm],
     }
+
+
+def _surface_doc(insp: Inspection, result: Verdict, *, num_cameras: int) -> dict:
+    """inspection.json's surface block: area, unseen / out-of-view / uncertain / out shares and views per vertex."""
+    return {
+        "vertices": int(len(insp.views)),
+        "area_mm2": float(insp.area_mm2.sum()),
+        "unseen_pct": result.unseen_pct,
+        "out_of_view_pct": result.out_of_view_pct,
+        "uncertain_pct": result.straddling_pct,
+        "out_pct": result.out_pct,
+        "uncertainty_median_mm": float(np.median(insp.uncertainty_mm[insp.seen])) if insp.seen.any() else None,
+        "views_per_vertex": {str(k): int(n) for k, n in enumerate(np.bincount(insp.views, minlength=num_cameras + 1))},
+    }
+
+
+def _publish(out: Path, files: dict[str, bytes], doc: dict, verdict_line: str) -> None:
+    """Write files, inspection.json and verdict.txt into a fresh directory beside `out`, then rename it into place."""
+    from calibration.fileio import atomic_write_bytes, atomic_write_json, fsync_dir, publish_dir
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".incoming", dir=out.parent))
@@ -297,10 +327,9 @@ def write_inspection(
         for sub in {(tmp / name).parent for name in files}:
             fsync_dir(sub)
         atomic_write_json(tmp / INSPECTION_JSON, doc)
-        atomic_write_bytes(tmp / "verdict.txt", (result.line + "\n").encode())
+        atomic_write_bytes(tmp / "verdict.txt", (verdict_line + "\n").encode())
         fsync_dir(tmp)
         publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return doc

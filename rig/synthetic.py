@@ -156,35 +156,121 @@ def synth_dataset(
     mesh_path = Path(mesh_path)
     out_dir = Path(out_dir)
     width, height = int(size[0]), int(size[1])
-    if views < 1 and cameras is None:
-        raise ValueError(f"need at least one train view, got {views}")
-    if heldout < 0:
-        raise ValueError(f"held-out view count must be >= 0, got {heldout}")
-    if width < 8 or height < 8:
-        raise ValueError(f"image size {width}x{height} is too small (at least 8x8)")
-    for name, value in (
-        ("calib_noise_deg", calib_noise_deg),
-        ("calib_noise_mm", calib_noise_mm),
-        ("noise_std", noise_std),
-        ("lighting_jitter", lighting_jitter),
-    ):
-        if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+    _check_synth_args(
+        views,
+        heldout,
+        width,
+        height,
+        cameras,
+        calib_noise_deg=calib_noise_deg,
+        calib_noise_mm=calib_noise_mm,
+        noise_std=noise_std,
+        lighting_jitter=lighting_jitter,
+    )
     rng = np.random.default_rng(seed)
     mesh = load_textured_mesh(mesh_path, texture_size=texture_size)
 
     yaw = float(rng.uniform(0.0, 360.0)) if object_yaw_deg is None else float(object_yaw_deg)
     offset = rng.uniform(-0.02, 0.02, 2) if object_offset is None else np.asarray(object_offset, np.float64)
     sim3 = conveyor_sim3(mesh, yaw, offset) if rig_to_object is None else rig_to_object
-    object_to_rig = sim3.inverse()
-    scale = sim3.scale  # metres per rig unit
 
-    # Ring geometry in the rig frame: aim at the object's centre, distance so it fills _FILL of the frame.
-    centre_rig = object_to_rig.apply(mesh.bounds.mean(0))
-    target = np.array([centre_rig[0], centre_rig[1], centre_rig[2]]) if rig_to_object is not None else np.array([0.0, 0.0, centre_rig[2]])
+    target, radius = _ring_target_and_radius(mesh, sim3, (width, height), fov_deg, radius, centred=rig_to_object is not None)
+    train_rig, heldout_rig = _train_and_heldout_rigs(
+        cameras, views, heldout, radius, target, (width, height), fov_deg, elevations_deg, heldout_elevations_deg
+    )
+
+    recorded, rotvec_deg, shift = perturb_extrinsics(
+        np.stack([c.c2w for c in train_rig]), rng, sigma_deg=calib_noise_deg, sigma_translation=calib_noise_mm * 1e-3 / sim3.scale
+    )
+    train_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in train_rig]
+    heldout_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in heldout_rig]
+
+    key_down = sim3.rotation @ np.array([0.3, 0.2, -1.0])  # the rig's ceiling lamp, in the object frame
+    train_lights = _jittered_lights(rng, key_down, len(train_obj), lighting_jitter)
+    heldout_lights = _jittered_lights(rng, key_down, len(heldout_obj), lighting_jitter)
+    noise_seed = int(rng.integers(2**31))
+    with SyntheticScene(mesh, backdrop=backdrop, floor_to_object=sim3) as scene:
+        train = _shoot(scene, "train", train_obj, train_lights, noise_std, noise_seed, progress)
+        held = _shoot(scene, "heldout", heldout_obj, heldout_lights, noise_std, noise_seed + 100_000, progress) if heldout_obj else None
+
+    mesh_sha = hashlib.sha256(mesh_path.read_bytes()).hexdigest()
+    meta = _capture_meta(mesh_path, seed, calib_noise_deg, calib_noise_mm)
+    recorded_cams = [c.with_c2w(m) for c, m in zip(train_rig, recorded)]
+    _write(out_dir / "train", "cam", recorded_cams, train, meta)
+    if held:
+        exact = {k: v for k, v in meta.items() if k != "calibration_uncertainty"}
+        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**exact, "calibration_id": f"synthetic-seed{seed}"})
+
+    gt = {
+        "mesh": _mesh_reference(mesh_path, out_dir),
+        "mesh_name": mesh_path.parent.name if mesh_path.stem == "textured" else mesh_path.stem,
+        "mesh_sha256": mesh_sha,
+        "units": "m",
+        "seed": seed,
+        "size": [train_rig[0].width, train_rig[0].height],
+        "views": len(train_rig),
+        "heldout": len(heldout_rig),
+        "sim3_rig_to_object": sim3.to_dict(),
+        "object_pose": {"yaw_deg": yaw if rig_to_object is None else None, "offset": offset.tolist() if rig_to_object is None else None},
+        "ring": _ring_truth(radius, elevations_deg if cameras is None else None, heldout_elevations_deg, target, fov_deg),
+        **_camera_truth(train_rig, train_obj, heldout_obj),
+        "calib_noise": _calib_noise_truth(calib_noise_deg, calib_noise_mm, rotvec_deg, shift),
+        "render": _render_settings(backdrop, lighting_jitter, noise_std, texture_size),
+    }
+    atomic_write_json(out_dir / "gt.json", gt)
+    return gt
+
+
+def _check_synth_args(
+    views: int,
+    heldout: int,
+    width: int,
+    height: int,
+    cameras: Sequence[Camera] | None,
+    **non_negative: float,
+) -> None:
+    """Raise ValueError naming the first synth_dataset argument that is out of range."""
+    if views < 1 and cameras is None:
+        raise ValueError(f"need at least one train view, got {views}")
+    if heldout < 0:
+        raise ValueError(f"held-out view count must be >= 0, got {heldout}")
+    if width < 8 or height < 8:
+        raise ValueError(f"image size {width}x{height} is too small (at least 8x8)")
+    for name, value in non_negative.items():
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+
+
+def _ring_target_and_radius(
+    mesh: TexturedMesh, sim3: Sim3, size: tuple[int, int], fov_deg: float, radius: float | None, *, centred: bool
+) -> tuple[np.ndarray, float]:
+    """The ring's aim point [3] in the rig frame and its radius (rig units) so the object fills _FILL of the frame.
+
+    centred aims at the object's centre; otherwise at the rig axis at the object's height.
+    """
+    width, height = size
+    scale = sim3.scale  # metres per rig unit
+    centre_rig = sim3.inverse().apply(mesh.bounds.mean(0))
+    target = np.array([centre_rig[0], centre_rig[1], centre_rig[2]]) if centred else np.array([0.0, 0.0, centre_rig[2]])
     if radius is None:
         fov_short = 2 * np.arctan(np.tan(np.radians(fov_deg) / 2) * min(width, height) / width)
         radius = mesh.radius / np.sin(_FILL * fov_short / 2) / scale
+    return target, radius
+
+
+def _train_and_heldout_rigs(
+    cameras: Sequence[Camera] | None,
+    views: int,
+    heldout: int,
+    radius: float,
+    target: np.ndarray,
+    size: tuple[int, int],
+    fov_deg: float,
+    elevations_deg: Sequence[float],
+    heldout_elevations_deg: Sequence[float],
+) -> tuple[list[Camera], list[Camera]]:
+    """The train cameras (explicit, else a ring) and the held-out orbit ring, in the rig frame."""
+    width, height = size
     if cameras is None:
         train_rig = ring_rig(
             views, radius=radius, elevations_deg=elevations_deg, target=target, width=width, height=height, fov_deg=fov_deg
@@ -207,42 +293,81 @@ def synth_dataset(
         if heldout
         else []
     )
+    return train_rig, heldout_rig
 
-    recorded, rotvec_deg, shift = perturb_extrinsics(
-        np.stack([c.c2w for c in train_rig]), rng, sigma_deg=calib_noise_deg, sigma_translation=calib_noise_mm * 1e-3 / scale
-    )
-    train_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in train_rig]
-    heldout_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in heldout_rig]
 
-    key_down = sim3.rotation @ np.array([0.3, 0.2, -1.0])  # the rig's ceiling lamp, in the object frame
+def _camera_truth(train_rig: list[Camera], train_obj: list[Camera], heldout_obj: list[Camera]) -> dict:
+    """gt.json's per-camera truth: train intrinsics, object-frame poses and the true rig-frame train poses."""
+    return {
+        "train_intrinsics": [c.K.tolist() for c in train_rig],
+        "train_c2w_object": [c.c2w.tolist() for c in train_obj],
+        "heldout_c2w_object": [c.c2w.tolist() for c in heldout_obj],
+        "train_c2w_rig_true": [c.c2w.tolist() for c in train_rig],
+    }
 
-    def lights(n: int) -> list[Light]:
-        out = []
-        for _ in range(n):
-            tilt = axis_angle_to_matrix(rng.normal(0.0, 0.35 * lighting_jitter, 3))
-            gain = float(np.clip(1.0 + rng.uniform(-0.4, 0.4) * lighting_jitter, 0.2, 2.0))
-            d = tilt @ key_down
-            out.append(Light(direction=tuple(d / np.linalg.norm(d)), diffuse=0.6 * gain, headlight=0.35 * gain))
-        return out
 
-    train_lights, heldout_lights = lights(len(train_obj)), lights(len(heldout_obj))
-    noise_seed = int(rng.integers(2**31))
-    with SyntheticScene(mesh, backdrop=backdrop, floor_to_object=sim3) as scene:
+def _ring_truth(
+    radius: float, elevations_deg: Sequence[float] | None, heldout_elevations_deg: Sequence[float], target: np.ndarray, fov_deg: float
+) -> dict:
+    """gt.json's record of the camera rings: radius (rig units), elevations (None for explicit train cameras), aim point [3]."""
+    return {
+        "radius_rig": float(radius),
+        "elevations_deg": list(elevations_deg) if elevations_deg is not None else None,
+        "heldout_elevations_deg": list(heldout_elevations_deg),
+        "target_rig": target.tolist(),
+        "fov_deg": fov_deg,
+    }
 
-        def shoot(stage: str, cams: list[Camera], lts: list[Light], seed_offset: int):
-            images, masks, bgs = [], [], []
-            for i, (cam, lt) in enumerate(zip(cams, lts)):
-                img, msk = scene.render([cam], light=lt, noise_std=noise_std, seed=noise_seed + seed_offset + i)
-                bg, _ = scene.render([cam], light=lt, noise_std=noise_std, seed=noise_seed + seed_offset + 10_000 + i, object_visible=False)
-                images.append(img[0]), masks.append(msk[0]), bgs.append(bg[0])
-                if progress:
-                    progress(stage, i + 1, len(cams))
-            return images, masks, bgs
 
-        train = shoot("train", train_obj, train_lights, 0)
-        held = shoot("heldout", heldout_obj, heldout_lights, 100_000) if heldout_obj else None
+def _calib_noise_truth(sigma_deg: float, sigma_mm: float, rotvec_deg: np.ndarray, shift: np.ndarray) -> dict:
+    """gt.json's record of the calibration error added: per-axis sigmas and the drawn rotations [N, 3] and shifts [N, 3]."""
+    return {"sigma_deg": sigma_deg, "sigma_mm": sigma_mm, "rotvec_deg": rotvec_deg.tolist(), "centre_shift_rig": shift.tolist()}
 
-    mesh_sha = hashlib.sha256(mesh_path.read_bytes()).hexdigest()
+
+def _render_settings(backdrop: bool, lighting_jitter: float, noise_std: float, texture_size: int | None) -> dict:
+    """gt.json's record of how the views were rendered."""
+    return {
+        "backdrop": backdrop,
+        "lighting_jitter": lighting_jitter,
+        "noise_std": noise_std,
+        "texture_size": texture_size,
+        "renderer": "mujoco",
+    }
+
+
+def _jittered_lights(rng: np.random.Generator, key_down: np.ndarray, n: int, lighting_jitter: float) -> list[Light]:
+    """n key lights around key_down [3] (object frame), each tilted and scaled at random by lighting_jitter."""
+    out = []
+    for _ in range(n):
+        tilt = axis_angle_to_matrix(rng.normal(0.0, 0.35 * lighting_jitter, 3))
+        gain = float(np.clip(1.0 + rng.uniform(-0.4, 0.4) * lighting_jitter, 0.2, 2.0))
+        d = tilt @ key_down
+        out.append(Light(direction=tuple(d / np.linalg.norm(d)), diffuse=0.6 * gain, headlight=0.35 * gain))
+    return out
+
+
+def _shoot(
+    scene: SyntheticScene,
+    stage: str,
+    cams: list[Camera],
+    lights: list[Light],
+    noise_std: float,
+    seed: int,
+    progress: Callable[[str, int, int], None] | None,
+) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Images, object masks and object-free backgrounds rendered from every camera under its light."""
+    images, masks, bgs = [], [], []
+    for i, (cam, lt) in enumerate(zip(cams, lights)):
+        img, msk = scene.render([cam], light=lt, noise_std=noise_std, seed=seed + i)
+        bg, _ = scene.render([cam], light=lt, noise_std=noise_std, seed=seed + 10_000 + i, object_visible=False)
+        images.append(img[0]), masks.append(msk[0]), bgs.append(bg[0])
+        if progress:
+            progress(stage, i + 1, len(cams))
+    return images, masks, bgs
+
+
+def _capture_meta(mesh_path: Path, seed: int, calib_noise_deg: float, calib_noise_mm: float) -> dict:
+    """The train capture's meta block: rig and calibration ids, and the stated calibration uncertainty when perturbed."""
     meta = {
         "rig_id": "synthetic",
         "calibration_id": f"synthetic-seed{seed}" + ("-perturbed" if calib_noise_deg or calib_noise_mm else ""),
@@ -252,50 +377,7 @@ def synth_dataset(
     if calib_noise_deg or calib_noise_mm:
         # The recorded extrinsics are off by this much per axis, as a keeper's calibration states its own uncertainty.
         meta["calibration_uncertainty"] = {"rotation_deg": float(calib_noise_deg), "translation_mm": float(calib_noise_mm)}
-    recorded_cams = [c.with_c2w(m) for c, m in zip(train_rig, recorded)]
-    _write(out_dir / "train", "cam", recorded_cams, train, meta)
-    if held:
-        exact = {k: v for k, v in meta.items() if k != "calibration_uncertainty"}
-        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**exact, "calibration_id": f"synthetic-seed{seed}"})
-
-    gt = {
-        "mesh": _mesh_reference(mesh_path, out_dir),
-        "mesh_name": mesh_path.parent.name if mesh_path.stem == "textured" else mesh_path.stem,
-        "mesh_sha256": mesh_sha,
-        "units": "m",
-        "seed": seed,
-        "size": [train_rig[0].width, train_rig[0].height],
-        "views": len(train_rig),
-        "heldout": len(heldout_rig),
-        "sim3_rig_to_object": sim3.to_dict(),
-        "object_pose": {"yaw_deg": yaw if rig_to_object is None else None, "offset": offset.tolist() if rig_to_object is None else None},
-        "ring": {
-            "radius_rig": float(radius),
-            "elevations_deg": list(elevations_deg) if cameras is None else None,
-            "heldout_elevations_deg": list(heldout_elevations_deg),
-            "target_rig": target.tolist(),
-            "fov_deg": fov_deg,
-        },
-        "train_intrinsics": [c.K.tolist() for c in train_rig],
-        "train_c2w_object": [c.c2w.tolist() for c in train_obj],
-        "heldout_c2w_object": [c.c2w.tolist() for c in heldout_obj],
-        "train_c2w_rig_true": [c.c2w.tolist() for c in train_rig],
-        "calib_noise": {
-            "sigma_deg": calib_noise_deg,
-            "sigma_mm": calib_noise_mm,
-            "rotvec_deg": rotvec_deg.tolist(),
-            "centre_shift_rig": shift.tolist(),
-        },
-        "render": {
-            "backdrop": backdrop,
-            "lighting_jitter": lighting_jitter,
-            "noise_std": noise_std,
-            "texture_size": texture_size,
-            "renderer": "mujoco",
-        },
-    }
-    atomic_write_json(out_dir / "gt.json", gt)
-    return gt
+    return meta
 
 
 def _mesh_reference(mesh_path: Path, out_dir: Path) -> str:

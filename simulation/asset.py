@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from calibration.units import UNIT_TO_M
 from reconstruction.mesh_io import MeshParts, read_mesh_parts, unit_of
 from reconstruction.splats import SH_C0
 from reconstruction.twin import Twin
+
+if TYPE_CHECKING:
+    import trimesh
 
 # kg/m^3. Default "plastic" is ABS, the commonest material of small factory parts.
 MATERIAL_DENSITY: dict[str, float] = {
@@ -225,76 +229,28 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
     Per-face arrays in `face_data` ([F, ...]) follow the faces; new faces take the value of their
     nearest original face. Returns (vertices [V', 3], faces [F', 3], face_data', RepairReport).
     """
-    import manifold3d
     import trimesh
-    from scipy.spatial import cKDTree
 
     face_data = {k: np.asarray(v) for k, v in (face_data or {}).items()}
     v_in = np.asarray(vertices, np.float64)
     f_in = np.asarray(faces, np.int64)
-    if len(f_in) == 0 or not np.all(np.isfinite(v_in)):
-        raise RepairError("the mesh is empty or has non-finite vertices")
-    mesh = trimesh.Trimesh(v_in, f_in, process=False)
-    mesh.merge_vertices()
-    welded = len(v_in) - len(mesh.vertices)
-    keep = mesh.nondegenerate_faces() & mesh.unique_faces()
-    mesh.update_faces(keep)
-    mesh.remove_unreferenced_vertices()
-    if len(mesh.faces) == 0:
-        raise RepairError("the mesh has no faces with area, so it encloses no volume")
+    mesh, keep, welded = _weld_and_clean(v_in, f_in)
     v0, f0 = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
     boundary, nonmanifold, misoriented = _edge_stats(f0)
     volume_before = signed_volume(v0, f0)
     labels = manifold_pieces(f0)
-    areas = mesh.area_faces
-    total_area = float(areas.sum())
-    min_volume = 1e-9 * float(np.ptp(v0, 0).max()) ** 3  # below this a piece is a sheet (back-to-back faces)
-    solids, dropped, tools = [], 0, {"trimesh"}
-    for label in range(int(labels.max()) + 1):
-        sel = labels == label
-        v, f, used = _close_piece(v0, f0[sel])
-        tools |= used
-        if len(f) and _edge_stats(f) == (0, 0, 0) and signed_volume(v, f) > min_volume:
-            solids.append((v, f))
-            continue
-        share = float(areas[sel].sum()) / total_area
-        if share >= SHEET_AREA_LIMIT:
-            raise RepairError(
-                f"the mesh cannot be closed: a piece of {int(sel.sum())} faces ({100 * share:.0f}% of its surface) is an open sheet with no inside"
-            )
-        dropped += 1
-    if not solids:
-        raise RepairError("the mesh cannot be closed: it is an open sheet with no inside")
-    manifolds = [manifold3d.Manifold(manifold3d.Mesh64(vert_properties=v, tri_verts=f.astype(np.uint64))) for v, f in solids]
-    bad = [m.status() for m in manifolds if m.status() != manifold3d.Error.NoError]
-    if bad:
-        raise RepairError(f"the mesh cannot be closed: after repair a piece is still not a closed surface ({bad[0].name})")
-    merged = False
-    if len(solids) > 1:
-        union = manifold3d.Manifold.batch_boolean(manifolds, manifold3d.OpType.Add)
-        separate = sum(m.volume() for m in manifolds)
-        merged = union.volume() < separate * (1 - 1e-9) or union.num_tri() != sum(m.num_tri() for m in manifolds)
-        if merged:
-            out = union.to_mesh64()
-            solids = [(np.asarray(out.vert_properties, np.float64)[:, :3], np.asarray(out.tri_verts, np.int64))]
-            tools.add("manifold")
+    solids, dropped, tools = _close_pieces(v0, f0, labels, mesh.area_faces)
+    solids, merged = _union_if_touching(solids)
+    if merged:
+        tools.add("manifold")
     offsets = np.cumsum([0] + [len(v) for v, _ in solids])
     v_out = np.concatenate([v for v, _ in solids])
     f_out = np.concatenate([f + o for (_, f), o in zip(solids, offsets)])
     result = trimesh.Trimesh(v_out, f_out, process=False)
     if not signed_volume(v_out, f_out) > 0:
         raise RepairError("the mesh encloses no volume (flat or degenerate), so it has no mass")
-
-    # Which faces survived unchanged, which are new; new faces take their nearest original's data.
-    scale = max(float(np.ptp(v0, 0).max()), 1e-12) * 1e-9
-    original = dict(zip(_face_keys(v0, f0, scale), range(len(f0))))
-    matches = [original.get(k, -1) for k in _face_keys(v_out, f_out, scale)]
-    matched = np.array(matches) >= 0
-    kept_ids = np.array(matches)[matched]
-    n0 = mesh.face_normals[kept_ids]
-    flipped = int(((result.face_normals[matched] * n0).sum(1) < 0).sum())
-    _, nearest = cKDTree(mesh.triangles_center).query(result.triangles_center)
-    source = np.where(matched, np.array(matches), nearest)
+    matched, source, flipped = _match_original_faces(mesh, result)
+    kept_ids = source[matched]
     keep_idx = np.flatnonzero(keep)
     face_data = {k: d[keep_idx][source] for k, d in face_data.items()}
     report = RepairReport(
@@ -313,6 +269,99 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, face_data: dict[str, np
         tools=tuple(sorted(tools)),
     )
     return v_out, f_out, face_data, report
+
+
+def _weld_and_clean(v_in: np.ndarray, f_in: np.ndarray) -> tuple[trimesh.Trimesh, np.ndarray, int]:
+    """The trimesh of vertices [V, 3] and faces [F, 3] welded, without degenerate, duplicate or unused elements.
+
+    Returns (mesh, keep [F] bool: the input faces kept, number of vertices welded away).
+    """
+    import trimesh
+
+    if len(f_in) == 0 or not np.all(np.isfinite(v_in)):
+        raise RepairError("the mesh is empty or has non-finite vertices")
+    mesh = trimesh.Trimesh(v_in, f_in, process=False)
+    mesh.merge_vertices()
+    welded = len(v_in) - len(mesh.vertices)
+    keep = mesh.nondegenerate_faces() & mesh.unique_faces()
+    mesh.update_faces(keep)
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise RepairError("the mesh has no faces with area, so it encloses no volume")
+    return mesh, keep, welded
+
+
+def _close_pieces(
+    v0: np.ndarray, f0: np.ndarray, labels: np.ndarray, areas: np.ndarray
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], int, set[str]]:
+    """Each piece (faces [F] labelled by `labels`) closed into a solid, small open sheets dropped, large ones refused.
+
+    Returns (solids as (vertices, faces) pairs, number of sheets dropped, tools used).
+    """
+    total_area = float(areas.sum())
+    min_volume = 1e-9 * float(np.ptp(v0, 0).max()) ** 3  # below this a piece is a sheet (back-to-back faces)
+    solids, dropped, tools = [], 0, {"trimesh"}
+    for label in range(int(labels.max()) + 1):
+        sel = labels == label
+        v, f, used = _close_piece(v0, f0[sel])
+        tools |= used
+        if len(f) and _edge_stats(f) == (0, 0, 0) and signed_volume(v, f) > min_volume:
+            solids.append((v, f))
+            continue
+        share = float(areas[sel].sum()) / total_area
+        if share >= SHEET_AREA_LIMIT:
+            raise RepairError(
+                f"the mesh cannot be closed: a piece of {int(sel.sum())} faces ({100 * share:.0f}% of its surface) is an open sheet with no inside"
+            )
+        dropped += 1
+    if not solids:
+        raise RepairError("the mesh cannot be closed: it is an open sheet with no inside")
+    return solids, dropped, tools
+
+
+def _union_if_touching(
+    solids: list[tuple[np.ndarray, np.ndarray]],
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], bool]:
+    """The solids, proven closed by manifold3d, merged into one by boolean union when any overlap or touch.
+
+    Returns (solids, whether they were merged).
+    """
+    import manifold3d
+
+    manifolds = [manifold3d.Manifold(manifold3d.Mesh64(vert_properties=v, tri_verts=f.astype(np.uint64))) for v, f in solids]
+    bad = [m.status() for m in manifolds if m.status() != manifold3d.Error.NoError]
+    if bad:
+        raise RepairError(f"the mesh cannot be closed: after repair a piece is still not a closed surface ({bad[0].name})")
+    if len(solids) <= 1:
+        return solids, False
+    union = manifold3d.Manifold.batch_boolean(manifolds, manifold3d.OpType.Add)
+    separate = sum(m.volume() for m in manifolds)
+    merged = union.volume() < separate * (1 - 1e-9) or union.num_tri() != sum(m.num_tri() for m in manifolds)
+    if not merged:
+        return solids, False
+    out = union.to_mesh64()
+    return [(np.asarray(out.vert_properties, np.float64)[:, :3], np.asarray(out.tri_verts, np.int64))], True
+
+
+def _match_original_faces(mesh: trimesh.Trimesh, result: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, int]:
+    """Which of result's faces [F'] survived unchanged from the cleaned mesh's faces [F], and each one's source face.
+
+    Returns (matched [F'] bool, source [F'] index into mesh's faces: the same face, or the nearest
+    original for new faces, number of surviving faces whose winding was flipped).
+    """
+    from scipy.spatial import cKDTree
+
+    v0, f0 = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
+    v_out, f_out = np.asarray(result.vertices), np.asarray(result.faces, np.int64)
+    scale = max(float(np.ptp(v0, 0).max()), 1e-12) * 1e-9
+    original = dict(zip(_face_keys(v0, f0, scale), range(len(f0))))
+    matches = np.array([original.get(k, -1) for k in _face_keys(v_out, f_out, scale)])
+    matched = matches >= 0
+    n0 = mesh.face_normals[matches[matched]]
+    flipped = int(((result.face_normals[matched] * n0).sum(1) < 0).sum())
+    _, nearest = cKDTree(mesh.triangles_center).query(result.triangles_center)
+    source = np.where(matched, matches, nearest)
+    return matched, source, flipped
 
 
 def mass_properties(vertices: np.ndarray, faces: np.ndarray, density: float) -> MassProperties:

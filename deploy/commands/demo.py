@@ -48,41 +48,69 @@ def validate_sample(sample_dir: str | Path) -> dict:
     the true object-frame poses), the true mesh projected with the true poses lands inside every
     mask, and each library mesh matches its digest, loads, and has a plausible size in metres.
     """
-    import trimesh
-
     root = Path(sample_dir)
     manifest = _read_json(root / "sample.json")
     gt = _read_json(root / manifest.get("gt", "gt.json"))
-    checks: list[str] = []
-    captures = {}
-    for name in ("train", "heldout"):
-        cap = read_capture(root / manifest.get(name, name), verify=True)
-        if not cap.has_masks:
-            raise SampleError(f"{cap.root}: some views have no mask")
-        missing_bg = [f.camera_id for f in cap.frames if cap.meta.get("background", {}).get(f.camera_id) is None]
-        if missing_bg:
-            raise SampleError(f"{cap.root}: no empty-rig background for {', '.join(missing_bg[:3])}")
-        captures[name] = cap
+    captures = {name: _read_sample_capture(root / manifest.get(name, name)) for name in ("train", "heldout")}
     train, held = captures["train"], captures["heldout"]
-    checks.append(f"captures read, {sum(len(c.meta.get('sha256', {})) for c in captures.values())} sha256 digests verified")
+    checks = [f"captures read, {sum(len(c.meta.get('sha256', {})) for c in captures.values())} sha256 digests verified"]
+    sim3, deviation = _check_gt_poses(root / "gt.json", gt, train, held)
+    checks.append(f"gt.json: rig->object Sim(3) (scale {sim3.scale:.3f}) maps recorded poses onto true poses within {deviation:.1e}")
+    hits = _true_mesh_mask_hits(root, gt, train, held)
+    checks.append(f"true mesh projected with true poses: {min(hits):.2%} of vertices inside every mask (1-px tolerance), {len(hits)} views")
+    models = _check_library(root, manifest)
+    checks.append(f"CAD library: {len(models)} meshes load with matching digests and sizes in metres")
+    return {
+        "sample_dir": str(root),
+        "object": manifest.get("object", gt.get("mesh_name")),
+        "true_model_id": manifest["true_model_id"],
+        "views": len(train),
+        "heldout": len(held),
+        "size": gt.get("size"),
+        "sim3_rig_to_object": sim3.to_dict(),
+        "mask_hit_min": min(hits),
+        "models": models,
+        "checks": checks,
+    }
 
+
+def _read_sample_capture(path: Path) -> Capture:
+    """The capture at path with every sha256 verified; SampleError unless every view has a mask and a background."""
+    cap = read_capture(path, verify=True)
+    if not cap.has_masks:
+        raise SampleError(f"{cap.root}: some views have no mask")
+    missing_bg = [f.camera_id for f in cap.frames if cap.meta.get("background", {}).get(f.camera_id) is None]
+    if missing_bg:
+        raise SampleError(f"{cap.root}: no empty-rig background for {', '.join(missing_bg[:3])}")
+    return cap
+
+
+def _check_gt_poses(gt_path: Path, gt: dict, train: Capture, held: Capture) -> tuple[Sim3, float]:
+    """gt.json's rig->object Sim(3) and how far it maps the recorded poses from the true ones (max abs c2w entry).
+
+    SampleError when the pose counts or image size disagree with the captures, or the map is off (the train poses
+    may be off when gt.json records calibration noise).
+    """
     for name, key, cap in (("train", "train_c2w_object", train), ("heldout", "heldout_c2w_object", held)):
         if len(gt.get(key, [])) != len(cap):
-            raise SampleError(f"{root / 'gt.json'}: {key} has {len(gt.get(key, []))} poses but {name} has {len(cap)} views")
+            raise SampleError(f"{gt_path}: {key} has {len(gt.get(key, []))} poses but {name} has {len(cap)} views")
     size = gt.get("size")
-    if any([f.camera.width, f.camera.height] != size for c in captures.values() for f in c.frames):
-        raise SampleError(f"{root / 'gt.json'}: size {size} does not match the captures' image size")
+    if any([f.camera.width, f.camera.height] != size for c in (train, held) for f in c.frames):
+        raise SampleError(f"{gt_path}: size {size} does not match the captures' image size")
     sim3 = Sim3.from_dict(gt["sim3_rig_to_object"])
     held_dev = np.abs(sim3.apply_to_c2w(np.stack([f.camera.c2w for f in held.frames])) - np.array(gt["heldout_c2w_object"])).max()
     train_dev = np.abs(sim3.apply_to_c2w(np.stack([f.camera.c2w for f in train.frames])) - np.array(gt["train_c2w_object"])).max()
     noisy = gt.get("calib_noise", {}).get("sigma_deg", 0) or gt.get("calib_noise", {}).get("sigma_mm", 0)
     if held_dev > 1e-6 or (not noisy and train_dev > 1e-6):
         raise SampleError(
-            f"{root / 'gt.json'}: sim3_rig_to_object does not map the recorded poses onto the true ones (off by {max(held_dev, train_dev):.2g})"
+            f"{gt_path}: sim3_rig_to_object does not map the recorded poses onto the true ones (off by {max(held_dev, train_dev):.2g})"
         )
-    checks.append(
-        f"gt.json: rig->object Sim(3) (scale {sim3.scale:.3f}) maps recorded poses onto true poses within {max(held_dev, train_dev):.1e}"
-    )
+    return sim3, max(held_dev, train_dev)
+
+
+def _true_mesh_mask_hits(root: Path, gt: dict, train: Capture, held: Capture) -> list[float]:
+    """Per view (train, then held-out), the fraction of the true mesh's vertices inside its mask; SampleError when any is short."""
+    import trimesh
 
     mesh_path = root / gt["mesh"]
     if not mesh_path.is_file():
@@ -97,7 +125,13 @@ def validate_sample(sample_dir: str | Path) -> dict:
         raise SampleError(
             f"{mesh_path}: projected with the true poses, only {min(hits):.1%} of its vertices land inside the worst view's mask"
         )
-    checks.append(f"true mesh projected with true poses: {min(hits):.2%} of vertices inside every mask (1-px tolerance), {len(hits)} views")
+    return hits
+
+
+def _check_library(root: Path, manifest: dict) -> list[dict]:
+    """Id, face count, largest extent and truth flag of each library mesh; SampleError when one is missing, altered,
+    implausibly sized, or the true model is absent."""
+    import trimesh
 
     digests = manifest.get("sha256", {})
     models = []
@@ -114,20 +148,7 @@ def validate_sample(sample_dir: str | Path) -> dict:
         models.append({"id": m["id"], "faces": len(mesh.faces), "extent_m": extent, "is_true_object": bool(m.get("is_true_object"))})
     if manifest.get("true_model_id") not in {m["id"] for m in models}:
         raise SampleError(f"{root / 'sample.json'}: the true model {manifest.get('true_model_id')} is not in the library")
-    checks.append(f"CAD library: {len(models)} meshes load with matching digests and sizes in metres")
-
-    return {
-        "sample_dir": str(root),
-        "object": manifest.get("object", gt.get("mesh_name")),
-        "true_model_id": manifest["true_model_id"],
-        "views": len(train),
-        "heldout": len(held),
-        "size": size,
-        "sim3_rig_to_object": sim3.to_dict(),
-        "mask_hit_min": min(hits),
-        "models": models,
-        "checks": checks,
-    }
+    return models
 
 
 def _read_json(path: Path) -> dict:

@@ -6,8 +6,15 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from calibration.camera import Camera
+    from reconstruction.twin import Twin
 
 SUMMARY = ("psnr", "ssim", "lpips", "mpsnr", "mlpips", "fgpsnr", "iou")
 
@@ -69,12 +76,10 @@ def evaluate(
     symmetry_mm: float | None,
     max_views: int | None,
 ) -> None:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
+    """Score the twin on the held-out views, write metrics.json and print the summary."""
     from calibration.capture import load_views, read_capture
     from calibration.fileio import atomic_write_json
-    from reconstruction.evaluation import evaluate_twin, half_turn, select_views, twin_near_symmetries
+    from reconstruction.evaluation import select_views
     from reconstruction.twin import load_twin
 
     if out_path.exists() and out_path.is_dir():
@@ -84,48 +89,18 @@ def evaluate(
     capture = read_capture(views_dir)
     if not capture.has_masks:
         raise click.ClickException(f"held-out capture {views_dir} has no masks; the protocol needs a ground-truth mask per view")
-    gt = None
-    if gt_path is not None:
-        try:
-            gt = json.loads(Path(gt_path).read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise click.ClickException(f"cannot read --gt {gt_path} ({e.__class__.__name__})") from None
-        if "train_c2w_object" not in gt:
-            raise click.ClickException(f"--gt {gt_path} has no train_c2w_object; is it a synthetic rig's gt.json?")
+    gt = _read_gt(gt_path)
     if (symmetry_axes or symmetry_mm) and gt is None:
         raise click.ClickException(
             "--symmetry and --near-symmetries need --gt: symmetries only change how registration errors are measured"
         )
-    symmetries = [half_turn(a) for a in symmetry_axes]
-    labels = [f"the pose turned 180 deg about {a}" for a in symmetry_axes]
-    if symmetry_mm:
-        try:
-            found = twin_near_symmetries(twin, symmetry_mm * 1e-3)
-        except ValueError as e:
-            raise click.ClickException(str(e)) from None
-        symmetries += [s.transform for s in found]
-        labels += [f"the pose turned {s.angle_deg:.1f} deg, a near-symmetry moving the mesh {1e3 * s.deviation:.2f} mm" for s in found]
+    symmetries, labels = _symmetries(twin, symmetry_axes, symmetry_mm)
     idx = select_views(len(capture), max_views)
     images, masks, cams = load_views(capture, idx)
     names = [Path(capture.frames[i].file_path).stem for i in idx]
     t_load = time.perf_counter() - t0
 
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True
-    ) as bar:
-        task = bar.add_task(f"evaluating ({refine_steps} refinement steps per view)", total=len(idx))
-        report = evaluate_twin(
-            twin,
-            cams,
-            images,
-            masks,
-            names=names,
-            refine_steps=refine_steps,
-            gt=gt,
-            symmetries=symmetries or None,
-            progress=lambda done, _total: bar.update(task, completed=done),
-        )
+    report = _evaluate_with_progress(twin, cams, images, masks, names, refine_steps, gt, symmetries)
     report["timings_s"]["load"] = t_load
     doc = {
         "twin": str(twin_dir),
@@ -140,9 +115,76 @@ def evaluate(
         **report,
     }
     atomic_write_json(out_path, doc)
+    _echo_summary(twin, report, len(idx), refine_steps, labels, out_path)
 
+
+def _read_gt(gt_path: Path | None) -> dict | None:
+    """The synthetic rig's gt.json at gt_path (None without one); ClickException when unreadable or not a rig's."""
+    if gt_path is None:
+        return None
+    try:
+        gt = json.loads(Path(gt_path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise click.ClickException(f"cannot read --gt {gt_path} ({e.__class__.__name__})") from None
+    if "train_c2w_object" not in gt:
+        raise click.ClickException(f"--gt {gt_path} has no train_c2w_object; is it a synthetic rig's gt.json?")
+    return gt
+
+
+def _symmetries(twin: Twin, symmetry_axes: tuple[str, ...], symmetry_mm: float | None) -> tuple[list[np.ndarray], list[str]]:
+    """The object-frame symmetry transforms to score registration against, and a phrase describing each."""
+    from reconstruction.evaluation import half_turn, twin_near_symmetries
+
+    symmetries = [half_turn(a) for a in symmetry_axes]
+    labels = [f"the pose turned 180 deg about {a}" for a in symmetry_axes]
+    if symmetry_mm:
+        try:
+            found = twin_near_symmetries(twin, symmetry_mm * 1e-3)
+        except ValueError as e:
+            raise click.ClickException(str(e)) from None
+        symmetries += [s.transform for s in found]
+        labels += [f"the pose turned {s.angle_deg:.1f} deg, a near-symmetry moving the mesh {1e3 * s.deviation:.2f} mm" for s in found]
+    return symmetries, labels
+
+
+def _evaluate_with_progress(
+    twin: Twin,
+    cams: list[Camera],
+    images: np.ndarray,
+    masks: np.ndarray,
+    names: list[str],
+    refine_steps: int,
+    gt: dict | None,
+    symmetries: list[np.ndarray],
+) -> dict:
+    """evaluate_twin's report on the views (images [V, H, W, 3], masks [V, H, W]), with a progress bar on stderr."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from reconstruction.evaluation import evaluate_twin
+
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True
+    ) as bar:
+        task = bar.add_task(f"evaluating ({refine_steps} refinement steps per view)", total=len(names))
+        return evaluate_twin(
+            twin,
+            cams,
+            images,
+            masks,
+            names=names,
+            refine_steps=refine_steps,
+            gt=gt,
+            symmetries=symmetries or None,
+            progress=lambda done, _total: bar.update(task, completed=done),
+        )
+
+
+def _echo_summary(twin: Twin, report: dict, num_views: int, refine_steps: int, labels: list[str], out_path: Path) -> None:
+    """Print the mean metrics (nominal and refined) and the registration errors to stdout."""
     click.echo(
-        f"Evaluated {twin.model_id} ({twin.num_splats} splats, preset {twin.preset}) on {len(idx)} held-out views "
+        f"Evaluated {twin.model_id} ({twin.num_splats} splats, preset {twin.preset}) on {num_views} held-out views "
         f"in {report['timings_s']['total']:.1f} s ({report['timings_s']['per_view_render_ms']:.0f} ms per render)."
     )
     click.echo("              " + " ".join(f"{k:>6}" for k in SUMMARY))

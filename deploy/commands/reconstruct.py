@@ -6,9 +6,17 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import click
+
+if TYPE_CHECKING:
+    from reconstruction.twin import Twin
+
+T = TypeVar("T")
 
 # Kept here so `--help` does not import torch; tests check them against presets.ABLATIONS and pose_correction.POSE_MODES.
 ABLATION_NAMES = ("no-deformation", "no-pose", "no-mask-warmup", "no-sh-smoothness", "no-dropout")
@@ -138,32 +146,18 @@ def reconstruct(
     like_dir: Path | None,
     overwrite: bool,
 ) -> None:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
+    """Register and train the twin (or retrain one --like), with progress bars, and print its verdict."""
     from reconstruction.pipeline import reconstruct_capture, retrain_like
 
     views = parse_views(views_text)
     like = None
     if like_dir is not None:
-        from reconstruction.twin import load_twin
-
-        if registration_path is not None or views is not None or model_id is not None or ablations or pose_mode is not None:
-            raise click.UsageError(
-                "--like takes the configuration, views and registration from the twin's record; "
-                "give it with CAPTURE, --library, --out and --overwrite only"
-            )
-        like = load_twin(like_dir)
+        overrides = registration_path is not None or views is not None or model_id is not None or ablations or pose_mode is not None
+        like = _load_like(like_dir, overrides=bool(overrides))
         init = "sphere" if like.model_id == "sphere" else "cad"
     if init == "cad" and lib_dir is None:
         raise click.UsageError("--library is required (or --init sphere to reconstruct without a CAD model)")
-    if out_dir.exists() and not overwrite:
-        raise click.ClickException(f"{out_dir} already exists; choose another --out or pass --overwrite")
-    from reconstruction.twin import is_twin_dir
-
-    if out_dir.exists() and not is_twin_dir(out_dir):
-        raise click.ClickException(
-            f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out"
-        )
+    _check_out_dir(out_dir, overwrite)
     from deploy.steps import registration_config
 
     reg_config = registration_config(rig_config)
@@ -172,6 +166,58 @@ def reconstruct(
         if init != "cad":
             raise click.UsageError("--registration places the CAD model; it does not go with --init sphere")
         capture, registration = given_registration(registration_path, capture_dir, lib_dir)
+    if like is not None:
+        train = functools.partial(retrain_like, like, capture, lib_dir, out_dir, overwrite=overwrite)
+    else:
+        train = functools.partial(
+            reconstruct_capture,
+            capture,
+            lib_dir,
+            out_dir,
+            registration=registration,
+            preset=preset,
+            model_id=model_id,
+            views=views,
+            pose_mode=pose_mode,
+            seed=seed,
+            overwrite=overwrite,
+            init=init,
+            ablations=ablations,
+            registration_config=reg_config,
+        )
+    result = _run_with_progress(train)
+    click.echo(verdict(result.twin, result.registration))
+    click.echo(f"Twin written to {out_dir}")
+
+
+def _load_like(like_dir: Path, *, overrides: bool) -> Twin:
+    """The twin at like_dir to train again; UsageError when options that its record fixes were also given."""
+    from reconstruction.twin import load_twin
+
+    if overrides:
+        raise click.UsageError(
+            "--like takes the configuration, views and registration from the twin's record; "
+            "give it with CAPTURE, --library, --out and --overwrite only"
+        )
+    return load_twin(like_dir)
+
+
+def _check_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """ClickException unless out_dir is free, or is a twin directory and --overwrite was given."""
+    if out_dir.exists() and not overwrite:
+        raise click.ClickException(f"{out_dir} already exists; choose another --out or pass --overwrite")
+    from reconstruction.twin import is_twin_dir
+
+    if out_dir.exists() and not is_twin_dir(out_dir):
+        raise click.ClickException(
+            f"{out_dir} is not a twin directory (no cadsplat twin.json), so --overwrite does not replace it; choose another --out"
+        )
+
+
+def _run_with_progress(train: Callable[..., T]) -> T:
+    """train(progress=..., log=...)'s result, with one progress bar per training stage and log lines above them."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     tasks: dict[str, int] = {}
     with Progress(
         TextColumn("{task.description:<30}"),
@@ -189,28 +235,7 @@ def reconstruct(
                 tasks[stage] = bar.add_task(STAGE_TITLES.get(stage, stage), total=cap, loss=float("nan"))
             bar.update(tasks[stage], completed=it, loss=loss)
 
-        log = lambda m: bar.console.print(m)  # noqa: E731
-        if like is not None:
-            result = retrain_like(like, capture, lib_dir, out_dir, progress=progress, log=log, overwrite=overwrite)
-        else:
-            result = reconstruct_capture(
-                capture,
-                lib_dir,
-                out_dir,
-                registration=registration,
-                preset=preset,
-                model_id=model_id,
-                views=views,
-                pose_mode=pose_mode,
-                seed=seed,
-                progress=progress,
-                log=log,
-                overwrite=overwrite,
-                init=init,
-                ablations=ablations,
-                registration_config=reg_config,
-            )
+        result = train(progress=progress, log=lambda m: bar.console.print(m))
         for t in tasks.values():
             bar.update(t, total=bar.tasks[t].completed)
-    click.echo(verdict(result.twin, result.registration))
-    click.echo(f"Twin written to {out_dir}")
+    return result
