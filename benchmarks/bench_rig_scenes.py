@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -109,7 +110,8 @@ def views_for(gt: dict, n: int, views: str) -> list[int]:
 
 def exact_camera_capture(scene: Path, out: Path) -> Path:
     """A copy of the scene's training capture at `out` whose recorded cameras are the true ones (the oracle
-    without calibration noise): the images, masks and backgrounds linked, transforms.json rewritten from
+    without calibration noise): the images, masks and backgrounds copied (a capture reads only inside its own
+    folder, so links out are refused), transforms.json rewritten from
     gt.json's true object-frame cameras through the inverse of the true rig-to-object Sim(3)."""
     from calibration.sim3 import Sim3
 
@@ -119,7 +121,7 @@ def exact_camera_capture(scene: Path, out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for entry in (scene / "train").iterdir():
         if entry.is_dir() and not (out / entry.name).exists():
-            (out / entry.name).symlink_to(entry.resolve(), target_is_directory=True)
+            shutil.copytree(entry, out / entry.name)
     opengl = np.diag([1.0, -1.0, -1.0, 1.0])  # transforms.json holds OpenGL-axis c2w
     for frame, c2w in zip(doc["frames"], rig_c2w):
         frame["transform_matrix"] = (c2w @ opengl).tolist()

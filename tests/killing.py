@@ -79,9 +79,11 @@ def work_after_kill(work: Path) -> dict:
 
                 read_splats_ply(out)
             elif out.suffix == ".glb":
-                from reconstruction.mesh_io import read_mesh_parts
+                from simulation.gltf_splats import accessor_array, read_glb
 
-                read_mesh_parts(out)
+                doc, blob = read_glb(out.read_bytes())  # the splats' KHR_gaussian_splatting primitive, whole
+                positions = accessor_array(doc, blob, doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"])
+                assert len(positions) > 0, f"{out}: a GLB without splats"
             else:
                 assert (out / "model.xml").is_file(), f"{out}: an export directory without its model.xml"
             exports += 1

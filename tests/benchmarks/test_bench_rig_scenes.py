@@ -31,9 +31,9 @@ def test_exact_camera_capture_records_the_true_poses_in_the_rig_frame(tmp_path):
     out = exact_camera_capture(scene, tmp_path / "exact")
     got = np.stack([f.camera.c2w for f in read_capture(out).frames])
     np.testing.assert_allclose(sim3.apply_to_c2w(got), true_obj, atol=1e-9)
-    # The recorded capture is left as it was, and the images are the same files.
+    # The recorded capture is left as it was, and the images are the same.
     np.testing.assert_allclose(np.stack([f.camera.c2w for f in read_capture(scene / "train").frames]), noisy_rig, atol=1e-12)
-    assert (out / "images").resolve() == (scene / "train" / "images").resolve()
+    assert sorted(p.name for p in (out / "images").iterdir()) == sorted(p.name for p in (scene / "train" / "images").iterdir())
 
 
 def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_lacks_empty(tmp_path, monkeypatch):

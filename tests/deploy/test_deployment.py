@@ -142,10 +142,9 @@ def test_the_documented_flow_makes_a_twin_in_the_rendered_layout(deployed, libra
     original = presets.resolve_preset
 
     def short(name, stats):  # the preview preset with short stage caps: seconds, not minutes
-        p, c = original(name, stats)
-        return replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c
+        return replace(original(name, stats), iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10)
 
-    monkeypatch.setattr("reconstruction.pipeline.resolve_preset", short)
+    monkeypatch.setattr("reconstruction.presets.resolve_preset", short)
     args = argv(units["pipeline"])
     assert len(list((option(args, "--store") / "captures").iterdir())) == 1  # the service reads where the rig wrote
     args[args.index("--preset") + 1] = "preview"

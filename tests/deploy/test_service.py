@@ -178,10 +178,8 @@ def test_readme_flow_rig_watch_then_service_run_makes_a_twin_of_every_capture(tm
     build_library(REPO / "sample" / "library_meshes", lib, progress=False, log=lambda _m: None)
     original = presets.resolve_preset
     monkeypatch.setattr(
-        "reconstruction.pipeline.resolve_preset",
-        lambda name, stats: (lambda p, c: (replace(p, iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10), c))(
-            *original(name, stats)
-        ),
+        "reconstruction.presets.resolve_preset",
+        lambda name, stats: replace(original(name, stats), iters_pose=20, iters_deform=10, iters_photo=20, dropout_anneal=10),
     )
     capsys.readouterr()
     assert (

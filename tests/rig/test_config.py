@@ -21,7 +21,7 @@ def test_example_config_loads_with_every_section():
     )
     assert (cfg.trigger.kind, cfg.trigger.arbitration_id, cfg.trigger.min_interval_ms) == ("serial", 0x181, 250.0)
     assert cfg.thresholds.sync_tolerance_ns == 2_000_000 and cfg.storage.min_free_gb == 5.0
-    assert str(cfg.storage.spill) == "/var/lib/cadsplat/spill"
+    assert str(cfg.storage.spill) == "/var/spool/cadsplat/spill"
 
 
 def test_defaults_and_relative_paths(tmp_path):
