@@ -130,16 +130,12 @@ def test_readme_flow_rig_watch_then_service_run_makes_a_twin_of_every_capture(tm
     --work W --library L` used to fail every job with "has neither masks/ nor background/ frames"."""
     from dataclasses import replace
 
-    import pytest
-
     from deploy.cli import main
     from reconstruction import presets
     from reconstruction.library import build_library
     from tests.conftest import REPO
     from tests.rig.conftest import assert_store_sound
 
-    if not (REPO / "sample" / "library_meshes").exists():
-        pytest.skip("the bundled sample's library meshes are absent")
     store, work, lib = tmp_path / "S", tmp_path / "W", tmp_path / "L"
     r = subprocess.run(
         [
