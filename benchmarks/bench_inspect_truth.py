@@ -1,7 +1,7 @@
 """How right is `cadsplat inspect`'s map, in mm and in pixels, and how honest is its uncertainty? Twins of
 ../shared/data/rig_scenes (and rig_scenes_640) against their true surfaces.
 
-    python -m benchmarks.bench_inspect_truth TWINS_DIR [--data rig_scenes|rig_scenes_640] [--scenes A,B] [--tolerance 1]
+    python -m benchmarks.bench_inspect_truth TWINS_DIR [--data rig_scenes|rig_scenes_640 | --data-dir DIR] [--scenes A,B] [--tolerance 1]
         [--out benchmarks/results/inspect_truth.md] [--json FILE]
 
 TWINS_DIR holds one twin per scene, TWINS_DIR/<scene>/twin.json (`cadsplat reconstruct <scene>/train --library
@@ -201,12 +201,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("twins", type=Path, help="Directory with one twin per scene: TWINS/<scene>/twin.json")
     ap.add_argument("--data", default="rig_scenes", choices=sorted(DATASETS))
+    ap.add_argument(
+        "--data-dir", type=Path, default=None, help="Another dataset laid out as rig_scenes (DIR/scenes/<scene>), e.g. a capture resized"
+    )
     ap.add_argument("--scenes", default="", help="Comma-separated scene names (default: every scene with a twin).")
     ap.add_argument("--tolerance", type=float, default=1.0, help="mm")
     ap.add_argument("--out", type=Path, default=None, help="default: benchmarks/results/inspect_truth[_640].md")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows as JSON here")
     args = ap.parse_args()
-    data = DATASETS[args.data]
+    data = args.data_dir or DATASETS[args.data]
     if not data.exists():
         raise SystemExit(f"needs the shared data folder ({data} is absent)")
     out = args.out or RESULTS / ("inspect_truth.md" if args.data == "rig_scenes" else "inspect_truth_640.md")
@@ -225,7 +228,7 @@ def main() -> None:
     machine += f", {load_line()} at the end"
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
-    print(write_markdown(rows, args.data, args.twins, args.tolerance, machine, out))
+    print(write_markdown(rows, str(args.data_dir or args.data), args.twins, args.tolerance, machine, out))
 
 
 if __name__ == "__main__":
