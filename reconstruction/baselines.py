@@ -320,17 +320,12 @@ def train_vanilla_3dgs(
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
-    centres = np.stack([c.center for c in cameras])
-    # Inria's scene extent: 1.1 x the largest camera distance from the cameras' mean centre.
-    scene_scale = 1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    scene_scale = _scene_scale(cameras)
     pts = visual_hull_points(cameras, masks, cfg.init_points, rng)
     params = GaussianParams(pts, rng.random((len(pts), 3)), cfg.max_sh_degree, cfg.init_opacity)
     opt = _adam(params, cfg, scene_scale)
     lr_means0 = cfg.lr_means * scene_scale
-    imgs = torch.tensor(np.asarray(images, np.float32))
-    msks = torch.tensor(np.asarray(masks, bool))
-    viewmats = torch.tensor(np.stack([c.viewmat for c in cameras]), dtype=torch.float32)
-    Ks = torch.tensor(np.stack([c.K for c in cameras]), dtype=torch.float32)
+    imgs, msks, viewmats, Ks = _view_tensors(images, masks, cameras)
     h, w = masks.shape[1:]
     grad_accum = torch.zeros(len(params))
     grad_count = torch.zeros(len(params))
@@ -338,38 +333,17 @@ def train_vanilla_3dgs(
     events = {"cloned": 0, "split": 0, "pruned": 0, "opacity_resets": 0}
     losses = []
     for it in range(1, cfg.iterations + 1):
-        for group in opt.param_groups:
-            if group["name"] == "means":
-                group["lr"] = lr_means0 * 0.01 ** ((it - 1) / max(cfg.iterations - 1, 1))
+        _decay_means_lr(opt, lr_means0, it, cfg.iterations)
         degree = min(cfg.max_sh_degree, (it - 1) // cfg.sh_interval)
         v = int(rng.integers(len(cameras)))
         bg = torch.rand(1, 3, generator=gen)
-        sh = torch.cat([params.sh0, params.shN], 1)[:, : num_sh_bases(degree)]
-        rgb, _, meta = rasterize(
-            params.means,
-            params.quats,
-            torch.exp(params.log_scales),
-            torch.sigmoid(params.opacity_logits),
-            sh,
-            viewmats[v : v + 1],
-            Ks[v : v + 1],
-            w,
-            h,
-            sh_degree=degree,
-            backgrounds=bg,
-            eps2d=cfg.eps2d,
-        )
-        meta["means2d"].retain_grad()
+        rgb, meta = _render_view(params, viewmats[v : v + 1], Ks[v : v + 1], w, h, degree, bg, cfg.eps2d)
         loss = photometric_loss(rgb, composite(imgs[v : v + 1], msks[v : v + 1], bg), cfg.lambda_dssim)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         losses.append(float(loss.detach()))
         if it < cfg.refine_stop:
-            # Positional gradient in NDC units (pixels * size / 2), averaged over the views that saw it.
-            g2d = meta["means2d"].grad[0].to(torch.float32) * torch.tensor([w / 2.0, h / 2.0])
-            seen = (meta["radii"][0] > 0).all(-1)
-            grad_accum[seen] += g2d[seen].norm(dim=-1)
-            grad_count[seen] += 1
+            _accumulate_screen_grad(meta, grad_accum, grad_count, w, h)
         opt.step()
         if it < cfg.refine_stop and it > cfg.refine_start and it % cfg.refine_every == 0:
             stats = densify_and_prune(
@@ -395,6 +369,65 @@ def train_vanilla_3dgs(
     sh = torch.cat([params.sh0, params.shN], 1)
     gaussians = Gaussians.from_arrays(params.means, params.quats, params.log_scales, params.opacity_logits, sh, cfg.eps2d)
     return VanillaResult(gaussians, cfg, history, events, losses, time.perf_counter() - t0)
+
+
+def _scene_scale(cameras: Sequence[Camera]) -> float:
+    """Inria's scene extent: 1.1 x the largest camera distance from the cameras' mean centre."""
+    centres = np.stack([c.center for c in cameras])
+    return 1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+
+
+def _view_tensors(
+    images: np.ndarray, masks: np.ndarray, cameras: Sequence[Camera]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The training views as tensors: images [V, H, W, 3] float32, masks [V, H, W] bool, viewmats [V, 4, 4] and
+    intrinsics [V, 3, 3] float32."""
+    imgs = torch.tensor(np.asarray(images, np.float32))
+    msks = torch.tensor(np.asarray(masks, bool))
+    viewmats = torch.tensor(np.stack([c.viewmat for c in cameras]), dtype=torch.float32)
+    Ks = torch.tensor(np.stack([c.K for c in cameras]), dtype=torch.float32)
+    return imgs, msks, viewmats, Ks
+
+
+def _decay_means_lr(opt: Adam, lr_means0: float, it: int, iterations: int) -> None:
+    """The means' learning rate at iteration `it` (1-based): `lr_means0` decayed exponentially to 1 % at the last."""
+    for group in opt.param_groups:
+        if group["name"] == "means":
+            group["lr"] = lr_means0 * 0.01 ** ((it - 1) / max(iterations - 1, 1))
+
+
+def _render_view(
+    params: GaussianParams, viewmat: torch.Tensor, K: torch.Tensor, w: int, h: int, degree: int, bg: torch.Tensor, eps2d: float
+) -> tuple[torch.Tensor, dict]:
+    """One view [1, H, W, 3] of the Gaussians at SH `degree` over background `bg` [1, 3] (viewmat [1, 4, 4], K [1, 3, 3]),
+    and the rasterizer's meta, whose screen-space means keep their gradient (`_accumulate_screen_grad`)."""
+    sh = torch.cat([params.sh0, params.shN], 1)[:, : num_sh_bases(degree)]
+    rgb, _, meta = rasterize(
+        params.means,
+        params.quats,
+        torch.exp(params.log_scales),
+        torch.sigmoid(params.opacity_logits),
+        sh,
+        viewmat,
+        K,
+        w,
+        h,
+        sh_degree=degree,
+        backgrounds=bg,
+        eps2d=eps2d,
+    )
+    meta["means2d"].retain_grad()
+    return rgb, meta
+
+
+def _accumulate_screen_grad(meta: dict, grad_accum: torch.Tensor, grad_count: torch.Tensor, w: int, h: int) -> None:
+    """Add each Gaussian's positional gradient norm from the view just rendered (`meta`) to `grad_accum` [N] and count
+    the view in `grad_count` [N], for the Gaussians it saw: the positional gradient in NDC units (pixels * size / 2),
+    which densification averages over the views that saw each Gaussian."""
+    g2d = meta["means2d"].grad[0].to(torch.float32) * torch.tensor([w / 2.0, h / 2.0])
+    seen = (meta["radii"][0] > 0).all(-1)
+    grad_accum[seen] += g2d[seen].norm(dim=-1)
+    grad_count[seen] += 1
 
 
 def vanilla_twin(result: VanillaResult, cameras: Sequence[Camera], names: Sequence[str]) -> Twin:

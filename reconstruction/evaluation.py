@@ -401,30 +401,11 @@ def run_protocol(
     trained_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    held = read_capture(heldout)
-    count = heldout_views is None or isinstance(heldout_views, (int, np.integer))
-    idx = select_views(len(held), heldout_views) if count else [int(i) for i in heldout_views]
-    images, masks, cams = load_views(held, idx)
-    if heldout_progress:
-        heldout_progress(0, len(idx))
-    report = evaluate_twin(
-        twin,
-        cams,
-        images,
-        masks,
-        names=[held.frames[i].camera_id for i in idx],
-        refine_steps=refine_steps,
-        gt=gt,
-        symmetries=symmetries,
-        progress=heldout_progress,
-    )
+    idx, report = _score_heldout(twin, heldout, heldout_views, refine_steps, gt, symmetries, heldout_progress)
     evaluate_s = time.perf_counter() - t0
     reg_init = reg_refined = reg_raw = None
     if gt is not None:
-        train_c2w = np.stack([f.camera.c2w for f in read_capture(capture).frames])
-        reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]), symmetries)
-        reg_refined = report["registration"]
-        reg_raw = registration_report(*gt_train_poses(twin.cameras, gt)[:2])
+        reg_init, reg_refined, reg_raw = _train_pose_errors(twin, capture, report, gt, symmetries)
     return ProtocolResult(
         twin=twin,
         registration=None if rec is None else rec.registration,
@@ -435,3 +416,45 @@ def run_protocol(
         reg_raw=reg_raw,
         timings_s={"reconstruct": float(twin.timings_s.get("total", trained_s)), "evaluate": evaluate_s},
     )
+
+
+def _score_heldout(
+    twin: Twin,
+    heldout: str | os.PathLike,
+    heldout_views: int | Sequence[int] | None,
+    refine_steps: int,
+    gt: dict | None,
+    symmetries: Sequence[np.ndarray] | None,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[list[int], dict]:
+    """The held-out views scored (their indices in the capture at `heldout`, and `evaluate_twin`'s report):
+    `heldout_views` of them evenly spread (`select_views`), or those indices; all when None."""
+    held = read_capture(heldout)
+    count = heldout_views is None or isinstance(heldout_views, (int, np.integer))
+    idx = select_views(len(held), heldout_views) if count else [int(i) for i in heldout_views]
+    images, masks, cams = load_views(held, idx)
+    if progress:
+        progress(0, len(idx))
+    report = evaluate_twin(
+        twin,
+        cams,
+        images,
+        masks,
+        names=[held.frames[i].camera_id for i in idx],
+        refine_steps=refine_steps,
+        gt=gt,
+        symmetries=symmetries,
+        progress=progress,
+    )
+    return idx, report
+
+
+def _train_pose_errors(
+    twin: Twin, capture: str | os.PathLike, report: dict, gt: dict, symmetries: Sequence[np.ndarray] | None
+) -> tuple[dict, dict, dict]:
+    """`registration_report`s of the train cameras against the truth `gt`: placed by the registration alone (the
+    capture's recorded cameras through the twin's initial Sim(3)), as the twin refined them (from `report`, modulo
+    `symmetries`), and the raw refined ones."""
+    train_c2w = np.stack([f.camera.c2w for f in read_capture(capture).frames])
+    reg_init = registration_report(twin.sim3_rig_to_object_init.apply_to_c2w(train_c2w), np.array(gt["train_c2w_object"]), symmetries)
+    return reg_init, report["registration"], registration_report(*gt_train_poses(twin.cameras, gt)[:2])

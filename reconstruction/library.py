@@ -173,6 +173,29 @@ def build_library(
     reported one line each through `log` and skipped. `library.json` is written last, atomically.
     """
     mesh_dir, out_dir = Path(mesh_dir), Path(out_dir)
+    files = _mesh_files(mesh_dir, unit)
+    grid = grid or GridSpec()
+    (out_dir / "index").mkdir(parents=True, exist_ok=True)
+    (out_dir / "meshes").mkdir(exist_ok=True)
+
+    plans, jobs, skipped = _plan(mesh_dir, files, out_dir, unit, grid, log)
+    reports = _run_jobs(jobs, workers, progress) if jobs else {}
+    models, warnings, failed = _model_entries(mesh_dir, out_dir, plans, reports, grid, log)
+    skipped += failed
+    if not models:
+        raise LibraryError(f"{mesh_dir}: none of its {len(files)} mesh files could be used")
+    digests = consolidate(out_dir / "index", grid, [(m.id, m.shard) for m in models])
+    keep = {m.shard.name for m in models}
+    for old in (out_dir / "index").glob("*.npz"):
+        if old.name not in keep:
+            old.unlink()
+    atomic_write_json(out_dir / LIBRARY_JSON, _library_doc(out_dir, grid, models, skipped, warnings, digests))
+    # What was just written and hashed is handed on as it is; `load_library` verifies it for every later reader.
+    return Library(out_dir, models, grid, skipped, warnings)
+
+
+def _mesh_files(mesh_dir: Path, unit: str) -> list[Path]:
+    """The mesh files under `mesh_dir` (`scan_meshes`); LibraryError for an unknown default `unit`, a missing folder or no meshes."""
     if unit not in UNIT_TO_M:
         raise LibraryError(f"unit {unit!r} is not one of {', '.join(UNIT_TO_M)}")
     if not mesh_dir.is_dir():
@@ -180,10 +203,15 @@ def build_library(
     files = scan_meshes(mesh_dir)
     if not files:
         raise LibraryError(f"{mesh_dir}: no mesh files ({', '.join(MESH_EXTS)}) found")
-    grid = grid or GridSpec()
-    (out_dir / "index").mkdir(parents=True, exist_ok=True)
-    (out_dir / "meshes").mkdir(exist_ok=True)
+    return files
 
+
+def _plan(
+    mesh_dir: Path, files: list[Path], out_dir: Path, unit: str, grid: GridSpec, log
+) -> tuple[list[tuple[str, Path, str, str, Path]], list[tuple[str, str, float, dict, str]], list[dict]]:
+    """The plan of each usable mesh file, (model id, path, unit, sha256, shard path), the `_build_model` jobs of
+    those whose shard is not built yet, and the files skipped ({file, reason}, each logged): STEP files and files
+    of an unknown unit."""
     plans, jobs, skipped = [], [], []
     for path in sorted(p for p in mesh_dir.rglob("*") if p.is_file() and p.suffix.lower() in CAD_ONLY_EXTS):
         reason = "STEP files are not read (no B-rep kernel in this build); export the part as STL, OBJ, PLY or GLB"
@@ -202,19 +230,31 @@ def build_library(
         plans.append((mid, path, u, digest, shard))
         if not shard.exists():
             jobs.append((mid, str(path), UNIT_TO_M[u], grid.to_dict(), str(shard)))
+    return plans, jobs, skipped
 
-    reports = {}
-    if jobs:
-        reports = _run_jobs(jobs, workers, progress)
+
+def _model_entries(
+    mesh_dir: Path,
+    out_dir: Path,
+    plans: list[tuple[str, Path, str, str, Path]],
+    reports: dict,
+    grid: GridSpec,
+    log,
+) -> tuple[list[ModelEntry], list[str], list[dict]]:
+    """The entries of the planned models that built (their mesh copied into `out_dir`/meshes), the size warnings
+    and the models that failed ({file, reason}); each warning and failure is logged.
+
+    A model's report comes from this build's `reports`, else from the previous library.json, else (a shard of an
+    interrupted build) is re-derived."""
     previous = _previous_entries(out_dir)
-    models, warnings = [], []
+    models, warnings, failed = [], [], []
     for mid, path, u, digest, shard in plans:
         rep = reports.get(mid) or previous.get(digest + str(shard))
         if rep is None:
             # A shard from an interrupted build: its metadata is re-derived cheaply.
             rep = _build_model((mid, str(path), UNIT_TO_M[u], grid.to_dict(), str(shard)))
         if not rep["ok"]:
-            skipped.append({"file": str(path), "reason": rep["reason"]})
+            failed.append({"file": str(path), "reason": rep["reason"]})
             log(f"skipped {path}: {rep['reason']}")
             continue
         dst = out_dir / "meshes" / path.relative_to(mesh_dir)
@@ -227,14 +267,15 @@ def build_library(
             warnings.append(w)
             log(f"warning {w}")
         models.append(ModelEntry(mid, dst, u, digest, tuple(rep["parts"]), int(rep["components"]), tuple(rep["extent"]), shard))
-    if not models:
-        raise LibraryError(f"{mesh_dir}: none of its {len(files)} mesh files could be used")
-    digests = consolidate(out_dir / "index", grid, [(m.id, m.shard) for m in models])
-    keep = {m.shard.name for m in models}
-    for old in (out_dir / "index").glob("*.npz"):
-        if old.name not in keep:
-            old.unlink()
-    doc = {
+    return models, warnings, failed
+
+
+def _library_doc(
+    out_dir: Path, grid: GridSpec, models: list[ModelEntry], skipped: list[dict], warnings: list[str], digests: dict[str, str]
+) -> dict:
+    """library.json's document: the grid, the models, what was skipped and why, the warnings, and the sha256 of every
+    index file (`digests`, the consolidated index's) and shard."""
+    return {
         "format": FORMAT,
         "grid": grid.to_dict(),
         "models": [
@@ -254,9 +295,6 @@ def build_library(
         "warnings": warnings,
         "sha256": {**digests, **{m.shard.relative_to(out_dir).as_posix(): sha256_file(m.shard) for m in models}},
     }
-    atomic_write_json(out_dir / LIBRARY_JSON, doc)
-    # What was just written and hashed is handed on as it is; `load_library` verifies it for every later reader.
-    return Library(out_dir, models, grid, skipped, warnings)
 
 
 def _previous_entries(out_dir: Path) -> dict:

@@ -153,65 +153,36 @@ def synth_dataset(
     light's direction (up to ~35 deg at 1) and intensity (up to +-40% at 1). noise_std: sensor
     noise, full-scale units. progress(stage, done, total) is called after every rendered view.
     """
-    mesh_path = Path(mesh_path)
-    out_dir = Path(out_dir)
+    mesh_path, out_dir = Path(mesh_path), Path(out_dir)
     width, height = int(size[0]), int(size[1])
-    _check_synth_args(
-        views,
-        heldout,
-        width,
-        height,
-        cameras,
-        calib_noise_deg=calib_noise_deg,
-        calib_noise_mm=calib_noise_mm,
-        noise_std=noise_std,
-        lighting_jitter=lighting_jitter,
-    )
+    _check_synth_args(views, heldout, width, height, cameras, calib_noise_deg, calib_noise_mm, noise_std, lighting_jitter)
     rng = np.random.default_rng(seed)
     mesh = load_textured_mesh(mesh_path, texture_size=texture_size)
-
-    yaw = float(rng.uniform(0.0, 360.0)) if object_yaw_deg is None else float(object_yaw_deg)
-    offset = rng.uniform(-0.02, 0.02, 2) if object_offset is None else np.asarray(object_offset, np.float64)
-    sim3 = conveyor_sim3(mesh, yaw, offset) if rig_to_object is None else rig_to_object
+    sim3, object_pose = _object_pose(mesh, rng, object_yaw_deg, object_offset, rig_to_object)
 
     target, radius = _ring_target_and_radius(mesh, sim3, (width, height), fov_deg, radius, centred=rig_to_object is not None)
     train_rig, heldout_rig = _train_and_heldout_rigs(
         cameras, views, heldout, radius, target, (width, height), fov_deg, elevations_deg, heldout_elevations_deg
     )
-
     recorded, rotvec_deg, shift = perturb_extrinsics(
         np.stack([c.c2w for c in train_rig]), rng, sigma_deg=calib_noise_deg, sigma_translation=calib_noise_mm * 1e-3 / sim3.scale
     )
     train_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in train_rig]
     heldout_obj = [c.with_c2w(sim3.apply_to_c2w(c.c2w)) for c in heldout_rig]
+    train, held = _render(mesh, sim3, train_obj, heldout_obj, rng, backdrop, lighting_jitter, noise_std, progress)
 
-    key_down = sim3.rotation @ np.array([0.3, 0.2, -1.0])  # the rig's ceiling lamp, in the object frame
-    train_lights = _jittered_lights(rng, key_down, len(train_obj), lighting_jitter)
-    heldout_lights = _jittered_lights(rng, key_down, len(heldout_obj), lighting_jitter)
-    noise_seed = int(rng.integers(2**31))
-    with SyntheticScene(mesh, backdrop=backdrop, floor_to_object=sim3) as scene:
-        train = _shoot(scene, "train", train_obj, train_lights, noise_std, noise_seed, progress)
-        held = _shoot(scene, "heldout", heldout_obj, heldout_lights, noise_std, noise_seed + 100_000, progress) if heldout_obj else None
-
-    mesh_sha = hashlib.sha256(mesh_path.read_bytes()).hexdigest()
     meta = _capture_meta(mesh_path, seed, calib_noise_deg, calib_noise_mm)
-    recorded_cams = [c.with_c2w(m) for c, m in zip(train_rig, recorded)]
-    _write(out_dir / "train", "cam", recorded_cams, train, meta)
-    if held:
-        exact = {k: v for k, v in meta.items() if k != "calibration_uncertainty"}
-        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**exact, "calibration_id": f"synthetic-seed{seed}"})
+    _write_captures(out_dir, meta, seed, [c.with_c2w(m) for c, m in zip(train_rig, recorded)], train, heldout_rig, held)
 
     gt = {
-        "mesh": _mesh_reference(mesh_path, out_dir),
-        "mesh_name": mesh_path.parent.name if mesh_path.stem == "textured" else mesh_path.stem,
-        "mesh_sha256": mesh_sha,
+        **_mesh_truth(mesh_path, out_dir),
         "units": "m",
         "seed": seed,
         "size": [train_rig[0].width, train_rig[0].height],
         "views": len(train_rig),
         "heldout": len(heldout_rig),
         "sim3_rig_to_object": sim3.to_dict(),
-        "object_pose": {"yaw_deg": yaw if rig_to_object is None else None, "offset": offset.tolist() if rig_to_object is None else None},
+        "object_pose": object_pose,
         "ring": _ring_truth(radius, elevations_deg if cameras is None else None, heldout_elevations_deg, target, fov_deg),
         **_camera_truth(train_rig, train_obj, heldout_obj),
         "calib_noise": _calib_noise_truth(calib_noise_deg, calib_noise_mm, rotvec_deg, shift),
@@ -221,13 +192,57 @@ def synth_dataset(
     return gt
 
 
+def _object_pose(
+    mesh: TexturedMesh,
+    rng: np.random.Generator,
+    object_yaw_deg: float | None,
+    object_offset: Sequence[float] | None,
+    rig_to_object: Sim3 | None,
+) -> tuple[Sim3, dict]:
+    """The rig-to-object Sim(3) and gt.json's `object_pose`: `rig_to_object` when given (no yaw or offset), else
+    the part on the conveyor at yaw `object_yaw_deg` and offset `object_offset` (rig metres, x y [z]); None draws
+    them from `rng` (drawn even when `rig_to_object` is given, so the draws that follow do not depend on it)."""
+    yaw = float(rng.uniform(0.0, 360.0)) if object_yaw_deg is None else float(object_yaw_deg)
+    offset = rng.uniform(-0.02, 0.02, 2) if object_offset is None else np.asarray(object_offset, np.float64)
+    if rig_to_object is not None:
+        return rig_to_object, {"yaw_deg": None, "offset": None}
+    return conveyor_sim3(mesh, yaw, offset), {"yaw_deg": yaw, "offset": offset.tolist()}
+
+
+def _render(
+    mesh: TexturedMesh,
+    sim3: Sim3,
+    train_obj: list[Camera],
+    heldout_obj: list[Camera],
+    rng: np.random.Generator,
+    backdrop: bool,
+    lighting_jitter: float,
+    noise_std: float,
+    progress: Callable[[str, int, int], None] | None,
+) -> tuple[tuple, tuple | None]:
+    """The train and held-out shots (`_shoot`: images, masks, backgrounds; held-out None without cameras) from the
+    object-frame cameras, under the rig's ceiling lamp jittered per view (`_jittered_lights`), on the floor
+    (and backdrop) placed by the rig-to-object `sim3`."""
+    key_down = sim3.rotation @ np.array([0.3, 0.2, -1.0])  # the rig's ceiling lamp, in the object frame
+    train_lights = _jittered_lights(rng, key_down, len(train_obj), lighting_jitter)
+    heldout_lights = _jittered_lights(rng, key_down, len(heldout_obj), lighting_jitter)
+    noise_seed = int(rng.integers(2**31))
+    with SyntheticScene(mesh, backdrop=backdrop, floor_to_object=sim3) as scene:
+        train = _shoot(scene, "train", train_obj, train_lights, noise_std, noise_seed, progress)
+        held = _shoot(scene, "heldout", heldout_obj, heldout_lights, noise_std, noise_seed + 100_000, progress) if heldout_obj else None
+    return train, held
+
+
 def _check_synth_args(
     views: int,
     heldout: int,
     width: int,
     height: int,
     cameras: Sequence[Camera] | None,
-    **non_negative: float,
+    calib_noise_deg: float,
+    calib_noise_mm: float,
+    noise_std: float,
+    lighting_jitter: float,
 ) -> None:
     """Raise ValueError naming the first synth_dataset argument that is out of range."""
     if views < 1 and cameras is None:
@@ -236,6 +251,12 @@ def _check_synth_args(
         raise ValueError(f"held-out view count must be >= 0, got {heldout}")
     if width < 8 or height < 8:
         raise ValueError(f"image size {width}x{height} is too small (at least 8x8)")
+    non_negative = {
+        "calib_noise_deg": calib_noise_deg,
+        "calib_noise_mm": calib_noise_mm,
+        "noise_std": noise_std,
+        "lighting_jitter": lighting_jitter,
+    }
     for name, value in non_negative.items():
         if not (np.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {value}")
@@ -380,6 +401,15 @@ def _capture_meta(mesh_path: Path, seed: int, calib_noise_deg: float, calib_nois
     return meta
 
 
+def _mesh_truth(mesh_path: Path, out_dir: Path) -> dict:
+    """gt.json's mesh fields: where the mesh is (`_mesh_reference`), its name and its sha256."""
+    return {
+        "mesh": _mesh_reference(mesh_path, out_dir),
+        "mesh_name": mesh_path.parent.name if mesh_path.stem == "textured" else mesh_path.stem,
+        "mesh_sha256": hashlib.sha256(mesh_path.read_bytes()).hexdigest(),
+    }
+
+
 def _mesh_reference(mesh_path: Path, out_dir: Path) -> str:
     """The mesh path relative to gt.json's directory when it lives beside it (a relocatable sample), else absolute."""
     mesh_abs, out_abs = mesh_path.resolve(), out_dir.resolve()
@@ -387,6 +417,23 @@ def _mesh_reference(mesh_path: Path, out_dir: Path) -> str:
         return os.path.relpath(mesh_abs, out_abs) if out_abs.parent in mesh_abs.parents or out_abs in mesh_abs.parents else str(mesh_abs)
     except ValueError:
         return str(mesh_abs)
+
+
+def _write_captures(
+    out_dir: Path,
+    meta: dict,
+    seed: int,
+    train_cams: list[Camera],
+    train: tuple,
+    heldout_rig: list[Camera],
+    held: tuple | None,
+) -> None:
+    """out_dir/train from the shots `train` with the RECORDED cameras `train_cams` and the capture `meta`;
+    out_dir/heldout (exact calibration, no stated uncertainty) when there are held-out shots."""
+    _write(out_dir / "train", "cam", train_cams, train, meta)
+    if held:
+        exact = {k: v for k, v in meta.items() if k != "calibration_uncertainty"}
+        _write(out_dir / "heldout", "orbit", heldout_rig, held, {**exact, "calibration_id": f"synthetic-seed{seed}"})
 
 
 def _write(root: Path, prefix: str, cameras: Sequence[Camera], shots, meta: dict) -> None:

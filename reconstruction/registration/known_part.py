@@ -111,53 +111,37 @@ def known_part_register(
         )
         return dataclasses.replace(res, method="known_part")
     band = scale_band(rig_metres_per_unit, scale_tolerance)
+    return _conveyor_register(masks, cameras_rig, library, model_id, prior, band, up_rig, rig_metres_per_unit, t0)
+
+
+def _conveyor_register(
+    masks: np.ndarray,
+    cameras_rig: list[Camera],
+    library: Library,
+    model_id: str,
+    prior: Sim3,
+    band: tuple[float, float],
+    up_rig: np.ndarray | None,
+    rig_metres_per_unit: float | None,
+    t0: float,
+) -> RegistrationResult:
+    """`known_part_register` with a prior: masks [V, H, W] of the part `model_id` resting as `prior` did,
+    turned about the conveyor normal `up_rig` [3] (None: `rig_up`) and moved; `t0`, when the registration started."""
+    index = library.index
     model = index.model_ids.index(model_id)
     verts, faces, winding = scoring_shape(library, model_id)
-    center, radius = index.centers[model], float(index.radii[model])
     up = rig_up(cameras_rig) if up_rig is None else np.asarray(up_rig, np.float64) / np.linalg.norm(up_rig)
-    s = float(np.clip(prior.scale, *band))
-    # The model's area centroid where the previous part had it, and where this part's masks put it.
-    ref = area_centroid(verts, faces)
-    p_prev = prior.inverse().apply(ref[None])[0]
-    p_now = triangulate_centroid(masks, cameras_rig)
-    if p_now is None:
-        p_now = p_prev
-    base = Sim3(s, prior.rotation, ref - s * prior.rotation @ p_prev)
+    base, p_prev, p_now = _placement(masks, cameras_rig, verts, faces, prior, band)
     timings = {"observe": time.perf_counter() - t0}
 
     t = time.perf_counter()
     scorer = Scorer(masks, cameras_rig, KNOWN_SCORE_PX)
-    cands = []
-    for yaw in np.arange(KNOWN_YAWS) * (2 * np.pi / KNOWN_YAWS):
-        turn = axis_angle_to_matrix(yaw * up)
-        # x_rig -> turned back about the triangulated centre onto the previous placement -> object.
-        sim = base @ Sim3(1.0, turn.T, p_prev - turn.T @ p_now)
-        cands.append((float(scorer.scores(verts, faces, sim, winding=winding)[1].mean()), sim))
-    cands.sort(key=lambda c: -c[0])
+    cands = _yaw_candidates(scorer, verts, faces, winding, base, up, p_prev, p_now)
     timings["yaw_search"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    best = None
-    for _score, sim in [c for c in cands[:KNOWN_STARTS] if c[0] >= cands[0][0] - KNOWN_START_GAP]:
-        # Yaw (about the conveyor normal, seen in the object frame) and position only.
-        basis = np.zeros((7, 4))
-        basis[:3, 0] = sim.rotation @ up
-        basis[3:6, 1:] = np.eye(3)
-        sim_r, sc_r = refine(
-            scorer,
-            verts,
-            faces,
-            sim,
-            center,
-            radius,
-            max_evals=KNOWN_STAGE_EVALS,
-            band=band,
-            basis=basis,
-            steps=np.array([0.1, 0.05, 0.05, 0.05]),
-            winding=winding,
-        )
-        if best is None or sc_r > best[0]:
-            best = (sc_r, sim_r)
+    center, radius = index.centers[model], float(index.radii[model])
+    best = _refine_on_conveyor(scorer, verts, faces, winding, cands, up, center, radius, band)
     fine = Scorer(masks, cameras_rig, KNOWN_FINAL_PX)
     fix_scale = rig_metres_per_unit is None
     refined, score = refine(
@@ -183,3 +167,78 @@ def known_part_register(
         band=band,
         method="known_part_prior",
     )
+
+
+def _placement(
+    masks: np.ndarray, cameras_rig: list[Camera], verts: np.ndarray, faces: np.ndarray, prior: Sim3, band: tuple[float, float]
+) -> tuple[Sim3, np.ndarray, np.ndarray]:
+    """Where the previous part lay and where this one lies: `base`, the prior's rig-to-object Sim(3) at
+    its scale clipped to `band` and moved so that the model's area centroid (of `verts` [N, 3], `faces`
+    [F, 3]) stays where it is in the object frame; `p_prev` [3], that centroid in the rig frame under the
+    prior; `p_now` [3], where masks [V, H, W] put it (triangulated; `p_prev` when they cannot)."""
+    s = float(np.clip(prior.scale, *band))
+    ref = area_centroid(verts, faces)
+    p_prev = prior.inverse().apply(ref[None])[0]
+    p_now = triangulate_centroid(masks, cameras_rig)
+    if p_now is None:
+        p_now = p_prev
+    return Sim3(s, prior.rotation, ref - s * prior.rotation @ p_prev), p_prev, p_now
+
+
+def _yaw_candidates(
+    scorer: Scorer,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    winding: int,
+    base: Sim3,
+    up: np.ndarray,
+    p_prev: np.ndarray,
+    p_now: np.ndarray,
+) -> list[tuple[float, Sim3]]:
+    """(mean objective, rig-to-object Sim(3)) of the part turned by each of KNOWN_YAWS yaws about `up` [3]
+    through its triangulated centre `p_now` [3], best first."""
+    cands = []
+    for yaw in np.arange(KNOWN_YAWS) * (2 * np.pi / KNOWN_YAWS):
+        turn = axis_angle_to_matrix(yaw * up)
+        # x_rig -> turned back about the triangulated centre onto the previous placement -> object.
+        sim = base @ Sim3(1.0, turn.T, p_prev - turn.T @ p_now)
+        cands.append((float(scorer.scores(verts, faces, sim, winding=winding)[1].mean()), sim))
+    cands.sort(key=lambda c: -c[0])
+    return cands
+
+
+def _refine_on_conveyor(
+    scorer: Scorer,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    winding: int,
+    cands: list[tuple[float, Sim3]],
+    up: np.ndarray,
+    center: np.ndarray,
+    radius: float,
+    band: tuple[float, float],
+) -> tuple[float, Sim3]:
+    """(objective, Sim(3)) of the best of the top KNOWN_STARTS yaw candidates (best first; a runner-up only
+    within KNOWN_START_GAP) after refining each in yaw about `up` [3] and position only."""
+    best = None
+    for _score, sim in [c for c in cands[:KNOWN_STARTS] if c[0] >= cands[0][0] - KNOWN_START_GAP]:
+        # Yaw (about the conveyor normal, seen in the object frame) and position only.
+        basis = np.zeros((7, 4))
+        basis[:3, 0] = sim.rotation @ up
+        basis[3:6, 1:] = np.eye(3)
+        sim_r, sc_r = refine(
+            scorer,
+            verts,
+            faces,
+            sim,
+            center,
+            radius,
+            max_evals=KNOWN_STAGE_EVALS,
+            band=band,
+            basis=basis,
+            steps=np.array([0.1, 0.05, 0.05, 0.05]),
+            winding=winding,
+        )
+        if best is None or sc_r > best[0]:
+            best = (sc_r, sim_r)
+    return best

@@ -28,12 +28,13 @@ from calibration.sim3 import Sim3
 from calibration.so3 import geodesic_angle_deg
 from reconstruction.library import Library
 from reconstruction.parallel import num_threads, parallel_for
-from reconstruction.registration.hypotheses import Hypothesis, match_views, observe, sim3_from_pair
+from reconstruction.registration.hypotheses import Hypothesis, Observation, match_views, observe, sim3_from_pair
 from reconstruction.registration.photo import break_tie
 from reconstruction.registration.refine import refine, result_of
 from reconstruction.registration.result import RegistrationError, RegistrationResult
 from reconstruction.registration.scale import SCALE_TOLERANCE, scale_band
 from reconstruction.registration.scoring import REFINE_PX, SCORE_PX, Scorer, cut_short, scoring_shape
+from reconstruction.silhouette_index import SilhouetteIndex
 
 # Two poses closer than this are "the same pose" for the ambiguity report.
 DISTINCT_DEG = 20.0
@@ -165,30 +166,18 @@ def register(
     truncated = [i for i, o in enumerate(observations) if o is not None and o.truncated]
     timings["observe"] = time.perf_counter() - t0
     t = time.perf_counter()
-    hyps, best_seen = match_views(observations, index, top_k=top_k, iou_threshold=iou_threshold, model_mask=model_mask)
+    hyps = _hypotheses(observations, index, top_k, iou_threshold, model_mask)
     timings["match"] = time.perf_counter() - t
-    if not any(hyps):
-        raise RegistrationError(
-            f"no library silhouette reaches IoU {iou_threshold:.2f} with any mask; the best IoU found was {best_seen:.2f}"
-        )
-
-    # Truncated silhouettes have a wrong bbox: they seed hypotheses only when nothing else can.
-    seeds = [v for v, h in enumerate(hyps) if h and v not in truncated] or [v for v, h in enumerate(hyps) if h]
-    centers = np.array([c.center for c in cameras_rig])
-    spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
-    scale_observable = spread > 1e-9 * max(1.0, float(np.abs(centers).max()))
+    seeds = _seed_views(hyps, truncated)
+    centers, spread, scale_observable = _camera_spread(cameras_rig)
     # A metric rig's scale is known up to the part's tolerance; without baselines and units it is set to 1.
     expected = None if rig_metres_per_unit is None else float(rig_metres_per_unit)
     search = _Search(masks, cameras_rig, library, band, expected, fix_scale=not scale_observable, refine_evals=refine_evals)
 
     t = time.perf_counter()
     scorer = Scorer(masks, cameras_rig, SCORE_PX)
-    candidates = _ransac(search, hyps, seeds, centers, spread, rng, iterations, paired=scale_observable)
-    scored = _score_candidates(scorer, candidates, search.mesh)
-    if not scored:
-        scored = _single_view_scores(search, scorer, hyps, seeds, top_k)
+    scored = _scored_candidates(search, scorer, hyps, seeds, centers, spread, rng, iterations, top_k, paired=scale_observable)
     timings["ransac"] = time.perf_counter() - t
-    scored.sort(key=lambda s: -s[0])
 
     t = time.perf_counter()
     fine = Scorer(masks, cameras_rig, REFINE_PX)
@@ -215,6 +204,55 @@ def register(
         rig_metres_per_unit=rig_metres_per_unit,
         band=band,
     )
+
+
+def _hypotheses(
+    observations: list[Observation | None], index: SilhouetteIndex, top_k: int, iou_threshold: float, model_mask: np.ndarray | None
+) -> list[list[Hypothesis]]:
+    """The hypotheses of each view (`match_views`); RegistrationError naming the best IoU found when no view has one."""
+    hyps, best_seen = match_views(observations, index, top_k=top_k, iou_threshold=iou_threshold, model_mask=model_mask)
+    if not any(hyps):
+        raise RegistrationError(
+            f"no library silhouette reaches IoU {iou_threshold:.2f} with any mask; the best IoU found was {best_seen:.2f}"
+        )
+    return hyps
+
+
+def _seed_views(hyps: list[list[Hypothesis]], truncated: list[int]) -> list[int]:
+    """The views whose hypotheses seed RANSAC draws. Truncated silhouettes have a wrong bbox: they seed
+    hypotheses only when nothing else can."""
+    return [v for v, h in enumerate(hyps) if h and v not in truncated] or [v for v, h in enumerate(hyps) if h]
+
+
+def _camera_spread(cameras_rig: list[Camera]) -> tuple[np.ndarray, float, bool]:
+    """The camera centres [V, 3], their spread (the largest distance from their mean, rig units) and whether
+    the rig-to-object scale is observable from them (some baseline between distinct centres)."""
+    centers = np.array([c.center for c in cameras_rig])
+    spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
+    return centers, spread, spread > 1e-9 * max(1.0, float(np.abs(centers).max()))
+
+
+def _scored_candidates(
+    search: _Search,
+    scorer: Scorer,
+    hyps: list[list[Hypothesis]],
+    seeds: list[int],
+    centers: np.ndarray,
+    spread: float,
+    rng: np.random.Generator,
+    iterations: int,
+    top_k: int,
+    *,
+    paired: bool,
+) -> list[tuple[float, int, Sim3]]:
+    """(mean objective, model, Sim(3)) of the RANSAC candidates (`_ransac`) on `scorer`, best first; of every
+    seed hypothesis alone when no draw gave one (each model hypothesised in one view only)."""
+    candidates = _ransac(search, hyps, seeds, centers, spread, rng, iterations, paired=paired)
+    scored = _score_candidates(scorer, candidates, search.mesh)
+    if not scored:
+        scored = _single_view_scores(search, scorer, hyps, seeds, top_k)
+    scored.sort(key=lambda s: -s[0])
+    return scored
 
 
 def _model_mask(model_ids: list[str], wanted: list[str] | None) -> np.ndarray | None:
