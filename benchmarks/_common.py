@@ -96,6 +96,16 @@ def x_anchor(seconds: float | None, anchor_ms: float | None) -> str:
     return f"{ratio:.0f}x" if ratio >= 100 else f"{ratio:.1f}x" if ratio >= 1 else f"{ratio:.2g}x"
 
 
+def median_x_anchor(runs: list[tuple[float, float | None]]) -> str:
+    """The median over runs of each run's time (s) over the anchor step (ms) read beside it, as `x_anchor` writes it;
+    runs without an anchor reading (cached from before one was recorded) are left out, '-' when none has one."""
+    ratios = sorted(seconds / anchor for seconds, anchor in runs if anchor and math.isfinite(seconds))
+    if not ratios:
+        return "-"
+    mid = len(ratios) // 2
+    return x_anchor(ratios[mid] if len(ratios) % 2 else (ratios[mid - 1] + ratios[mid]) / 2, 1.0)
+
+
 def symmetric_surface_distance(
     a_v: np.ndarray, a_f: np.ndarray, b_v: np.ndarray, b_f: np.ndarray, n: int, seed: int = 0
 ) -> tuple[float, float]:

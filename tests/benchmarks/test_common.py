@@ -2,7 +2,7 @@ import numpy as np
 import trimesh
 
 import benchmarks._common as common
-from benchmarks._common import MachineReading, cpu_line, symmetric_surface_distance, x_anchor
+from benchmarks._common import MachineReading, cpu_line, median_x_anchor, symmetric_surface_distance, x_anchor
 
 
 def test_surface_distance_is_zero_on_one_surface_and_the_offset_between_two():
@@ -27,6 +27,12 @@ def test_x_anchor_is_the_time_over_the_anchor_step_at_two_significant_figures_or
     assert x_anchor(141.0, 1000.0) == "141x"
     assert x_anchor(0.052, 1000.0) == "0.052x"
     assert x_anchor(12.0, None) == "-" and x_anchor(None, 1000.0) == "-" and x_anchor(float("nan"), 1000.0) == "-"
+
+
+def test_median_x_anchor_pairs_each_time_with_its_own_reading_and_leaves_out_runs_without_one():
+    assert median_x_anchor([(10.0, 1000.0), (40.0, 2000.0), (99.0, None)]) == "15.0x"  # 10x and 20x; not 50 s / 1.5 s
+    assert median_x_anchor([(30.0, 1000.0)]) == "30.0x"
+    assert median_x_anchor([(12.0, None)]) == "-" and median_x_anchor([]) == "-"
 
 
 def test_machine_reading_reads_the_load_before_the_anchor_and_states_all_three(monkeypatch):
