@@ -88,12 +88,14 @@ def machine_reading() -> MachineReading:
 
 
 def x_anchor(seconds: float | None, anchor_ms: float | None) -> str:
-    """'27x', '3.4x', '0.052x': a time over the anchor step (ms) read in the same run; '-' where either is unknown
+    """'270x', '3.4x', '0.52x', '0.052x': a time over the anchor step (ms) read in the same run; '-' where either is unknown
     (a cached run from before the anchor was recorded)."""
     if seconds is None or anchor_ms is None or not math.isfinite(seconds) or not anchor_ms > 0:
         return "-"
     ratio = 1000.0 * seconds / anchor_ms
-    return f"{ratio:.0f}x" if ratio >= 100 else f"{ratio:.1f}x" if ratio >= 1 else f"{ratio:.2g}x"
+    if ratio >= 100:
+        return f"{ratio:.0f}x"
+    return f"{ratio:.1f}x" if ratio >= 1 else f"{ratio:.2f}x" if ratio >= 0.1 else f"{ratio:.2g}x"
 
 
 def median_x_anchor(runs: list[tuple[float, float | None]]) -> str:

@@ -25,7 +25,8 @@ def test_cpu_line_names_the_vector_width_and_bfloat16_that_move_the_timings():
 def test_x_anchor_is_the_time_over_the_anchor_step_at_two_significant_figures_or_a_dash_when_unknown():
     assert x_anchor(38.1, 1410.0) == "27.0x"
     assert x_anchor(141.0, 1000.0) == "141x"
-    assert x_anchor(0.052, 1000.0) == "0.052x"
+    assert x_anchor(0.052, 1000.0) == "0.052x" and x_anchor(0.52, 1000.0) == "0.52x"
+    assert x_anchor(2.661, 2674.0) == "1.00x"  # two decimals below 1x: never rounded up to a bare "1"
     assert x_anchor(12.0, None) == "-" and x_anchor(None, 1000.0) == "-" and x_anchor(float("nan"), 1000.0) == "-"
 
 
