@@ -1,10 +1,13 @@
 """What the benchmark scripts share: where the repository, its results and the shared data live, the
-load line their tables state, the CAD variants of the synthetic scenes (decimated, smoothly deformed)
+machine reading their speed tables state (the anchor step, the CPU, the load) and the ratio of a time to
+that anchor, the CAD variants of the synthetic scenes (decimated, smoothly deformed)
 and the engine switches of each evaluated method."""
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +56,56 @@ def cpu_line(cpuinfo: str | None = None) -> str:
 def load_line() -> str:
     """'load average 3.2 on 2 cores': the 1-minute load, to read timings taken on a shared machine."""
     return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+
+
+@dataclass(frozen=True)
+class MachineReading:
+    """What a speed table's times are stated against, read together in the run that timed them: the speed anchor's
+    step in ms (`reconstruction.render.anchor`), the CPU (`cpu_line`) and the load (`load_line`)."""
+
+    anchor_ms: float
+    cpu: str
+    load: str
+
+    def x_anchor(self, seconds: float) -> str:
+        """`seconds` over this reading's anchor step, formatted for an `x anchor` column (see `x_anchor`)."""
+        return x_anchor(seconds, self.anchor_ms)
+
+    def header(self) -> str:
+        """The sentence a table's header text carries: the anchor step, what it is, the CPU and the load."""
+        return (
+            f"Anchor: {self.anchor_ms:.0f} ms a step, read in this run (`reconstruction.render.anchor`: one forward+backward of "
+            f"the tiled pure-PyTorch rasterizer, 20k splats at 256²); `x anchor` is a time over that step. CPU: {self.cpu}; {self.load}."
+        )
+
+
+def machine_reading() -> MachineReading:
+    """The anchor step, CPU and load now. The load is read first: the anchor's child process then loads the cores itself."""
+    from reconstruction.render.anchor import anchor_ms
+
+    load = load_line()
+    return MachineReading(anchor_ms(), cpu_line(), load)
+
+
+def x_anchor(seconds: float | None, anchor_ms: float | None) -> str:
+    """'270x', '3.4x', '0.52x', '0.052x': a time over the anchor step (ms) read in the same run; '-' where either is unknown
+    (a cached run from before the anchor was recorded)."""
+    if seconds is None or anchor_ms is None or not math.isfinite(seconds) or not anchor_ms > 0:
+        return "-"
+    ratio = 1000.0 * seconds / anchor_ms
+    if ratio >= 100:
+        return f"{ratio:.0f}x"
+    return f"{ratio:.1f}x" if ratio >= 1 else f"{ratio:.2f}x" if ratio >= 0.1 else f"{ratio:.2g}x"
+
+
+def median_x_anchor(runs: list[tuple[float, float | None]]) -> str:
+    """The median over runs of each run's time (s) over the anchor step (ms) read beside it, as `x_anchor` writes it;
+    runs without an anchor reading (cached from before one was recorded) are left out, '-' when none has one."""
+    ratios = sorted(seconds / anchor for seconds, anchor in runs if anchor and math.isfinite(seconds))
+    if not ratios:
+        return "-"
+    mid = len(ratios) // 2
+    return x_anchor(ratios[mid] if len(ratios) % 2 else (ratios[mid - 1] + ratios[mid]) / 2, 1.0)
 
 
 def symmetric_surface_distance(

@@ -5,11 +5,13 @@ Frame sources (cheap, so the numbers measure acquisition + validation + PNG + fs
 - `pattern+noise`: the same with sensor-like noise (sigma 3 grey levels; PNGs as large as a real camera's).
 Triggers are software events fired back to back (the next one as soon as the previous capture is
 committed), so captures/s is the sustained rate of the store. The synthetic MuJoCo rig's render
-cost per trigger is reported separately (`--render`).
+cost per trigger is reported separately (`--render`). Both tables state the speed anchor's step read at the
+start of the run (`benchmarks._common.machine_reading`) and give each time's ratio to it (`x anchor`: the
+median latency, the render seconds per trigger).
 
-    python -m benchmarks.bench_acquisition [--captures 20] [--render]
+    python -m benchmarks.bench_acquisition [--captures 20] [--render] [--out FILE.md]
 
-Prints a markdown table and writes benchmarks/results/acquisition.md and acquisition.png.
+Prints a markdown table and writes benchmarks/results/acquisition.md (or --out) and a plot beside it.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS
+from benchmarks._common import RESULTS, machine_reading
 from rig.acquisition import Acquisition, Thresholds, agree_photometry
 from rig.camera import CameraSettings
 from rig.store import CaptureStore
@@ -94,7 +96,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--captures", type=int, default=20)
     ap.add_argument("--render", action="store_true", help="also time the synthetic MuJoCo rig's render per trigger")
+    ap.add_argument("--out", type=Path, default=RESULTS / "acquisition.md")
     args = ap.parse_args()
+    machine = machine_reading()
     rows = []
     for source in ("pattern", "pattern+noise"):
         for n in (4, 8, 13):
@@ -102,23 +106,26 @@ def main() -> None:
                 rows.append(run(source, n, args.captures, Path(d)))
                 print(f"  {source} {n} cams: {rows[-1]['median_ms']:.0f} ms median", file=sys.stderr)
     lines = [
-        f"Acquisition at {W}x{H}, {args.captures} back-to-back software triggers per row, store on the local disk (fsync on), 2 shared CPU cores.",
+        f"Acquisition at {W}x{H}, {args.captures} back-to-back software triggers per row, store on the local disk (fsync on). "
+        f"{machine.header()} `x anchor` of a row: its median latency over the anchor step.",
         "",
-        "| frame source | cameras | latency median (ms) | latency p99 (ms) | captures/s | MB/capture | MB/s |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| frame source | cameras | latency median (ms) | x anchor | latency p99 (ms) | captures/s | MB/capture | MB/s |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['source']} | {r['cameras']} | {r['median_ms']:.0f} | {r['p99_ms']:.0f} | {r['captures_per_s']:.2f} | {r['mb_per_capture']:.2f} | {r['mb_per_s']:.1f} |"
+            f"| {r['source']} | {r['cameras']} | {r['median_ms']:.0f} | {machine.x_anchor(r['median_ms'] / 1000)} | {r['p99_ms']:.0f} "
+            f"| {r['captures_per_s']:.2f} | {r['mb_per_capture']:.2f} | {r['mb_per_s']:.1f} |"
         )
     if args.render:
-        lines += ["", "| synthetic MuJoCo rig (render only) | cameras | s per trigger |", "|---|---:|---:|"]
+        lines += ["", "| synthetic MuJoCo rig (render only) | cameras | s per trigger | x anchor |", "|---|---:|---:|---:|"]
         for n in (4, 8, 13):
-            lines.append(f"| sample mesh | {n} | {render_cost(n, 3):.2f} |")
+            per_trigger = render_cost(n, 3)
+            lines.append(f"| sample mesh | {n} | {per_trigger:.2f} | {machine.x_anchor(per_trigger)} |")
     table = "\n".join(lines)
     print(table)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "acquisition.md").write_text(table + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(table + "\n")
 
     import matplotlib
 
@@ -145,7 +152,7 @@ def main() -> None:
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "acquisition.png", dpi=120)
+    fig.savefig(args.out.with_suffix(".png"), dpi=120)
 
 
 if __name__ == "__main__":

@@ -1,20 +1,23 @@
 """Calibration benchmark: time, RMS and cross-validation diff against the number of board views;
 extrinsic error on a synthetic 4-camera rig; drift-check time per camera; OpenCV's real photographs.
+Each time stands beside its ratio to the speed anchor's step read at the start of the run (`x anchor`;
+`benchmarks._common.machine_reading`), which the header states with the CPU and the load.
 
-    python -m benchmarks.bench_calibration
+    python -m benchmarks.bench_calibration [--out FILE.md]
 
-Prints markdown tables and writes benchmarks/results/calibration.md and calibration.png.
+Prints markdown tables and writes benchmarks/results/calibration.md (or --out) and a plot beside it.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED
+from benchmarks._common import RESULTS, SHARED, MachineReading, machine_reading
 from calibration.board import detect_board, parse_board
 from calibration.calibfile import CalibrationDoc
 from calibration.camera import invert_rigid
@@ -35,7 +38,7 @@ def table(head: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
-def views_sweep() -> tuple[str, list]:
+def views_sweep(machine: MachineReading) -> tuple[str, list]:
     rng = np.random.default_rng(0)
     cams = {f"cam{i}": c for i, c in enumerate(ring_rig(4, radius=0.5, arc_deg=90))}
     images, _ = rig_board_views(SPEC, cams, rng, shared=16, close_ups=12)
@@ -57,16 +60,17 @@ def views_sweep() -> tuple[str, list]:
     head = [
         "views/camera",
         "calibrate s (4 cams, incl. cross-val)",
+        "x anchor",
         "RMS px",
         "intrinsics cross-val px",
         "extrinsics cross-val deg",
         "max rot err deg",
         "max trans err mm",
     ]
-    return table(head, rows), rows
+    return table(head, [[r[0], r[1], machine.x_anchor(r[1]), *r[2:]] for r in rows]), rows
 
 
-def drift_timing() -> str:
+def drift_timing(machine: MachineReading) -> str:
     rng = np.random.default_rng(1)
     planes, fiducials = rig_frame_scene(rng)
     cams = {f"cam{i}": c for i, c in enumerate(ring_rig(4, radius=0.5, arc_deg=90))}
@@ -88,12 +92,13 @@ def drift_timing() -> str:
             c = res.cameras["cam2"]
             err = geodesic_angle_deg(np.array(c.c2r)[:3, :3], knocked[:3, :3])
             others = max(res.cameras[n].effect_px for n in cams if n != "cam2")
-            rows.append([label, mode, per_cam, c.status, c.rotation_deg, err, c.effect_px, others])
+            rows.append([label, mode, per_cam, machine.x_anchor(per_cam / 1000), c.status, c.rotation_deg, err, c.effect_px, others])
     return table(
         [
             "reference",
             "mode",
             "ms / camera",
+            "x anchor",
             "knocked cam status",
             "measured deg (true 0.100)",
             "pose error deg",
@@ -127,20 +132,24 @@ def real_images() -> str:
 
 
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    sweep_md, rows = views_sweep()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=RESULTS / "calibration.md")
+    args = ap.parse_args()
+    machine = machine_reading()
+    sweep_md, rows = views_sweep(machine)
     parts = [
+        machine.header(),
         "## Real photographs",
         real_images(),
         "## Synthetic 4-camera rig: views sweep",
         sweep_md,
         "## Drift check (0.1 deg knock on cam2)",
-        drift_timing(),
+        drift_timing(machine),
     ]
     text = "\n\n".join(parts) + "\n"
     print(text)
-    (RESULTS / "calibration.md").write_text(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,7 +169,7 @@ def main() -> None:
     axes[2].set(xlabel="board views per camera")
     axes[2].legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "calibration.png", dpi=100)
+    fig.savefig(args.out.with_suffix(".png"), dpi=100)
 
 
 if __name__ == "__main__":

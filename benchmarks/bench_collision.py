@@ -6,7 +6,9 @@ the first threshold (input decimated to 4000 faces, time-capped), the pieces and
 what `collision_geometry` chose at the default 10 % tolerance within the hull budget (CoACD's piece
 count chosen by that error, at most --hull-budget pieces) with its Hausdorff distance to the mesh
 and the volume error left at the budget, and a 2 s drop with that choice (final kinetic energy,
-resting and peak impact penetration, lowest mesh point above the floor).
+resting and peak impact penetration, lowest mesh point above the floor). Every time is followed by its
+ratio to the speed anchor's step read at the start of the run (`benchmarks._common.machine_reading`),
+whose ms, CPU and load the header states.
 
     python -m benchmarks.bench_collision [--timeout 120] [--threshold 0.05] [--hull-budget 32] [--only NAME ...] [--out FILE.md]
 
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, load_line
+from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading
 from simulation.asset import load_mesh_asset
 from simulation.collision import (
     DECOMPOSE_FACES,
@@ -92,6 +94,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS / "collision.md")
     args = ap.parse_args()
     opts = DecompositionOptions(threshold=args.threshold, timeout_s=args.timeout, hull_budget=args.hull_budget)
+    machine = machine_reading()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, path, unit in meshes(args.only):
@@ -139,31 +142,33 @@ def main() -> None:
                 f"{name}: hull {100 * hull_err:.1f}%, {prim.kind} {100 * prim_err:.1f}%, CoACD {rows[-1]['pieces']} pieces {100 * dec_err:.1f}% in {dec_s:.1f} s",
                 flush=True,
             )
-    table = render_table(rows, opts, f"{load_line()} at the end")
+    table = render_table(rows, opts, machine, f"{load_line()} at the end")
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(table)
     plot(rows, args.out.with_suffix(".png"))
 
 
-def render_table(rows: list[dict], opts: DecompositionOptions, load: str) -> str:
+def render_table(rows: list[dict], opts: DecompositionOptions, machine: MachineReading, load_at_end: str) -> str:
     head = (
         f"# Collision geometry: speed against error (CoACD first threshold {opts.threshold}, {opts.timeout_s:.0f} s cap, "
         f"input decimated to {DECOMPOSE_FACES} faces, hull budget {opts.hull_budget})\n\n"
         f"Volume error = (V_union - V_mesh) / V_mesh. Chosen = `collision_geometry` at {100 * DEFAULT_TOLERANCE:.0f} % tolerance, per CAD part "
         f"(primitive, else hull, else CoACD at falling thresholds until the error is within tolerance, at most {opts.hull_budget} pieces: "
         "runs over the budget send the threshold back up, and the chosen error is the one left at the budget), with the Hausdorff distance "
-        f"between its surface and the mesh's. Drop: 2 s from 5 cm, tilted 20/10 deg, MuJoCo timestep 1 ms. Load: {load}.\n\n"
-        "| mesh | faces | size m | hull err | best primitive | prim err | CoACD 1st run pieces | err | s | chosen (shapes) | chosen err "
-        "| Hausdorff mm | chosen s | final KE / peak | rest pen. mm | impact pen. mm | lowest pt mm | COM off support mm | sim s |\n"
+        f"between its surface and the mesh's. Drop: 2 s from 5 cm, tilted 20/10 deg, MuJoCo timestep 1 ms. {machine.header()} "
+        f"Each time is followed by its `x anchor` in brackets; {load_at_end}.\n\n"
+        "| mesh | faces | size m | hull err | best primitive | prim err | CoACD 1st run pieces | err | s (x anchor) | chosen (shapes) | chosen err "
+        "| Hausdorff mm | chosen s (x anchor) | final KE / peak | rest pen. mm | impact pen. mm | lowest pt mm | COM off support mm | sim s (x anchor) |\n"
         "|---|---:|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     pct = lambda x: "timeout" if not np.isfinite(x) else f"{100 * x:.1f}%"  # noqa: E731
+    x = machine.x_anchor
     lines = [
         f"| {r['mesh']} | {r['faces']} | {r['extent_m']:.3g} | {pct(r['hull_err'])} | {r['prim']} | {pct(r['prim_err'])} | {r['pieces']} "
-        f"| {pct(r['dec_err'])} | {r['dec_s']:.1f} | {r['chosen']} ({r['chosen_pieces']}) | {pct(r['chosen_err'])} "
-        f"| {r['hausdorff_mm']:.2f} | {r['chosen_s']:.1f} | {r['ke_ratio']:.1e} "
-        f"| {r['rest_pen_mm']:.4f} | {r['peak_pen_mm']:.2f} | {r['lowest_mm']:.3f} | {r['support_mm']:.2f} | {r['sim_s']:.2f} |"
+        f"| {pct(r['dec_err'])} | {r['dec_s']:.1f} ({x(r['dec_s'])}) | {r['chosen']} ({r['chosen_pieces']}) | {pct(r['chosen_err'])} "
+        f"| {r['hausdorff_mm']:.2f} | {r['chosen_s']:.1f} ({x(r['chosen_s'])}) | {r['ke_ratio']:.1e} "
+        f"| {r['rest_pen_mm']:.4f} | {r['peak_pen_mm']:.2f} | {r['lowest_mm']:.3f} | {r['support_mm']:.2f} | {r['sim_s']:.2f} ({x(r['sim_s'])}) |"
         for r in rows
     ]
     return head + "\n".join(lines) + "\n"

@@ -8,8 +8,9 @@ a shared YCB scan) is the nominal part and its own CAD model (a library of that 
 rig's cameras see most, is pushed inwards along the surface normal by up to `depth` (a cosine bump
 of `radius`). Both parts are photographed by the synthetic rig (`cadsplat synth`: 9 views, 320x240,
 the same cameras and pose), reconstructed against the nominal CAD with `preset`, and inspected at
-`tolerance`. Writes benchmarks/results/dent_<preset>.md.
-Needs no shared data.
+`tolerance`. Writes benchmarks/results/dent_<preset>.md: the verdicts, then the wall times, each with its
+ratio to the speed anchor's step read at the start of the run (`benchmarks._common.machine_reading`;
+the anchor ms, CPU and load stated there). Needs no shared data.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import REPO, RESULTS, load_line
+from benchmarks._common import REPO, RESULTS, MachineReading, load_line, machine_reading
 
 SOURCE = REPO / "sample" / "object" / "050_medium_clamp.obj"
 
@@ -190,7 +191,7 @@ def _rows(report: Path) -> np.ndarray:
     return np.array(rows)
 
 
-def write_markdown(res: dict, load: str, path: Path) -> str:
+def write_markdown(res: dict, machine: MachineReading, load_at_end: str, path: Path) -> str:
     def row(name):
         r = res[name]
         dist = f"{r['distance_to_dent_mm']:.1f}" if r.get("distance_to_dent_mm") is not None else "n/a"
@@ -206,7 +207,7 @@ def write_markdown(res: dict, load: str, path: Path) -> str:
         [
             "# Known dent: `cadsplat inspect` on a synthetic part",
             "",
-            f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; load {load}.",
+            f"Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_dent`; {load_at_end} at the end.",
             "",
             (
                 "Nominal part and CAD: the bundled sample's YCB medium clamp (sample/object, its own full-resolution mesh as the"
@@ -225,8 +226,9 @@ def write_markdown(res: dict, load: str, path: Path) -> str:
             row("nominal"),
             row("dented"),
             "",
-            f"Wall time: synthesis + library {t['synth_and_library_s']:.0f} s, reconstruction {t['reconstruct_nominal_s']:.0f} s "
-            f"(nominal) and {t['reconstruct_dented_s']:.0f} s (dented).",
+            f"Wall time (x anchor): synthesis + library {t['synth_and_library_s']:.0f} s ({machine.x_anchor(t['synth_and_library_s'])}), "
+            f"reconstruction {t['reconstruct_nominal_s']:.0f} s ({machine.x_anchor(t['reconstruct_nominal_s'])}) (nominal) and "
+            f"{t['reconstruct_dented_s']:.0f} s ({machine.x_anchor(t['reconstruct_dented_s'])}) (dented). {machine.header()}",
             "",
         ]
     )
@@ -251,6 +253,7 @@ def main() -> None:
     from deploy.inspection_report import DEFAULT_MAX_UNSEEN_PCT
 
     work = args.work or Path(tempfile.mkdtemp(prefix="cadsplat-dent-"))
+    machine = machine_reading()
     res = run(
         work,
         preset=args.preset,
@@ -261,8 +264,7 @@ def main() -> None:
         source=args.part,
     )
     print(json.dumps(res, indent=1))
-    load = f"1-min {load_line()}"
-    print(write_markdown(res, load, args.out or RESULTS / f"dent_{args.preset}.md"))
+    print(write_markdown(res, machine, f"1-min {load_line()}", args.out or RESULTS / f"dent_{args.preset}.md"))
     print(f"captures, twins and reports: {work}")
 
 

@@ -12,6 +12,8 @@ TWINS_DIR holds one twin per scene, TWINS_DIR/<scene>/twin.json (e.g. made by `c
   the true surface (plus 0.2 % of the diameter) ran past an edge into another wall: left out, counted.
 - geometry: symmetric mean closest-point distance (and p95, pooled over both directions) of the twin's
   deformed mesh and of the CAD model to the true surface, % of the true bounding-sphere diameter.
+- the CPU seconds `inspect` took, and beside them (`x anchor`) their ratio to the speed anchor's step read at
+  the start of the run (`benchmarks._common.machine_reading`; its ms, the CPU and the load in the header).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, load_line, symmetric_surface_distance
+from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading, symmetric_surface_distance
 
 DATA = SHARED / "rig_scenes"
 SAMPLES = 20_000
@@ -107,21 +109,22 @@ def _f(x, fmt: str = "{:.2f}") -> str:
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
 
 
-def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
+def write_markdown(rows: list[dict], twins: Path, machine: MachineReading, load_at_end: str, path: Path) -> str:
     head = (
         "| scene | Pearson r (seen) | RMS true dev (mm) | RMS map error (mm) | unseen % (in no camera's view) | truth left out % | "
-        "twin mean % (p95) | CAD mean % (p95) | twin closer than CAD by | inspect CPU s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "twin mean % (p95) | CAD mean % (p95) | twin closer than CAD by | inspect CPU s | x anchor |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     )
     lines = [head]
     for r in rows:
         if "note" in r:
-            lines.append(f"| {r['scene']} | {r['note']} ||||||||| ")
+            lines.append(f"| {r['scene']} | {r['note']} |||||||||| ")
             continue
         lines.append(
             f"| {r['scene']} | {_f(r['pearson_seen'])} | {_f(r['rms_true_mm'])} | {_f(r['rms_error_mm'])} | {_f(r['unseen_pct'], '{:.1f}')} "
             f"({_f(r.get('out_of_view_pct'), '{:.1f}')}) | "
             f"{_f(r['truth_left_out_pct'], '{:.1f}')} | {_f(r['twin_mean_pct'])} ({_f(r['twin_p95_pct'])}) | "
-            f"{_f(r['cad_mean_pct'])} ({_f(r['cad_p95_pct'])}) | {_f(r['twin_vs_cad_gain_pct'], '{:+.1f} %')} | {_f(r['inspect_cpu_s'], '{:.2f}')} |"
+            f"{_f(r['cad_mean_pct'])} ({_f(r['cad_p95_pct'])}) | {_f(r['twin_vs_cad_gain_pct'], '{:+.1f} %')} | {_f(r['inspect_cpu_s'], '{:.2f}')} "
+            f"| {machine.x_anchor(r['inspect_cpu_s'])} |"
         )
     done = [r for r in rows if "note" not in r]
     if done:
@@ -131,14 +134,14 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
             f"{_f(med('unseen_pct'), '{:.1f}')} ({_f(med('out_of_view_pct'), '{:.1f}')}) | {_f(med('truth_left_out_pct'), '{:.1f}')} | "
             f"{_f(med('twin_mean_pct'))} "
             f"({_f(med('twin_p95_pct'))}) | {_f(med('cad_mean_pct'))} ({_f(med('cad_p95_pct'))}) | "
-            f"{_f(med('twin_vs_cad_gain_pct'), '{:+.1f} %')} | {_f(med('inspect_cpu_s'), '{:.2f}')} |"
+            f"{_f(med('twin_vs_cad_gain_pct'), '{:+.1f} %')} | {_f(med('inspect_cpu_s'), '{:.2f}')} | {machine.x_anchor(med('inspect_cpu_s'))} |"
         )
     text = "\n".join(
         [
             "# Inspection against the truth (rig_scenes)",
             "",
             f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows})) or 'n/a'}); written "
-            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect`; load {load}.",
+            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect`; {load_at_end} at the end.",
             "",
             "Map: per CAD vertex, `inspect`'s deviation (twin's deformed surface vs CAD along the CAD normal) against the true",
             "one (gt_mesh.ply vs CAD, same line cast); Pearson r and RMS over the vertices `inspect` declares seen (projects",
@@ -149,6 +152,7 @@ def write_markdown(rows: list[dict], twins: Path, load: str, path: Path) -> str:
             "bounding-sphere diameter (p95 pooled over both directions); the last column is the twin's relative gain over the CAD.",
             f"Figure `{path.with_suffix('.png').name}`: per scene, the reported (left, unseen grey) and true (right) deviation from",
             "the first training view, one colour scale per scene (turbo: blue inside the CAD, red outside).",
+            f"Inspect CPU s: the process's CPU seconds for `inspect` (wall time says little on a shared machine); {machine.header()}",
             "",
             *lines,
             "",
@@ -168,6 +172,7 @@ def main() -> None:
     if not DATA.exists():
         raise SystemExit(f"needs the shared data folder ({DATA} is absent)")
     scenes = [s for s in args.scenes.split(",") if s] or sorted(p.name for p in (DATA / "scenes").iterdir())
+    machine = machine_reading()
     rows = []
     for scene in scenes:
         twin_dir = args.twins / scene
@@ -179,7 +184,7 @@ def main() -> None:
         rows.append(row)
     if not rows:
         raise SystemExit(f"no twins found under {args.twins}")
-    load = f"1-min {load_line()}"
+    load_at_end = f"1-min {load_line()}"
     tiles = [r.pop("figure") for r in rows if "figure" in r]
     if tiles:
         from calibration.fileio import atomic_write_png
@@ -189,7 +194,7 @@ def main() -> None:
             args.out.with_suffix(".png"),
             np.concatenate([np.pad(t, ((0, 0), (0, width - t.shape[1]), (0, 0)), constant_values=255) for t in tiles], 0),
         )
-    print(write_markdown(rows, args.twins, load, args.out))
+    print(write_markdown(rows, args.twins, machine, load_at_end, args.out))
 
 
 if __name__ == "__main__":

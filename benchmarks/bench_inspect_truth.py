@@ -14,7 +14,9 @@ rig_scenes/library --preset cpu`); twins are trained once and read here, inspect
 - at the tolerance: the in/out call against the truth's on the vertices the verdict calls certain (their
   uncertainty does not straddle the tolerance), and the share of the seen surface it calls uncertain;
 - the uncertainty's coverage: the share of vertices whose true error lies inside their k = 2 uncertainty;
-- the verdict's status, and the inspection's CPU time.
+- the verdict's status, and the inspection's CPU time with its ratio to the speed anchor's step read at the start
+  of this run (`x anchor`; `benchmarks._common.machine_reading`, its ms, CPU and load in the header). The twin's
+  training seconds are its own record, timed in the run that trained it where no anchor was read: they carry none.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, cpu_line, load_line
+from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading
 
 DATASETS = {"rig_scenes": SHARED / "rig_scenes", "rig_scenes_640": SHARED / "rig_scenes_640"}
 LIBRARY = SHARED / "rig_scenes" / "library"
@@ -140,42 +142,46 @@ COLUMNS = (
 )
 
 
-def table(rows: list[dict], name: str) -> list[str]:
+def table(rows: list[dict], name: str, machine: MachineReading) -> list[str]:
     lines = [
-        "| scene | size | " + " | ".join(c for c, _, _ in COLUMNS) + " | inspect CPU s | twin train s |",
-        "|---|---|" + "---:|" * (len(COLUMNS) + 2),
+        "| scene | size | " + " | ".join(c for c, _, _ in COLUMNS) + " | inspect CPU s | x anchor | twin train s |",
+        "|---|---|" + "---:|" * (len(COLUMNS) + 3),
     ]
     done = [r for r in rows if name in r.get("maps", {})]
     for r in rows:
         if name not in r.get("maps", {}):
-            lines.append(f"| {r['scene']} | {r['size']} | {r.get('note', 'not measured')} |" + " |" * (len(COLUMNS) + 1))
+            lines.append(f"| {r['scene']} | {r['size']} | {r.get('note', 'not measured')} |" + " |" * (len(COLUMNS) + 2))
             continue
         m = r["maps"][name]
         lines.append(
             f"| {r['scene']} | {r['size']} | "
             + " | ".join(_f(m[k], f) for _, k, f in COLUMNS)
-            + f" | {_f(m['cpu_s'], '{:.1f}')} | {_f(r['train_s'], '{:.0f}')} |"
+            + f" | {_f(m['cpu_s'], '{:.1f}')} | {machine.x_anchor(m['cpu_s'])} | {_f(r['train_s'], '{:.0f}')} |"
         )
     if done:
         med = {k: float(np.nanmedian([r["maps"][name][k] for r in done])) for _, k, f in COLUMNS if k != "status"}
+        cpu_s = float(np.median([r["maps"][name]["cpu_s"] for r in done]))
         lines.append(
             f"| **median** ({len(done)}) | | "
             + " | ".join(_f(med[k], f"**{f}**") if k != "status" else "" for _, k, f in COLUMNS)
-            + f" | {_f(float(np.median([r['maps'][name]['cpu_s'] for r in done])), '{:.1f}')}"
+            + f" | {_f(cpu_s, '{:.1f}')} | {machine.x_anchor(cpu_s)}"
             f" | {_f(float(np.median([r['train_s'] for r in done])), '{:.0f}')} |"
         )
     return lines
 
 
-def write_markdown(rows: list[dict], data: str, twins: Path, tolerance_mm: float, machine: str, path: Path) -> str:
+def write_markdown(
+    rows: list[dict], data: str, twins: Path, tolerance_mm: float, machine: MachineReading, load_at_end: str, path: Path
+) -> str:
     maps = sorted({m for r in rows for m in r.get("maps", {})})
     text = [
         f"# Inspection map against the truth ({data})",
         "",
         (
             f"Twins: `{twins}` (preset {', '.join(sorted({r['preset'] for r in rows}))}, trained once, read here); written "
-            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect_truth`; {machine}. The benchmarks' "
-            "common module offers no anchor ratio; inspection CPU seconds are process time, twin training seconds the twin's own wall record."
+            f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC by `python -m benchmarks.bench_inspect_truth`; {load_at_end} at the end. "
+            f"{machine.header()} Inspection CPU seconds are process time, read in this run, and `x anchor` is their ratio to the anchor; "
+            "twin training seconds are the twin's own wall record, timed in the run that trained it, where no anchor was read: no ratio."
         ),
         "",
         (
@@ -190,7 +196,7 @@ def write_markdown(rows: list[dict], data: str, twins: Path, tolerance_mm: float
         "",
     ]
     for name in maps:
-        text += [f"## map `{name}`", "", *table(rows, name), ""]
+        text += [f"## map `{name}`", "", *table(rows, name, machine), ""]
     out = "\n".join(text)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(out)
@@ -214,7 +220,7 @@ def main() -> None:
         raise SystemExit(f"needs the shared data folder ({data} is absent)")
     out = args.out or RESULTS / ("inspect_truth.md" if args.data == "rig_scenes" else "inspect_truth_640.md")
     scenes = [s for s in args.scenes.split(",") if s] or sorted(p.name for p in (data / "scenes").iterdir())
-    machine = f"{cpu_line()}, 1-min {load_line()} at the start"
+    machine = machine_reading()
     rows = []
     for scene in scenes:
         if not (args.twins / scene / "twin.json").exists():
@@ -225,10 +231,9 @@ def main() -> None:
         rows.append(row)
     if not rows:
         raise SystemExit(f"no twins found under {args.twins}")
-    machine += f", {load_line()} at the end"
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
-    print(write_markdown(rows, str(args.data_dir or args.data), args.twins, args.tolerance, machine, out))
+    print(write_markdown(rows, str(args.data_dir or args.data), args.twins, args.tolerance, machine, f"1-min {load_line()}", out))
 
 
 if __name__ == "__main__":

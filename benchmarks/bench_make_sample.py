@@ -10,7 +10,9 @@ What it makes (all deterministic):
   sample/library_meshes/   the CAD library, metres: the clamp as a CAD variant (decimated to
                            2.5k faces + a smooth few-mm deformation) and four distractors
   sample/sample.json       which library model is the right one, how each mesh was made
-The new sample is assembled beside the old one and swapped in only when complete.
+The new sample is assembled beside the old one and swapped in only when complete. Prints a one-row table:
+the synthesis wall time beside its ratio to the speed anchor's step read at the start of the run (`x anchor`;
+`benchmarks._common.machine_reading`, whose ms, CPU and load head the table), and the size on disk.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import fast_simplification
 import numpy as np
 import trimesh
 
-from benchmarks._common import REPO, SHARED
+from benchmarks._common import REPO, SHARED, MachineReading, machine_reading
 from calibration.fileio import atomic_write_bytes, atomic_write_json, sha256_file
 from calibration.units import UNIT_TO_M
 from reconstruction.mesh_io import read_mesh_parts
@@ -175,6 +177,15 @@ def build(shared: Path, dst: Path) -> dict:
     return {"synth_s": synth_s, "views": gt["views"], "heldout": gt["heldout"]}
 
 
+def summary_table(stats: dict, size_bytes: int, machine: MachineReading) -> str:
+    """The sample's one-row table under the machine reading it was timed against."""
+    return (
+        f"{machine.header()}\n\n| sample | views | held-out | synth wall (s) | x anchor | size on disk (MB) |\n|---|---|---|---|---|---|\n"
+        f"| {OBJECT} | {stats['views']} | {stats['heldout']} | {stats['synth_s']:.1f} | {machine.x_anchor(stats['synth_s'])} "
+        f"| {size_bytes / 1e6:.2f} |"
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shared", type=Path, default=SHARED)
@@ -187,6 +198,7 @@ def main() -> int:
     if args.out.exists() and not args.force:
         print(f"error: {args.out} exists; pass --force to replace it", file=sys.stderr)
         return 2
+    machine = machine_reading()
     tmp = Path(tempfile.mkdtemp(prefix=".sample.", dir=args.out.parent))
     try:
         stats = build(args.shared, tmp / "sample")
@@ -200,10 +212,7 @@ def main() -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
-    print(
-        f"| sample | views | held-out | synth wall (s) | size on disk (MB) |\n|---|---|---|---|---|\n"
-        f"| {OBJECT} | {stats['views']} | {stats['heldout']} | {stats['synth_s']:.1f} | {size / 1e6:.2f} |"
-    )
+    print(summary_table(stats, size, machine))
     return 0
 
 

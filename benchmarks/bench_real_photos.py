@@ -11,8 +11,10 @@ There is no car or espresso CAD model here, so the engine starts from the sphere
 the twin is trained on the others, and the held-out photo is scored with NeRS's object-crop
 PSNR / SSIM / LPIPS after per-camera test-time refinement (NeRS's strongest published setting,
 "fixed optimized cameras", matches it). Numbers sit next to the published 20-car MVMC averages;
-one car is not a 20-car average. Writes benchmarks/results/real_photos.md (real_photos_<preset>.md for partial or non-cpu runs);
-folds are cached.
+one car is not a 20-car average. Each fold reads the speed anchor's step just before it trains
+(`benchmarks._common.machine_reading`) and keeps it with its train time: the summary's `x anchor` is the median
+over the folds of one over the other, `anchor ms` the median reading. Writes benchmarks/results/real_photos_<preset>.md
+(or --out); folds are cached.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, engine_kwargs
+from benchmarks._common import RESULTS, SHARED, cpu_line, engine_kwargs, load_line, machine_reading, median_x_anchor
 
 NERS = SHARED / "real" / "ners"
 PUBLISHED = {"NeRS (20 cars, fixed optimized cameras)": (16.5, 0.720, 0.172), "CADSplat paper (20 cars)": (18.7, 0.767, 0.157)}
@@ -76,6 +78,7 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
     kw = engine_kwargs("sphere-init", args.preset, torch.cuda.is_available())
     if args.override:
         kw["overrides"] = kw.get("overrides", {}) | args.override
+    anchor_ms = machine_reading().anchor_ms
     run = run_protocol(
         capture_dir,
         capture_dir,
@@ -95,6 +98,7 @@ def fold(capture_dir: Path, held: int, work: Path, args) -> dict:
         "pose_mode": run.twin.pose_mode,
         "num_splats": run.twin.num_splats,
         "train_s": run.timings_s["reconstruct"],
+        "anchor_ms": anchor_ms,
         "mean": run.mean,
         "mean_refined": run.mean_refined,
         "refine": run.report["views"][0].get("refine", {}),
@@ -112,6 +116,22 @@ def fold_range(spec: str) -> tuple[int, int]:
     return (int(first), int(last) + 1) if last else (0, int(first))
 
 
+def set_row(name: str, folds: list[dict], n: int) -> str:
+    """The summary table's row of one photo set: its folds' mean train time, their median ratio to the anchor each read
+    (folds cached before the anchor was recorded carry none) and the mean scores."""
+
+    def avg(key: str, refined: bool = True) -> float:
+        vals = [(f["mean_refined"] if refined and f["mean_refined"] else f["mean"])[key] for f in folds]
+        return float(np.mean([v for v in vals if v is not None]))
+
+    anchors = [f["anchor_ms"] for f in folds if f.get("anchor_ms")]
+    return (
+        f"| {name} | {len(folds)}/{n} | {np.mean([f['train_s'] for f in folds]):.0f} | "
+        f"{median_x_anchor([(f['train_s'], f.get('anchor_ms')) for f in folds])} | {f'{np.median(anchors):.0f}' if anchors else '-'} | "
+        f"{avg('psnr'):.2f} | {avg('ssim'):.3f} | {avg('lpips'):.3f} | {avg('psnr', False):.2f} | {avg('iou'):.3f} |"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="preview preset, 3 folds per set, 50 refinement steps")
@@ -125,6 +145,7 @@ def main() -> None:
     )
     ap.add_argument("--sets", default="car,espresso", help="comma-separated: car, espresso")
     ap.add_argument("--work", type=Path, default=Path("/tmp/cadsplat-bench-real-photos"))
+    ap.add_argument("--out", type=Path, default=None, help="default: benchmarks/results/real_photos_<preset>[_<overrides>].md")
     ap.add_argument(
         "--override",
         action="append",
@@ -166,8 +187,8 @@ def main() -> None:
         f"score the held-out photo with NeRS's object-crop protocol after {args.refine_steps} test-time refinement steps. "
         "**One car is not the 20-car MVMC average**: the published rows are averages over 20 cars and are shown for scale only.",
         "",
-        "| set | folds | train s / fold | PSNR | SSIM | LPIPS | PSNR (no refinement) | IoU |",
-        "|---|---|---|---|---|---|---|---|",
+        "| set | folds | train s / fold | x anchor | anchor ms | PSNR | SSIM | LPIPS | PSNR (no refinement) | IoU |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     per_fold = [
         "",
@@ -207,30 +228,24 @@ def main() -> None:
                 f"{np.mean(fit['trained']['iou']):.3f} ({min(fit['trained']['iou']):.3f}-{max(fit['trained']['iou']):.3f}) | "
                 f"{np.mean(fit['imported']['iou']):.3f} | {np.mean(fit['trained']['psnr']):.2f} |"
             )
-        if not folds:
-            lines.append(f"| {name} | 0 | - | - | - | - | - | - |")
-            continue
-
-        def avg(key: str, refined: bool = True) -> float:
-            vals = [(f["mean_refined"] if refined and f["mean_refined"] else f["mean"])[key] for f in folds]
-            return float(np.mean([v for v in vals if v is not None]))
-
-        lines.append(
-            f"| {name} | {len(folds)}/{n} | {np.mean([f['train_s'] for f in folds]):.0f} | {avg('psnr'):.2f} | "
-            f"{avg('ssim'):.3f} | {avg('lpips'):.3f} | {avg('psnr', False):.2f} | {avg('iou'):.3f} |"
-        )
+        lines.append(set_row(name, folds, n) if folds else f"| {name} | 0 | - | - | - | - | - | - | - | - |")
     for name, (p, s, lp) in PUBLISHED.items():
-        lines.append(f"| {name} | published | - | {p} | {s:.3f} | {lp:.3f} | - | - |")
+        lines.append(f"| {name} | published | - | - | - | {p} | {s:.3f} | {lp:.3f} | - | - |")
     lines += per_fold
     lines += [
         "",
-        f"2 shared CPU cores (15-minute load average {os.getloadavg()[2]:.1f} when this table was written). Folds are "
+        f"CPU: {cpu_line()}; 15-minute load average {os.getloadavg()[2]:.1f} ({load_line()}) when this table was written. "
+        "`x anchor`: the median over the folds of each fold's train time over the speed anchor's step read just before it "
+        "trained (`reconstruction.render.anchor`: one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at "
+        "256²); `anchor ms`: the median of those readings; folds cached before the anchor was recorded carry none. Folds are "
         f"cached; this invocation took {(time.perf_counter() - t0) / 60:.1f} min.",
         "",
     ]
     text = "\n".join(lines)
     suffix = "_" + args.preset + "".join(f"_{k}{v}" for k, v in args.override.items())
-    (RESULTS / f"real_photos{suffix}.md").write_text(text)
+    out = args.out or RESULTS / f"real_photos{suffix}.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
     print(text)
 
 

@@ -1,7 +1,7 @@
 """Reconstruction benchmark (issue 5): the cost-vs-accuracy figures behind the `cpu` preset's choices,
 and the `cpu` preset end to end on shared objects.
 
-    python -m benchmarks.bench_reconstruction [--quick] [--objects N] [--work DIR]
+    python -m benchmarks.bench_reconstruction [--quick] [--objects N] [--work DIR] [--out FILE.md]
 
 1. Deformation field: fit a known smooth warp (a few mm on the CAD model of the sample's clamp)
    with the paper's 8x256 MLP at every splat, and with narrower nets evaluated at farthest-point
@@ -11,7 +11,10 @@ and the `cpu` preset end to end on shared objects.
    calibration noise) -> library (true CAD variant + the sample's distractors) -> `cpu` preset ->
    wall time per stage, held-out fgPSNR / IoU, registration error (initial and refined).
 
-Writes benchmarks/results/reconstruction.md and reconstruction.png.
+Every time stands beside its ratio to the speed anchor's step (`x anchor`; `benchmarks._common.machine_reading`):
+the sweeps against one reading at the start of the run, stated with the CPU and the load above them; each object
+against the reading taken just before its twin trained (`anchor ms`; none for a twin reused with --reuse-twins,
+timed in an earlier run). Writes benchmarks/results/reconstruction.md (or --out) and a plot beside it.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._common import REPO, RESULTS, SHARED, decimate
+from benchmarks._common import REPO, RESULTS, SHARED, MachineReading, cpu_line, decimate, machine_reading, x_anchor
 from calibration.camera import look_at_c2w
 from reconstruction.deformation import DeformationField, FieldConfig
 from reconstruction.mesh_io import read_mesh_parts
@@ -143,6 +146,8 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
         tol_m = 1e-3 * gt["calib_noise"]["sigma_mm"]
         m = trimesh.load(mesh, force="mesh", process=False)
         near = near_symmetries(np.asarray(m.vertices), np.asarray(m.faces), tol_m)
+        reused = reuse and (work / f"{obj}_twin" / "twin.json").exists()
+        anchor_ms = None if reused else machine_reading().anchor_ms
         # The paper's protocol: with and without test-time refinement (per-camera pose delta, twin frozen).
         run = run_protocol(
             scene / "train",
@@ -165,6 +170,7 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
                 "model": twin.model_id,
                 "splats": twin.num_splats,
                 "wall_s": t["total"],
+                "anchor_ms": anchor_ms,
                 "register_s": t["registration"],
                 "pose_s": t["train_pose"],
                 "deform_s": t["train_deform"],
@@ -190,6 +196,10 @@ def object_runs(n: int, work: Path, reuse: bool = False, refine_steps: int = 100
     return rows
 
 
+def _f0(x: float | None) -> str:
+    return "-" if x is None else f"{x:.0f}"
+
+
 def _symmetry_label(near, tol_m: float) -> str:
     if not near:
         return f"none within {1e3 * tol_m:.0f} mm"
@@ -199,28 +209,36 @@ def _symmetry_label(near, tol_m: float) -> str:
     return ", ".join(f"{s.angle_deg:.0f} deg turn ({1e3 * s.deviation:.1f} mm)" for s in near)
 
 
-def _sweep_lines(fields, batching) -> list[str]:
+def _sweep_lines(fields, batching, machine: MachineReading) -> list[str]:
     lines = [
         "## Deformation field: cost vs accuracy (fit of a known smooth warp, same Adam steps)",
         "",
-        "| field | MLP evaluations | ms / step | RMS error (mm) | residual % |",
-        "|---|---:|---:|---:|---:|",
+        "| field | MLP evaluations | ms / step | x anchor | RMS error (mm) | residual % |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
-    lines += [f"| {r['config']} | {r['evals']} | {r['ms_per_step']:.1f} | {r['rms_mm']:.3f} | {r['residual_pct']:.1f} |" for r in fields]
+    lines += [
+        f"| {r['config']} | {r['evals']} | {r['ms_per_step']:.1f} | {machine.x_anchor(r['ms_per_step'] / 1000)} | {r['rms_mm']:.3f} "
+        f"| {r['residual_pct']:.1f} |"
+        for r in fields
+    ]
     lines += [
         "",
         "## Views per iteration (rasterizer forward + backward, 320x240, SH degree 2)",
         "",
-        "| views / iteration | s / iteration | s / view |",
+        "| views / iteration | s / iteration (x anchor) | s / view (x anchor) |",
         "|---:|---:|---:|",
     ]
-    lines += [f"| {r['views_per_iter']} | {r['s_per_iter']:.3f} | {r['s_per_view']:.3f} |" for r in batching]
+    lines += [
+        f"| {r['views_per_iter']} | {r['s_per_iter']:.3f} ({machine.x_anchor(r['s_per_iter'])}) "
+        f"| {r['s_per_view']:.3f} ({machine.x_anchor(r['s_per_view'])}) |"
+        for r in batching
+    ]
     return lines
 
 
-def write(fields, batching, objects, threads: int) -> None:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    md = RESULTS / "reconstruction.md"
+def write(fields, batching, objects, threads: int, machine: MachineReading, md: Path) -> None:
+    """The markdown at `md` and, with the sweeps, their plot beside it; `machine` is the reading the sweeps were timed against."""
+    md.parent.mkdir(parents=True, exist_ok=True)
     tail = ""
     if not fields and md.exists():
         # --objects-only: keep the sweep tables of the last full run and the hand-written sections after the
@@ -232,10 +250,11 @@ def write(fields, batching, objects, threads: int) -> None:
         lines = [
             "# Reconstruction benchmark",
             "",
-            f"torch threads: {threads}; 2-core shared machine (timings are upper bounds under load).",
+            f"torch threads: {threads}; shared machine (timings are upper bounds under load). {machine.header()} The anchor runs "
+            "on every core; the sweeps on the torch threads above.",
             "",
         ]
-        lines += _sweep_lines(fields, batching)
+        lines += _sweep_lines(fields, batching, machine)
     if objects:
         lines += [
             "",
@@ -247,14 +266,16 @@ def write(fields, batching, objects, threads: int) -> None:
             "about the centroid, refined by ICP, that move the true mesh's surface by less than the 2 mm calibration noise; "
             "mean closest-point distance in brackets); raw: without them. Pose mode: chosen from the capture's stated "
             "calibration uncertainty (0.3 deg / 2 mm, about 4 px at the object). ambiguous: a distinct pose of the same "
-            "model scored within 0.03 silhouette IoU. Load: 1-minute load average when the row was written (2 cores).",
+            "model scored within 0.03 silhouette IoU. Load: 1-minute load average when the row was written. `x anchor`: the "
+            "total over the speed anchor's step read just before the twin trained (`anchor ms`; `reconstruction.render.anchor`, "
+            f"one forward+backward of the tiled pure-PyTorch rasterizer, 20k splats at 256²; '-' for a reused twin). CPU: {cpu_line()}.",
             "",
-            "| object | pose mode | splats | iters pose/deform/photo | total s | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | refined fgPSNR | refined IoU | rot init / refined (deg) | centre init / refined (%) | raw rot / centre | near-symmetries | ambiguous | load |",
-            "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---:|",
+            "| object | pose mode | splats | iters pose/deform/photo | total s | x anchor | anchor ms | register s | pose s | deform s | photo s | held-out fgPSNR | IoU | refined fgPSNR | refined IoU | rot init / refined (deg) | centre init / refined (%) | raw rot / centre | near-symmetries | ambiguous | load |",
+            "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---:|",
         ]
         lines += [
             f"| {r['object']} | {r['pose_mode']} | {r['splats']} | {r['iters']['pose']}/{r['iters']['deform']}/{r['iters']['photo']} | "
-            f"{r['wall_s']:.0f} | {r['register_s']:.0f} | {r['pose_s']:.0f} | "
+            f"{r['wall_s']:.0f} | {x_anchor(r['wall_s'], r.get('anchor_ms'))} | {_f0(r.get('anchor_ms'))} | {r['register_s']:.0f} | {r['pose_s']:.0f} | "
             f"{r['deform_s']:.0f} | {r['photo_s']:.0f} | {r['fgpsnr']:.2f} | {r['iou']:.3f} | {r['fgpsnr_refined']:.2f} | "
             f"{r['iou_refined']:.3f} | {r['rot_init']:.2f} / {r['rot']:.2f} | "
             f"{r['ctr_init']:.2f} / {r['ctr']:.2f} | {r['rot_raw']:.2f} / {r['ctr_raw']:.2f} | {r['symmetry']} | {r['ambiguity']} | {r['load']:.1f} |"
@@ -286,7 +307,7 @@ def write(fields, batching, objects, threads: int) -> None:
     ax.set_ylabel("RMS fit error (mm)")
     ax.set_title("Deformation field: cost vs accuracy")
     fig.tight_layout()
-    fig.savefig(RESULTS / "reconstruction.png", dpi=120)
+    fig.savefig(md.with_suffix(".png"), dpi=120)
 
 
 def main() -> None:
@@ -297,15 +318,17 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--objects-only", action="store_true", help="only the per-object runs (keeps the sweep tables on file)")
     ap.add_argument("--reuse-twins", action="store_true", help="score the twins already in --work instead of training them again")
+    ap.add_argument("--out", type=Path, default=RESULTS / "reconstruction.md")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    machine = machine_reading()
     fields, batching = ([], []) if args.objects_only else (field_sweep(20_000, 40 if args.quick else 150), batching_sweep(20_000, 3))
     objects = []
     if not args.quick:
         work = args.work or Path(tempfile.mkdtemp(prefix="cadsplat-bench-"))
         work.mkdir(parents=True, exist_ok=True)
         objects = object_runs(args.objects, work, reuse=args.reuse_twins)
-    write(fields, batching, objects, args.threads)
+    write(fields, batching, objects, args.threads, machine, args.out)
 
 
 if __name__ == "__main__":

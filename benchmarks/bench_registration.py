@@ -15,7 +15,10 @@
 4. Scale: a 3,500-model index (the built shards replicated with 1-pixel silhouette perturbations)
    queried with a 13-view capture; build time per model and bytes per model.
 
-Writes benchmarks/results/registration.md and registration_grid.png.
+Every time stands beside its ratio to the speed anchor's step read at the start of the run (`x anchor`;
+`benchmarks._common.machine_reading`, its ms, CPU and load at the top); the library's build time against the
+reading of the run that built it (kept with the time in the work folder). Writes benchmarks/results/registration.md
+and registration_grid.png.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from benchmarks._common import RESULTS, SHARED, decimate, deform
+from benchmarks._common import RESULTS, SHARED, MachineReading, decimate, deform, machine_reading, x_anchor
 from calibration.capture import read_capture, rig_metres_per_unit
 from calibration.so3 import geodesic_angle_deg
 from calibration.units import UNIT_TO_M
@@ -316,25 +319,28 @@ def scale_test(lib, n_models: int, capture_dir: Path, work: Path) -> dict:
     }
 
 
-def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = None) -> str:
+def write_report(
+    rows, grid_rows, scale, build, quick: bool, machine: MachineReading, name: str | None = None, out_dir: Path = RESULTS
+) -> str:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    x = machine.x_anchor
     lines = ["# Registration benchmark" + (" (--quick)" if quick and name is None else " (--scenes-only)" if name else ""), ""]
-    lines += [f"Load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine; times are wall clock).", ""]
+    lines += [f"Shared machine; times are wall clock. {machine.header()}", ""]
     lines += [
         "## Scenes: consensus registration vs independent per-camera matching",
         "",
-        "| scene | views | chosen model | right | rot ° | ctr % | rot ° (sym) | ctr % (sym) | mean IoU | ambiguous | time s | indep rot ° | indep ctr % | indep right model |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | views | chosen model | right | rot ° | ctr % | rot ° (sym) | ctr % (sym) | mean IoU | ambiguous | time s | x anchor | indep rot ° | indep ctr % | indep right model |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['views']} | {r['chosen']} | {'yes' if r['correct'] else 'NO'} | {r['rot_deg']:.2f} | {r['ctr_pct']:.1f} | "
-            f"{r['rot_sym_deg']:.2f} | {r['ctr_sym_pct']:.1f} | {r['iou']:.3f} | {'yes' if r['ambiguous'] else 'no'} | {r['time_s']:.1f} | "
+            f"{r['rot_sym_deg']:.2f} | {r['ctr_sym_pct']:.1f} | {r['iou']:.3f} | {'yes' if r['ambiguous'] else 'no'} | {r['time_s']:.1f} | {x(r['time_s'])} | "
             f"{r['indep_rot_deg']:.1f} | {r['indep_ctr_pct']:.0f} | {100 * r['indep_right_model']:.0f}% |"
         )
     med = lambda k: float(np.median([r[k] for r in rows]))  # noqa: E731
@@ -342,26 +348,27 @@ def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = 
         "",
         f"**Median over {len(rows)} scenes**: rotation {med('rot_sym_deg'):.2f}° (raw {med('rot_deg'):.2f}°), "
         f"camera centre {med('ctr_sym_pct'):.1f} % (raw {med('ctr_pct'):.1f} %), right model first in "
-        f"{100 * np.mean([r['correct'] for r in rows]):.0f} % of scenes, time {med('time_s'):.1f} s. "
+        f"{100 * np.mean([r['correct'] for r in rows]):.0f} % of scenes, time {med('time_s'):.1f} s ({x(med('time_s'))} the anchor). "
         f"Independent per-camera matching: {med('indep_rot_deg'):.1f}° / {med('indep_ctr_pct'):.0f} %. "
         f"Targets: <= 4°, <= 10 %, >= 95 %. (sym = symmetry-aware for the cube and the brick, as the paper reports near-symmetric objects.)",
         "",
     ]
     lines += [
         f"Library: {build['models']} models ({build['distractors']} distractors per scene), built in {build['build_s']:.0f} s "
-        f"({build['build_s'] / build['models']:.2f} s per model wall, {build['workers']} workers), shard {build['shard_bytes']:.0f} bytes per model.",
+        f"({x_anchor(build['build_s'], build.get('anchor_ms'))} the anchor read in the run that built it; "
+        f"{build['build_s'] / build['models']:.2f} s per model wall, {build['workers']} workers), shard {build['shard_bytes']:.0f} bytes per model.",
         "",
     ]
     if grid_rows:
         lines += [
             "## Grid choice: best-hypothesis rotation error against grid size",
             "",
-            "| canvas S | directions | bytes/model | top-1 median ° | best-of-50 median ° | best-of-50 p90 ° | render s/model |",
-            "|---|---|---|---|---|---|---|",
+            "| canvas S | directions | bytes/model | top-1 median ° | best-of-50 median ° | best-of-50 p90 ° | render s/model | x anchor |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for g in grid_rows:
             lines.append(
-                f"| {g['canvas']} | {g['n_dirs']} | {g['bytes_per_model']} | {g['top1_median_deg']:.1f} | {g['best50_median_deg']:.1f} | {g['best50_p90_deg']:.1f} | {g['render_s_per_model']:.2f} |"
+                f"| {g['canvas']} | {g['n_dirs']} | {g['bytes_per_model']} | {g['top1_median_deg']:.1f} | {g['best50_median_deg']:.1f} | {g['best50_p90_deg']:.1f} | {g['render_s_per_model']:.2f} | {x(g['render_s_per_model'])} |"
             )
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
         for canvas in sorted({g["canvas"] for g in grid_rows}):
@@ -377,7 +384,7 @@ def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = 
         ax[1].set_ylabel("best-of-50 median °")
         ax[1].legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(RESULTS / "registration_grid.png", dpi=120)
+        fig.savefig(out_dir / "registration_grid.png", dpi=120)
         lines += ["", "![grid](registration_grid.png)", ""]
     if scale:
         lines += [
@@ -385,14 +392,15 @@ def write_report(rows, grid_rows, scale, build, quick: bool, name: str | None = 
             "",
             f"{scale['models']}-model index ({scale['rows']:,} silhouettes, {scale['index_bytes_per_model']:.0f} bytes per model) "
             f"queried with a {scale['views']}-view capture (observe + top-50 for every view): {scale['query_s_min']:.2f} s best of 3, "
-            f"{scale['query_s_median']:.2f} s median. Consolidating the shards took {scale['consolidate_s']:.1f} s. "
+            f"{scale['query_s_median']:.2f} s median ({x(scale['query_s_median'])} the anchor). Consolidating the shards took "
+            f"{scale['consolidate_s']:.1f} s ({x(scale['consolidate_s'])}). "
             f"Rendering: {build['build_s'] / build['models']:.2f} s per model wall here -> "
             f"{build['build_s'] / build['models'] * scale['models'] / 60:.0f} min to render {scale['models']} models at this machine's throughput "
             f"(the replicas themselves are copies of the {build['models']} rendered models with 1-pixel shifts: the query time is real, the build time is extrapolated).",
             "",
         ]
     text = "\n".join(lines)
-    (RESULTS / (name or ("registration_quick.md" if quick else "registration.md"))).write_text(text + "\n")
+    (out_dir / (name or ("registration_quick.md" if quick else "registration.md"))).write_text(text + "\n")
     return text
 
 
@@ -408,6 +416,7 @@ def main() -> None:
         sys.exit(f"needs the shared data folder ({YCB} is absent)")
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
+    machine = machine_reading()
     derived = make_meshes(work, distractors_per_object=5)
     # Build time is that of a fresh build (recorded once; a reused library would time nothing).
     timing = work / "lib_build.json"
@@ -415,11 +424,12 @@ def main() -> None:
     t = time.perf_counter()
     lib = build_library(work / "meshes", work / "lib", unit="m", workers=args.workers, progress=True)
     if fresh:
-        timing.write_text(json.dumps({"build_s": time.perf_counter() - t}))
-    build_s = json.loads(timing.read_text())["build_s"]
+        timing.write_text(json.dumps({"build_s": time.perf_counter() - t, "anchor_ms": machine.anchor_ms}))
+    recorded = json.loads(timing.read_text())
     build = {
         "models": len(lib.models),
-        "build_s": build_s,
+        "build_s": recorded["build_s"],
+        "anchor_ms": recorded.get("anchor_ms"),
         "workers": args.workers,
         "shard_bytes": float(np.mean([m.shard.stat().st_size for m in lib.models])),
         "distractors": len(lib.models) - 1 - (len(derived[sorted(derived)[0]]) - 1),
@@ -428,7 +438,7 @@ def main() -> None:
     scenes = make_scenes(work, n_scenes)
     rows = run_scenes(scenes, lib, derived)
     if args.scenes_only:
-        print(write_report(rows, [], None, build, False, name="registration_scenes.md"))
+        print(write_report(rows, [], None, build, False, machine, name="registration_scenes.md"))
         return
     grid_rows = grid_curve(
         work,
@@ -438,7 +448,7 @@ def main() -> None:
     )
     big = next((d for d in scenes if json.loads((d / "gt.json").read_text())["views"] == 13), scenes[-1])
     scale = scale_test(lib, 500 if args.quick else 3500, big / "train", work)
-    print(write_report(rows, grid_rows, scale, build, args.quick))
+    print(write_report(rows, grid_rows, scale, build, args.quick, machine))
 
 
 if __name__ == "__main__":

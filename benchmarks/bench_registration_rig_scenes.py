@@ -20,7 +20,9 @@ prior): the previous part is the true one turned by a random yaw about the conve
 shifted by up to a third of the object's size on the conveyor; median seconds per capture.
 
 Writes benchmarks/results/registration_rig_scenes.md (and _known.md with --known), rewritten after
-every run; runs are cached in --work/runs.jsonl, so an interrupted sweep resumes (--fresh forgets).
+every run; runs are cached in --work/runs.jsonl, so an interrupted sweep resumes (--fresh forgets). Each run
+keeps the speed anchor's step read at the start of the invocation that timed it (`benchmarks._common.machine_reading`),
+and every time in the tables stands beside its ratio to that reading (`x anchor`; '-' for runs cached before).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from benchmarks._common import RESULTS, SHARED
+from benchmarks._common import RESULTS, SHARED, MachineReading, machine_reading, x_anchor
 from calibration.capture import read_capture
 from calibration.sim3 import Sim3
 from calibration.so3 import axis_angle_to_matrix
@@ -117,6 +119,7 @@ def main() -> int:
         names = [n for n in names if n in args.scenes.split(",")]
     scales = [float(s) for s in args.scales.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
+    machine = machine_reading()
     pts_cache: dict[str, np.ndarray] = {}
 
     def model_pts(mid: str) -> np.ndarray:
@@ -149,6 +152,7 @@ def main() -> int:
         return scenes[name]
 
     def record(row: dict, into: list) -> None:
+        row["anchor_ms"] = machine.anchor_ms
         into.append(row)
         with cache.open("a") as f:
             f.write(json.dumps(row) + "\n")
@@ -175,7 +179,7 @@ def main() -> int:
                     {"scene": name, "trial": trial, "seconds": secs, "cpu_seconds": cpu, "iou": res.score, "load": os.getloadavg()[0], **e},
                     known_rows,
                 )
-        write_known(known_rows, args.out / "registration_rig_scenes_known.md")
+        write_known(known_rows, machine, args.out / "registration_rig_scenes_known.md")
     for k in [] if args.known_only else scales:
         for name in names:
             if any(r["scene"] == name and r["k"] == k for r in rows):
@@ -202,7 +206,7 @@ def main() -> int:
             }
             row["ok"] = bool(row["surface_pct"] < PASS_PCT)
             record(row, rows)
-            write_table(rows, args.out / "registration_rig_scenes.md")
+            write_table(rows, machine, args.out / "registration_rig_scenes.md")
     return 0
 
 
@@ -210,20 +214,33 @@ def load_line() -> str:
     return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def write_table(rows: list[dict], path: Path) -> None:
+def ratio(rows: list[dict], key: str, reduce=np.median) -> str:
+    """`reduce` over the runs of each run's `key` seconds over the anchor step read in the invocation that timed it."""
+    ratios = [r[key] / r["anchor_ms"] for r in rows if r.get("anchor_ms")]
+    return x_anchor(float(reduce(ratios)), 1.0) if ratios else "-"
+
+
+def anchor_note(machine: MachineReading) -> str:
+    return (
+        f"{machine.header()} Cached runs keep the reading of the invocation that timed them, and each `x anchor` is a run's "
+        "time over its own reading ('-' for runs cached before the anchor was recorded)."
+    )
+
+
+def write_table(rows: list[dict], machine: MachineReading, path: Path) -> None:
     ks = sorted({r["k"] for r in rows}, key=lambda k: (k != 1, k))
     lines = [
         "# Registration on rig_scenes at any rig scale (issue 17)",
         "",
-        "`python -m benchmarks.bench_registration_rig_scenes` (" + load_line() + " at the end of the run; 2 shared cores).",
+        "`python -m benchmarks.bench_registration_rig_scenes` (" + load_line() + " at the end of the run). " + anchor_note(machine),
         f"k = rig-frame scale factor (1: the metric rig, `units: m`, scale band ±10 %; others: no units, scale searched). "
         f"ADD-S and model surface in % of the bounding-sphere diameter (module docstring); pass = the chosen model's surface, placed, "
         f"within {PASS_PCT:g} % (for the right model that is its ADD-S; for another model ADD-S is undefined, shown in brackets). "
         "part/CAD: the measured size of the part over its CAD model's (metric rig only). Pose tie: a distinct pose within the "
         "ambiguity gap, and what decided it. Model ties: other models within the gap.",
         "",
-        "| scene | k | model | right | ADD-S % | surface % | scale/true | part/CAD | IoU | pose tie | model ties | s | pass |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | k | model | right | ADD-S % | surface % | scale/true | part/CAD | IoU | pose tie | model ties | s | x anchor | pass |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["scene"], ks.index(r["k"]))):
         add_s = f"{r['add_s_pct']:.2f}" if r["right_model"] else f"({r['add_s_pct']:.1f})"
@@ -232,32 +249,35 @@ def write_table(rows: list[dict], path: Path) -> None:
         lines.append(
             f"| {r['scene']} | {r['k']:g} | {r['model']} | {'yes' if r['right_model'] else 'no'} | {add_s} | "
             f"{r['surface_pct']:.2f} | {r['scale_ratio']:.4f} | {part} | {r['iou']:.3f} | {tie} | {', '.join(r['model_ties'])} | "
-            f"{r['seconds']:.1f} | {'yes' if r['ok'] else '**no**'} |"
+            f"{r['seconds']:.1f} | {ratio([r], 'seconds')} | {'yes' if r['ok'] else '**no**'} |"
         )
-    lines += ["", "| k | pass | right model | median surface % | max surface % | median s |", "|---|---|---|---|---|---|"]
+    lines += ["", "| k | pass | right model | median surface % | max surface % | median s | x anchor |", "|---|---|---|---|---|---|---|"]
     for k in ks:
         sub = [r for r in rows if r["k"] == k]
         a = np.array([r["surface_pct"] for r in sub])
         lines.append(
             f"| {k:g} | {sum(r['ok'] for r in sub)}/{len(sub)} | {sum(r['right_model'] for r in sub)}/{len(sub)} | "
-            f"{np.median(a):.2f} | {a.max():.2f} | {np.median([r['seconds'] for r in sub]):.1f} |"
+            f"{np.median(a):.2f} | {a.max():.2f} | {np.median([r['seconds'] for r in sub]):.1f} | {ratio(sub, 'seconds')} |"
         )
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")
 
 
-def write_known(rows: list[dict], path: Path) -> None:
+def write_known(rows: list[dict], machine: MachineReading, path: Path) -> None:
     lines = [
         "# Known-part registration on rig_scenes (issue 17)",
         "",
-        "`python -m benchmarks.bench_registration_rig_scenes --known-only` (" + load_line() + " at the end of the run; 2 shared cores).",
+        "`python -m benchmarks.bench_registration_rig_scenes --known-only` ("
+        + load_line()
+        + " at the end of the run). "
+        + anchor_note(machine),
         "The model id is given; the prior is the previous part's pose (the true pose turned by a random yaw about the conveyor "
         "normal and shifted by up to a third of the object's size on the conveyor). Metric rig.",
         "",
         "Wall seconds per capture, and CPU seconds of the process (the wall time on an idle core; the machine is shared: "
         f"median 1-minute load during these runs {np.median([r.get('load', np.nan) for r in rows]):.1f} on 2 cores, this process at nice {os.nice(0)}).",
         "",
-        "| scene | captures | median s | max s | median CPU s | median ADD-S % | max ADD-S % | pass (< 3 %) |",
+        "| scene | captures | median s (x anchor) | max s (x anchor) | median CPU s (x anchor) | median ADD-S % | max ADD-S % | pass (< 3 %) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name in sorted({r["scene"] for r in rows}):
@@ -266,13 +286,15 @@ def write_known(rows: list[dict], path: Path) -> None:
         a = np.array([r["add_s_pct"] for r in sub])
         cpu = np.median([r["cpu_seconds"] for r in sub])
         lines.append(
-            f"| {name} | {len(sub)} | {np.median(s):.3f} | {s.max():.3f} | {cpu:.3f} | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(sub)} |"
+            f"| {name} | {len(sub)} | {np.median(s):.3f} ({ratio(sub, 'seconds')}) | {s.max():.3f} ({ratio(sub, 'seconds', np.max)}) | "
+            f"{cpu:.3f} ({ratio(sub, 'cpu_seconds')}) | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(sub)} |"
         )
     s = np.array([r["seconds"] for r in rows])
     a = np.array([r["add_s_pct"] for r in rows])
     cpu = np.median([r["cpu_seconds"] for r in rows])
     lines.append(
-        f"| **all** | {len(rows)} | **{np.median(s):.3f}** | {s.max():.3f} | **{cpu:.3f}** | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(rows)} |"
+        f"| **all** | {len(rows)} | **{np.median(s):.3f}** ({ratio(rows, 'seconds')}) | {s.max():.3f} ({ratio(rows, 'seconds', np.max)}) | "
+        f"**{cpu:.3f}** ({ratio(rows, 'cpu_seconds')}) | {np.median(a):.2f} | {a.max():.2f} | {int((a < PASS_PCT).sum())}/{len(rows)} |"
     )
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")

@@ -5,8 +5,9 @@ frames, same density, same initial poses, collision at a tighter 5 % tolerance) 
 
 Reported: collision geometry of each body, the rest pose of each body (position and rotation
 differences twin vs true), the contact points at rest (count, per body pair, and the distance from
-each twin contact to the nearest true contact), wall times. Also the exploded view of the six-solid
-CAD counter (parts from connected components).
+each twin contact to the nearest true contact), wall times, each beside its ratio to the speed anchor's
+step read at the start of the run (`x anchor`; `benchmarks._common.machine_reading`, its ms, CPU and load
+stated above the tables). Also the exploded view of the six-solid CAD counter (parts from connected components).
 
     python -m benchmarks.bench_simulation_demo [--twins ../twins_base] [--duration 1.5]
 
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import REPO, RESULTS, SHARED, load_line
+from benchmarks._common import REPO, RESULTS, SHARED, MachineReading, machine_reading
 from calibration.camera import Camera, look_at_c2w
 from calibration.fileio import atomic_write_png
 from calibration.so3 import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
@@ -99,7 +100,34 @@ def contact_summary(contacts: list, pair: tuple[str, str]) -> np.ndarray:
     return np.array([c[2] for c in contacts if (c[0], c[1]) == pair]).reshape(-1, 3)
 
 
-def drop_demo(twins: Path, duration: float, fps: float, decomposition: DecompositionOptions) -> str:
+def collision_table(bodies_by_run: dict[str, list], machine: MachineReading) -> list[str]:
+    """Markdown rows of each body's collision geometry per run ('twin', 'true'), its seconds beside their x anchor."""
+    lines = [
+        "| body | run | mass kg | collision | shapes | vol. err | Hausdorff mm | collision s | x anchor |",
+        "|---|---|---:|---|---:|---:|---:|---:|---:|",
+    ]
+    for run_name, bodies in bodies_by_run.items():
+        for b in bodies:
+            c = b.collision
+            lines.append(
+                f"| {b.asset.name} | {run_name} | {b.asset.mass.mass:.4f} | {c.kind} | {c.hull_count + len(c.primitives)} "
+                f"| {100 * c.volume_error:+.1f}% | {1e3 * c.hausdorff:.2f} | {c.seconds:.0f} | {machine.x_anchor(c.seconds)} |"
+            )
+    return lines
+
+
+def wall_time_line(seconds: dict[str, float], frames: int, splats: int, machine: MachineReading) -> str:
+    """The demo's wall times (keys prep_twin, prep_true, sim_twin, sim_true, render), each with its x anchor."""
+    x = {k: machine.x_anchor(v) for k, v in seconds.items()}
+    return (
+        f"Wall time (x anchor): twin bodies {seconds['prep_twin']:.0f} s ({x['prep_twin']}; repair, mass, CoACD), true bodies "
+        f"{seconds['prep_true']:.0f} s ({x['prep_true']}); simulation {seconds['sim_twin']:.1f} s ({x['sim_twin']}, twin) / "
+        f"{seconds['sim_true']:.1f} s ({x['sim_true']}, true); Gaussian renders {seconds['render']:.0f} s ({x['render']}) for "
+        f"{frames} frames ({splats} splats)."
+    )
+
+
+def drop_demo(twins: Path, duration: float, fps: float, decomposition: DecompositionOptions, machine: MachineReading) -> str:
     from scipy.spatial import cKDTree
 
     gt = {n: SHARED / "rig_scenes" / "scenes" / n / "gt_mesh.ply" for n in (CLAMP, SCREWDRIVER)}
@@ -128,17 +156,9 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
         "# Physics demo: the screwdriver twin dropped onto the clamp twin, against the same drop with the true meshes\n",
         f"Twins from the engine's rig_scenes run; true meshes = rig_scenes gt_mesh.ply (same object frames). ABS density, "
         f"{DROP_HEIGHT * 100:.0f} cm drop, screwdriver turned 35 deg and tilted 8 deg over the clamp's centre, {duration:g} s at 1 ms steps, "
-        f"MuJoCo {__import__('mujoco').__version__}. Load: {load_line()}.\n",
-        "| body | run | mass kg | collision | shapes | vol. err | Hausdorff mm | collision s |",
-        "|---|---|---:|---|---:|---:|---:|---:|",
+        f"MuJoCo {__import__('mujoco').__version__}. {machine.header()}\n",
+        *collision_table({"twin": bodies_t, "true": bodies_r}, machine),
     ]
-    for run_name, bodies in (("twin", bodies_t), ("true", bodies_r)):
-        for b in bodies:
-            c = b.collision
-            lines.append(
-                f"| {b.asset.name} | {run_name} | {b.asset.mass.mass:.4f} | {c.kind} | {c.hull_count + len(c.primitives)} "
-                f"| {100 * c.volume_error:+.1f}% | {1e3 * c.hausdorff:.2f} | {c.seconds:.0f} |"
-            )
     lines += [
         "",
         f"Rest pose (last frame; body origin = object-frame origin) and contacts at rest; final kinetic energy "
@@ -164,9 +184,12 @@ def drop_demo(twins: Path, duration: float, fps: float, decomposition: Decomposi
         lines.append(f"| {pair[0]} - {pair[1]} | {len(a)} | {len(b)} | {near} |")
     lines += [
         "",
-        f"Wall time: twin bodies {prep_t:.0f} s (repair, mass, CoACD), true bodies {prep_r:.0f} s; "
-        f"simulation {sim_t:.1f} s (twin) / {sim_r:.1f} s (true); Gaussian renders {render_s:.0f} s for {len(frames)} frames "
-        f"({sum(len(s) for s in splats_t)} splats).",
+        wall_time_line(
+            {"prep_twin": prep_t, "prep_true": prep_r, "sim_twin": sim_t, "sim_true": sim_r, "render": render_s},
+            len(frames),
+            sum(len(s) for s in splats_t),
+            machine,
+        ),
         "",
         "![first](frame_first.png) ![last](frame_last.png) ![contacts](contacts.png)",
     ]
@@ -221,10 +244,12 @@ def main() -> None:
     if missing:
         raise SystemExit(f"no twin of {', '.join(missing)} in {args.twins}")
     OUT.mkdir(parents=True, exist_ok=True)
-    report = drop_demo(args.twins, args.duration, args.fps, DecompositionOptions(timeout_s=args.coacd_timeout))
+    machine = machine_reading()
+    report = drop_demo(args.twins, args.duration, args.fps, DecompositionOptions(timeout_s=args.coacd_timeout), machine)
     (OUT / "drop.md").write_text(report)
     print(report)
-    print(f"exploded view of counter: {exploded_counter():.1f} s")
+    exploded_s = exploded_counter()
+    print(f"exploded view of counter: {exploded_s:.1f} s ({machine.x_anchor(exploded_s)} the anchor)")
 
 
 if __name__ == "__main__":

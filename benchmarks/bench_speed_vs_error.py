@@ -1,6 +1,6 @@
 """Speed against error (issue 6): the method's presets, its ablations and the baselines, one harness.
 
-    python -m benchmarks.bench_speed_vs_error [--quick] [--work DIR] [--scenes N] [--refine-steps N]
+    python -m benchmarks.bench_speed_vs_error [--quick] [--work DIR] [--scenes N] [--refine-steps N] [--out FILE.md]
 
 Scenes: the synthetic rig (rig.synthetic, MuJoCo) photographs real YCB meshes from ../shared/data
 (9-13 train views, 320x240, 0.3 deg / 2 mm calibration noise, 36 held-out orbit views). The CAD
@@ -23,8 +23,10 @@ most.
 
 Every run's twin is scored by `reconstruction.evaluation` (the paper's protocol) on evenly spread
 held-out views. Each run's metrics are cached as JSON under the work directory, so an interrupted
-sweep resumes where it stopped. Writes benchmarks/results/speed_vs_error.md and
-speed_vs_error_time.png / speed_vs_error_views.png.
+sweep resumes where it stopped. Each run reads the speed anchor's step just before it trains
+(`benchmarks._common.machine_reading`) and caches it with its train time; the table's `x anchor` is the median over
+a row's runs of one over the other. Writes benchmarks/results/speed_vs_error.md (or --out) and
+speed_vs_error_time.png / speed_vs_error_views.png beside it.
 
 Ablations and the sphere init are the engine's own switches (`reconstruct(init=..., ablations=...)`,
 `cadsplat reconstruct --init sphere --ablate NAME`).
@@ -41,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, decimate, deform, engine_kwargs
+from benchmarks._common import RESULTS, SHARED, cpu_line, decimate, deform, engine_kwargs, load_line, machine_reading, median_x_anchor
 
 YCB = SHARED / "objects" / "ycb"
 OBJECTS = (
@@ -153,6 +155,7 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
     centres = np.stack([f.camera.c2w[:3, 3] for f in train.frames])
     idx = list(range(len(train))) if run.views == "all" else fps_views(centres, int(run.views), seed=args.seed)
     twin_dir = work / "twins" / run.key
+    anchor_ms = machine_reading().anchor_ms
     engine: dict = {}  # the baseline is trained here; run_protocol then scores its twin (reuse)
     if run.method == "vanilla-3dgs":
         if not (twin_dir / "twin.json").exists():
@@ -188,6 +191,7 @@ def run_one(run: Run, scene_dir: Path, work: Path, args) -> dict:
         "heldout_views": result.heldout_views,
         "refine_steps": args.refine_steps,
         "train_wall_s": result.timings_s["reconstruct"],
+        "anchor_ms": anchor_ms,
         "num_splats": result.twin.num_splats,
         "mean": result.mean,
         "mean_refined": result.mean_refined,
@@ -209,12 +213,19 @@ def _mean(docs: list[dict], key: str, refined: bool) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _anchor_span(docs: list[dict]) -> str:
+    """'readings 1380-1520 ms': the range of the anchor steps the runs read, or a note that none did."""
+    anchors = [d["anchor_ms"] for d in docs if d.get("anchor_ms")]
+    return f"readings {min(anchors):.0f}-{max(anchors):.0f} ms" if anchors else "no run read one"
+
+
 def _registration(doc: dict) -> dict:
     """The run's registration medians modulo near-symmetries when recorded, else the raw ones."""
     return doc.get("registration_near_symmetric") or doc["registration"]
 
 
 def write_report(docs: list[dict], args, wall: float) -> str:
+    """The markdown table (written to `args.out`) and the two plots beside it, from the cached runs `docs`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -231,7 +242,10 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         f"{'--quick: ' if args.quick else ''}{len({d['run']['scene'] for d in docs})} synthetic rig scenes (YCB meshes, 320x240, "
         f"0.3 deg / 2 mm calibration noise, deformed+decimated CAD), {args.heldout_views} held-out views each, metrics "
         f"{'after ' + str(args.refine_steps) + ' test-time refinement steps' if refined else 'at the nominal poses (no refinement)'}; "
-        f"train wall time on this machine's 2 shared CPU cores (load from other jobs inflates it). "
+        f"train wall time on this machine's shared CPU ({cpu_line()}; {load_line()} when this table was written; load "
+        "from other jobs inflates it); `x anchor`: the median over a row's runs of each train time over the speed anchor's "
+        "step read just before that run trained (`reconstruction.render.anchor`: one forward+backward of the tiled "
+        f"pure-PyTorch rasterizer, 20k splats at 256²; {_anchor_span(docs)}; '-' for runs cached before the anchor was recorded). "
         + (f"Sweep wall time {wall / 60:.1f} min." if wall else "Rewritten from the cached runs (--report-only).")
         + " Rows appear as their runs finish: a row with fewer scenes is a sweep that was stopped.",
         "",
@@ -241,8 +255,8 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         "over scenes), modulo the photographed mesh's near-symmetries (turns moving its surface by less than the 2 mm "
         "calibration noise, `reconstruction.symmetry`) where the run recorded them, marked *; raw otherwise.",
         "",
-        "| method | preset | views | scenes | train s | splats | PSNR | SSIM | LPIPS | mPSNR | mLPIPS | fgPSNR | IoU | fgPSNR no ref. | IoU no ref. | Δ fgPSNR | Δ IoU | rot deg | ctr % |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| method | preset | views | scenes | train s | x anchor | splats | PSNR | SSIM | LPIPS | mPSNR | mLPIPS | fgPSNR | IoU | fgPSNR no ref. | IoU no ref. | Δ fgPSNR | Δ IoU | rot deg | ctr % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     order = {"full": 0, "no-mask-warmup": 1, "no-deformation": 2, "no-pose": 3, "no-sh-smoothness": 4, "sphere-init": 5, "vanilla-3dgs": 6}
     vorder = {v: i for i, v in enumerate(map(str, VIEW_COUNTS))}
@@ -266,6 +280,7 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         delta = ["-", "-"] if (method, preset) == ("full", "cpu") else [paired(ds, views, k) for k in ("fgpsnr", "iou")]
         lines.append(
             f"| {method} | {preset} | {views} | {len(ds)} | {np.mean([d['train_wall_s'] for d in ds]):.0f} | "
+            f"{median_x_anchor([(d['train_wall_s'], d.get('anchor_ms')) for d in ds])} | "
             f"{int(np.mean([d['num_splats'] for d in ds]))} | " + " | ".join(cells + delta) + f" | {rot} | {ctr} |"
         )
     scenes = sorted({d["run"]["scene"] for d in docs})
@@ -295,7 +310,8 @@ def write_report(docs: list[dict], args, wall: float) -> str:
             rot = f", {_registration(d)['rotation_deg_median']:.1f}°{star}" if d.get("registration") and m in CAD_FRAME_METHODS else ""
             cells.append(f"{metric(d, 'fgpsnr'):.2f} / {metric(d, 'iou'):.3f}{rot}")
         lines.append(f"| {sc} | " + " | ".join(cells) + " |")
-    lines += ["", "![wall time vs quality](speed_vs_error_time.png)", "", "![quality vs views](speed_vs_error_views.png)", ""]
+    time_png, views_png = args.out.with_name(f"{args.out.stem}_time.png"), args.out.with_name(f"{args.out.stem}_views.png")
+    lines += ["", f"![wall time vs quality]({time_png.name})", "", f"![quality vs views]({views_png.name})", ""]
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for ax, key, label in zip(axes, ("fgpsnr", "mlpips", "iou"), ("fgPSNR (dB) ↑", "mLPIPS ↓", "IoU ↑")):
@@ -311,7 +327,8 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         ax.grid(alpha=0.3)
     fig.suptitle("All training views: one point per method x preset (mean over scenes)")
     fig.tight_layout()
-    fig.savefig(RESULTS / "speed_vs_error_time.png", dpi=110)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(time_png, dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -328,10 +345,10 @@ def write_report(docs: list[dict], args, wall: float) -> str:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(RESULTS / "speed_vs_error_views.png", dpi=110)
+    fig.savefig(views_png, dpi=110)
     plt.close(fig)
     text = "\n".join(lines)
-    (RESULTS / "speed_vs_error.md").write_text(text)
+    args.out.write_text(text)
     return text
 
 
@@ -352,6 +369,7 @@ def main() -> None:
     ap.add_argument("--refine-steps", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--report-only", action="store_true", help="rewrite the table and plots from the runs cached in --work")
+    ap.add_argument("--out", type=Path, default=RESULTS / "speed_vs_error.md", help="the table; its two plots are written beside it")
     ap.add_argument(
         "--few", type=int, default=None, help="scenes for the sphere and extra-ablation rows (default: 2 on a CPU, all on CUDA)"
     )

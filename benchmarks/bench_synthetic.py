@@ -1,9 +1,11 @@
 """Synthetic rig speed: render time per view against image size (flat background vs backdrop), and
-the wall time of a full `synth_dataset` (9 train + 36 held-out views).
+the wall time of a full `synth_dataset` (9 train + 36 held-out views). Every time is followed by its ratio to
+the speed anchor's step read at the start of the run (`x anchor`; `benchmarks._common.machine_reading`, whose
+ms, CPU and load head the tables).
 
-    python -m benchmarks.bench_synthetic [--mesh PATH]
+    python -m benchmarks.bench_synthetic [--mesh PATH] [--out DIR]
 
-Prints markdown tables; writes benchmarks/results/synthetic.md and synthetic_render.png.
+Prints markdown tables; writes benchmarks/results/synthetic.md and synthetic_render.png (or into --out).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import REPO, RESULTS
+from benchmarks._common import REPO, RESULTS, machine_reading
 from rig.synthetic import SyntheticScene, load_textured_mesh, ring_rig, synth_dataset
 
 SIZES = [(160, 120), (320, 240), (640, 480), (1280, 960)]
@@ -41,6 +43,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    machine = machine_reading()
+    x = machine.x_anchor
 
     t = time.perf_counter()
     mesh = load_textured_mesh(args.mesh)
@@ -58,21 +62,24 @@ def main() -> int:
         synth_s = time.perf_counter() - t
 
     lines = [
-        f"Mesh: {args.mesh.name} ({len(mesh.faces)} faces, texture {mesh.texture.shape[1]}x{mesh.texture.shape[0]}), load {load_s:.2f} s. "
-        "MuJoCo renderer, EGL (Mesa llvmpipe, CPU), machine shared with other jobs.",
+        f"Mesh: {args.mesh.name} ({len(mesh.faces)} faces, texture {mesh.texture.shape[1]}x{mesh.texture.shape[0]}), load {load_s:.2f} s ({x(load_s)}). "
+        f"MuJoCo renderer, EGL (Mesa llvmpipe, CPU), machine shared with other jobs. {machine.header()} "
+        "Each time is followed by its `x anchor` in brackets.",
         "",
         "| background | scene build (s) | " + " | ".join(f"{w}x{h} ms/view" for w, h in SIZES) + " |",
         "|---|---|" + "---|" * len(SIZES),
     ]
     for backdrop, (build_s, times) in rows.items():
         lines.append(
-            f"| {'backdrop + shadows' if backdrop else 'flat'} | {build_s:.2f} | " + " | ".join(f"{1e3 * t:.0f}" for t in times) + " |"
+            f"| {'backdrop + shadows' if backdrop else 'flat'} | {build_s:.2f} ({x(build_s)}) | "
+            + " | ".join(f"{1e3 * t:.0f} ({x(t)})" for t in times)
+            + " |"
         )
     lines += [
         "",
         "| synth_dataset | views | wall (s) | s/view incl. backgrounds + PNG writes |",
         "|---|---|---|---|",
-        f"| 320x240, flat | 9 + 36 | {synth_s:.1f} | {synth_s / 45:.2f} |",
+        f"| 320x240, flat | 9 + 36 | {synth_s:.1f} ({x(synth_s)}) | {synth_s / 45:.2f} ({x(synth_s / 45)}) |",
     ]
     text = "\n".join(lines)
     print(text)

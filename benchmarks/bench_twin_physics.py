@@ -9,7 +9,9 @@ one per scene name), at one density (ABS, 1050 kg/m^3; every ratio below is dens
   its area is the volume the reconstruction's geometry alone accounts for;
 - mass and principal inertia MuJoCo computes from the exported MJCF (`inertia="exact"`) against
   density x the true mesh, and against the twin's own repaired mesh (what the exporter can be held to);
-- the collision geometry: kind, hulls, volume error, Hausdorff to the twin surface, seconds;
+- the collision geometry: kind, hulls, volume error, Hausdorff to the twin surface, seconds and their ratio
+  to the speed anchor's step read at the start of the run (`x anchor`; `benchmarks._common.machine_reading`,
+  its ms, CPU and load in the header);
 - the GLB export in the Khronos glTF validator (errors; "n/a" when it is not installed — set
   CADSPLAT_GLTF_VALIDATOR to a directory holding node_modules/gltf-validator; `make env` installs it), and the USD export
   read back by pxr (`check_usd`) with its mass against MuJoCo's.
@@ -39,7 +41,7 @@ import trimesh
 from pxr import Usd, UsdPhysics
 from scipy.spatial.transform import Rotation
 
-from benchmarks._common import REPO, RESULTS, SHARED, gltf_validator, load_line
+from benchmarks._common import REPO, RESULTS, SHARED, MachineReading, gltf_validator, load_line, machine_reading
 from reconstruction.mesh_io import read_mesh_parts
 from simulation.asset import repair_mesh
 from simulation.collision import DecompositionOptions
@@ -196,11 +198,12 @@ def pct(x: float) -> str:
     return "n/a" if not np.isfinite(x) else f"{100 * x:+.1f}%"
 
 
-def render_table(rows: list[dict], load: str) -> str:
+def render_table(rows: list[dict], machine: MachineReading, load_at_end: str) -> str:
     head = (
         "# Twins as simulation bodies: mass, inertia and contact geometry against the truth\n\n"
         f"rig_scenes twins (cadsplat twin directories), exported with `simulation.export.twin_body` at 1050 kg/m^3; "
-        f'mass and principal inertia as MuJoCo computes them from the MJCF (`inertia="exact"`). Load: {load}.\n\n'
+        f'mass and principal inertia as MuJoCo computes them from the MJCF (`inertia="exact"`). '
+        f"{machine.header()} {load_at_end}.\n\n"
         "## Where the volume goes\n\n"
         "Each step's enclosed volume against the true one (gt_mesh.ply). *CAD*: the twin's mesh_cad.glb after repair; "
         "*deformed*: mesh_deformed.glb as saved (signed volume of the welded mesh), then after `repair_mesh`; *MJCF*: MuJoCo's mass / density. "
@@ -223,13 +226,13 @@ def render_table(rows: list[dict], load: str) -> str:
         "- *vs twin*: against the twin's own repaired mesh: what the exporter computes (exactness of the physics export).\n"
         "- collision: chosen at 10 % volume tolerance; Hausdorff between the collision set's surface and the twin mesh's.\n\n"
         "| scene | exact loads | mass vs true | inertia vs true | gyration vs true | mass vs twin | inertia vs twin "
-        "| collision | hulls | coll. vol err | Hausdorff mm | coll. s | GLB validator | USD mass vs MJCF | repair |\n"
-        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---|---:|---|\n"
+        "| collision | hulls | coll. vol err | Hausdorff mm | coll. s | x anchor | GLB validator | USD mass vs MJCF | repair |\n"
+        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---|---:|---|\n"
     )
     lines = [
         f"| {r['scene']} | {r['exact_loads']} | {pct(r['mass_vs_true'])} | {pct(r['inertia_vs_true'])} | {pct(r['gyration_vs_true'])} "
         f"| {pct(r['mass_vs_twin'])} | {pct(r['inertia_vs_twin'])} | {r['col_kind']} | {r['hulls']} | {pct(r['col_err'])} "
-        f"| {r['hausdorff_mm']:.2f} | {r['col_s']:.0f} | {r['gltf']} | {pct(r['usd_mass_vs_mjcf'])} | {r['repair']} |"
+        f"| {r['hausdorff_mm']:.2f} | {r['col_s']:.0f} | {machine.x_anchor(r['col_s'])} | {r['gltf']} | {pct(r['usd_mass_vs_mjcf'])} | {r['repair']} |"
         for r in rows
     ]
     return head + "\n".join(chain) + physics + "\n".join(lines) + "\n"
@@ -248,6 +251,7 @@ def main() -> None:
     scenes = [s for s in scenes if not args.only or s in args.only]
     if not scenes:
         raise SystemExit(f"no twins of rig_scenes scenes in {args.twins}")
+    machine = machine_reading()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in scenes:
@@ -259,7 +263,7 @@ def main() -> None:
                 flush=True,
             )
             # The table so far after every twin: a long run cut short still leaves its rows.
-            table = render_table(rows, f"{load_line()} after the last row")
+            table = render_table(rows, machine, f"{load_line()} after the last row")
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(table)
     print(table)
