@@ -99,6 +99,7 @@ class Appliance:
             calibration_uncertainty=self._calibration_uncertainty(),
             settings=settings,
             units=self.keeper.store.load().units,
+            up_rig=self.keeper.store.load().up_rig,
             backgrounds=dict(backgrounds or {}),
             spill=spill,
         )

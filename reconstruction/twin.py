@@ -315,6 +315,18 @@ def _twin_document(twin: Twin) -> dict:
     }
 
 
+def object_up(up_rig: dict, sim3_rig_to_object: Sim3) -> dict:
+    """A capture's rig-frame up (`up_rig`: {"vector" [3], "source", "detail"}, as its calibration measured it) in the
+    object frame of `sim3_rig_to_object`'s registration: the record `Twin.up_object` keeps, source and detail kept."""
+    v = sim3_rig_to_object.rotation @ np.asarray(up_rig["vector"], np.float64)
+    detail = up_rig.get("detail", "the capture's up_rig")
+    return {
+        "vector": [float(x) for x in v / np.linalg.norm(v)],
+        "source": str(up_rig.get("source", "calibration")),
+        "detail": f"{detail}, through the twin's registration",
+    }
+
+
 def splat_normals(quats: np.ndarray) -> np.ndarray:
     """Local z axis of each splat (the disk normal) [N, 3] from quats [N, 4] wxyz."""
     q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)

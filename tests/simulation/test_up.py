@@ -6,18 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calibration.board import board_up
 from reconstruction.mesh_io import Z_UP_TO_Y_UP
-from simulation.up import axis_vector, board_up, resolve_up, rotation_between, standing, usd_up_axis
+from simulation.up import axis_vector, resolve_up, rotation_between, standing, usd_up_axis
 
 
 def test_sources_in_order_twin_calibration_rig_toml_cad_then_default():
     turn = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # rig z -> object -y
-    assert (
-        resolve_up(
-            twin_up={"vector": [0, 2, 0], "source": "calibration"}, rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z"
-        ).source
-        == "twin"
-    )
+    up = resolve_up(twin_up={"vector": [0, 2, 0], "source": "calibration"}, rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z")
+    # The twin's record wins and keeps the source it was measured from.
+    assert up.source == "calibration" and up.vector == pytest.approx([0, 1, 0]) and "recorded in twin.json" in up.detail
     up = resolve_up(calibration_up=[0, 1, 0], rig_up=[0, 0, 1], rotation_rig_to_object=turn)
     assert up.source == "calibration" and up.vector == pytest.approx([0, 0, 1])
     up = resolve_up(rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z")
