@@ -361,10 +361,13 @@ def test_the_khr_glb_read_by_babylon_is_the_engine_render(tmp_path, chromium):
         return out[0].numpy(), a[0].numpy()
 
     with Serving(ViewServer(ViewRoots(twin.root, web=page, vendor=NODE_MODULES))) as server:
-        shots = {
-            q: chromium.screenshot(server.url(f"camera=0&frame={frame}{q}"), cam.width, cam.height)[0]
-            for q in ("", "&background=white", "&background=white&kernel=0.3")
-        }
+        shots, kernels = {}, {}
+        for q in ("", "&background=white", "&background=white&kernel=0.3"):
+            shots[q], kernels[q] = chromium.screenshot(
+                server.url(f"camera=0&frame={frame}{q}"), cam.width, cam.height, probe="window.cadsplatKernelSize"
+            )
+    # The page draws with 4 eps2d, the eps2d read from the GLB's extras.
+    assert kernels[""] == pytest.approx(4 * twin.gaussians.eps2d)
     want, want_alpha = engine(twin.gaussians)
     alpha = shots[""][..., 3] / 255.0
     assert iou(want_alpha > 0.5, alpha > 0.5) >= 0.95
