@@ -116,7 +116,7 @@ class Twin:
     config: dict = field(default_factory=dict)  # the whole resolved configuration (`presets.Preset.to_dict`)
     training: dict = field(default_factory=dict)  # seed, training views (capture indices), what the configuration was resolved from
     root: Path | None = None
-    up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source": what it was measured from}
+    up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source", "detail": what it was measured from}
 
     def __post_init__(self) -> None:
         g = self.gaussians
