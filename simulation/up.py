@@ -3,8 +3,8 @@
 The object frame is the CAD model's own, and CAD models are drawn z-up or y-up (or any way) as their
 makers chose, so no export may assume one. Up is, first that applies:
 
-- the twin's record (twin.json `up_object`), made by the reconstruction from the capture's up (the
-  calibration's, below), its source kept ("calibration") and said to be recorded in the twin;
+- the twin's record (twin.json `up_object`), made by the reconstruction from the up its capture carries
+  (`capture_up`: the calibration's, else rig.toml's, below), its source kept and said to be recorded in the twin;
 - "calibration": the rig's up measured by the calibration (`calibration.board.board_up`: its board lying
   face up on the conveyor), taken into the object frame by the twin's registration;
 - "rig.toml": rig.toml's `[simulation] up` (the rig frame's up, e.g. [0, 0, 1]), taken likewise;
@@ -56,6 +56,18 @@ def axis_vector(axis: str) -> np.ndarray:
     v = np.zeros(3)
     v[AXES[name]] = sign
     return v
+
+
+def capture_up(calibration_up: dict | None, rig_up=None) -> dict | None:
+    """The rig-frame up a capture carries to its twin (capture meta `up_rig`, {"vector" [3], "source", "detail"}):
+    the calibration's measurement `calibration_up` (calibfile `up_rig`), else rig.toml's `[simulation] up` `rig_up`
+    [3], else None. ValueError when `rig_up` is not a non-zero vector of 3 finite numbers."""
+    if calibration_up is not None:
+        return dict(calibration_up)
+    if rig_up is None:
+        return None
+    v = unit(rig_up, "rig.toml's simulation.up")
+    return {"vector": [float(x) for x in v], "source": "rig.toml", "detail": f"rig.toml's [simulation] up {list(map(float, rig_up))}"}
 
 
 def resolve_up(

@@ -96,12 +96,14 @@ def _opened(
         uncertainty, units, up_rig = None, "m", None
     else:
         from calibration.calibfile import CalibrationFileError, read_calibration
+        from simulation.up import capture_up
 
         try:
             calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
             calibration_doc = read_calibration(cfg.calibration) if cfg.calibration else None
-            units, up_rig = (calibration_doc.units, calibration_doc.up_rig) if calibration_doc else (None, None)
-        except CalibrationFileError as e:
+            units = calibration_doc.units if calibration_doc else None
+            up_rig = capture_up(calibration_doc.up_rig if calibration_doc else None, cfg.simulation.get("up"))
+        except (CalibrationFileError, ValueError) as e:
             raise click.ClickException(f"the rig does not start: {e}") from None
         cameras = build_cameras(cfg, calibration)
         store = build_store(cfg, root)

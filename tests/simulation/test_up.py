@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.board import board_up
 from reconstruction.mesh_io import Z_UP_TO_Y_UP
-from simulation.up import axis_vector, resolve_up, rotation_between, standing, usd_up_axis
+from simulation.up import axis_vector, capture_up, resolve_up, rotation_between, standing, usd_up_axis
 
 
 def test_sources_in_order_twin_calibration_rig_toml_cad_then_default():
@@ -51,3 +51,13 @@ def test_bad_axes_are_refused_in_a_sentence():
             axis_vector(bad)
     with pytest.raises(ValueError, match="non-zero"):
         resolve_up(twin_up={"vector": [0, 0, 0]})
+
+
+def test_a_capture_carries_the_calibrations_up_else_rig_tomls_else_none():
+    measured = {"vector": [0.0, 0.0, 1.0], "source": "calibration", "detail": "board frame 'conveyor' lying face up on the conveyor"}
+    assert capture_up(measured, [0, 1, 0]) == measured
+    up = capture_up(None, [0, 0, 2])
+    assert up["source"] == "rig.toml" and up["vector"] == [0.0, 0.0, 1.0]
+    assert capture_up(None, None) is None
+    with pytest.raises(ValueError, match="simulation.up"):
+        capture_up(None, [0, 0, 0])
