@@ -69,6 +69,17 @@ class BoardSpec:
         return np.concatenate([(ij + off) * self.square_m, np.zeros((len(ij), 1))], 1)
 
 
+def board_up(board_to_rig: np.ndarray) -> np.ndarray:
+    """Up [3] (unit, away from gravity) in the rig frame from the pose [4, 4] of a board lying printed face up on
+    the conveyor. The board's z axis (x along its rows, y down its columns, as `object_points`) points into the
+    board, so up is its -z."""
+    normal = np.asarray(board_to_rig, np.float64)[:3, 2]
+    length = float(np.linalg.norm(normal))
+    if not (np.isfinite(length) and length > 1e-12):
+        raise ValueError(f"a board pose without a finite rotation: {board_to_rig!r}")
+    return -normal / length
+
+
 def parse_board(spec: str) -> BoardSpec:
     """Parse 'chessboard:9x6:0.025' or 'charuco:5x7:0.04:0.02:DICT_6X6_250' into a BoardSpec."""
     parts = spec.strip().split(":")

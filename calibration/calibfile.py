@@ -8,6 +8,10 @@ Per camera: name, K (3x3), dist (OpenCV order), width, height, rms_px, c2r (came
 per_image_rms_px, coverage (fraction of an 8x8 image grid holding detected corners), uncertainty
 ({intrinsics_cv_px, extrinsics_cv_rotation_deg, extrinsics_cv_translation_mm}: differences
 between calibrations from two disjoint halves of the data), outlier_views, rejected_views.
+
+`up_rig` (when the calibration saw its board lying printed face up on the conveyor, in the frame named
+`conveyor` by default): {"vector": [3] unit rig-frame direction away from gravity, "source": "calibration",
+"detail": which frame it was measured in}. Captures taken under the calibration carry it to the twin.
 """
 
 from __future__ import annotations
@@ -20,12 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.board import board_up
 from calibration.camera import Camera
 from calibration.fileio import atomic_create_bytes, atomic_write_bytes, json_default
 from calibration.multiview import RigCalibration
 from calibration.units import UNIT_TO_M
 
 FORMAT = "cadsplat.calibration/1"
+# The board frame (image file name, matched across cameras) taken with the board lying face up on the conveyor.
+CONVEYOR_FRAME = "conveyor"
 
 
 class CalibrationFileError(ValueError):
@@ -84,6 +91,8 @@ class CalibrationDoc:
     # "m" when the rig frame is metric; None when its scale is unknown (an SfM calibration). A board
     # calibration measures the board's squares, so it is metric unless said otherwise.
     units: str | None = None
+    # The rig's up measured from the board lying on the conveyor ({"vector", "source", "detail"}); None when unmeasured.
+    up_rig: dict | None = None
 
     def __post_init__(self) -> None:
         if self.units is None and self.source == "board":
@@ -120,7 +129,24 @@ def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def from_rig(rig: RigCalibration, *, board: str | None, source: str = "board") -> CalibrationDoc:
+def conveyor_up(rig: RigCalibration, frame: str) -> dict:
+    """The rig's up (`up_rig`) from the board pose of frame `frame`, where the board lay face up on the conveyor;
+    CalibrationFileError when the calibration solved no board pose for that frame."""
+    if frame not in rig.board_to_rig:
+        raise CalibrationFileError(
+            f"no camera saw a usable board in frame '{frame}', the one said to show the board lying on the conveyor; "
+            "the rig's up is measured from it"
+        )
+    vector = board_up(rig.board_to_rig[frame])
+    return {"vector": [float(x) for x in vector], "source": "calibration", "detail": f"board frame '{frame}' lying face up on the conveyor"}
+
+
+def from_rig(rig: RigCalibration, *, board: str | None, source: str = "board", conveyor_frame: str | None = None) -> CalibrationDoc:
+    """The document of `rig`; its `up_rig` from `conveyor_frame` (which must have been solved), else from the frame
+    named CONVEYOR_FRAME when there is one, else none."""
+    if conveyor_frame is None and CONVEYOR_FRAME in rig.board_to_rig:
+        conveyor_frame = CONVEYOR_FRAME
+    up = conveyor_up(rig, conveyor_frame) if conveyor_frame is not None else None
     figures = {}
     for n in rig.cameras:
         cv = (rig.extrinsics_cv or {}).get(n, {})
@@ -136,7 +162,7 @@ def from_rig(rig: RigCalibration, *, board: str | None, source: str = "board") -
             "outlier_views": list(rig.outliers[n]),
             "rejected_views": rig.rejected[n],
         }
-    return CalibrationDoc(rig.cameras, figures, source, board, notes={"single_camera_frames": list(rig.single_camera_frames)})
+    return CalibrationDoc(rig.cameras, figures, source, board, notes={"single_camera_frames": list(rig.single_camera_frames)}, up_rig=up)
 
 
 def to_document(doc: CalibrationDoc) -> dict:
@@ -168,6 +194,8 @@ def to_document(doc: CalibrationDoc) -> dict:
     }
     if doc.fiducials is not None:
         out["fiducials"] = doc.fiducials
+    if doc.up_rig is not None:
+        out["up_rig"] = doc.up_rig
     if doc.units is not None:
         out["units"] = doc.units
         out["scale"] = f"metric: the rig frame is in {doc.units} (measured by the calibration)"
@@ -206,7 +234,22 @@ def from_document(d: dict, where: str = "calibration") -> CalibrationDoc:
         d.get("notes", {}),
         d.get("fiducials"),
         units,
+        _up_rig(d.get("up_rig"), where),
     )
+
+
+def _up_rig(value, where: str) -> dict | None:
+    """A document's `up_rig`, checked: a unit vector of 3 finite numbers and a source; None when absent."""
+    if value is None:
+        return None
+    vector = value.get("vector") if isinstance(value, dict) else None
+    try:
+        v = np.asarray(vector, np.float64)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or abs(float(np.linalg.norm(v)) - 1.0) > 1e-6:
+        raise CalibrationFileError(f"{where}: up_rig must hold a unit 'vector' of 3 finite numbers, got {value!r}")
+    return {**value, "vector": [float(x) for x in v], "source": str(value.get("source", "calibration"))}
 
 
 def read_calibration(path: str | os.PathLike) -> CalibrationDoc:

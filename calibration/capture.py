@@ -292,7 +292,7 @@ def read_capture(
 
 # The keys a reader of a capture uses, by the JSON type each must have; other keys are carried as they are.
 _NUMBER_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "camera_angle_x", "camera_angle_y")
-_META_TABLES = ("sha256", "background", "calibration_uncertainty", "camera_settings")
+_META_TABLES = ("sha256", "background", "calibration_uncertainty", "camera_settings", "up_rig")
 
 
 def check_document(doc, tf_path: Path) -> None:
@@ -359,6 +359,9 @@ def check_document(doc, tf_path: Path) -> None:
     for name, value in meta.get("camera_settings", {}).items():
         if not isinstance(value, dict):
             raise bad(f"cadsplat.camera_settings.{name}", "an object", value)
+    up = meta.get("up_rig", {}).get("vector", [0, 0, 1])
+    if not (isinstance(up, list) and len(up) == 3 and all(is_number(x) and math.isfinite(x) for x in up) and any(x != 0 for x in up)):
+        raise bad("cadsplat.up_rig.vector", "3 finite numbers, not all zero", up)
 
 
 def _inside(root: Path, rel: str, what: str) -> Path:

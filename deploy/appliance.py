@@ -63,6 +63,7 @@ class Appliance:
         from deploy.steps import make_step_runner
         from rig.acquisition import Acquisition, open_cameras
         from rig.camera import CameraSettings
+        from simulation.up import capture_up
 
         self.dir = Path(work_dir)
         self._own_dir = owns_dir
@@ -99,6 +100,7 @@ class Appliance:
             calibration_uncertainty=self._calibration_uncertainty(),
             settings=settings,
             units=self.keeper.store.load().units,
+            up_rig=capture_up(self.keeper.store.load().up_rig, (rig_config.simulation if rig_config else {}).get("up")),
             backgrounds=dict(backgrounds or {}),
             spill=spill,
         )
@@ -127,9 +129,11 @@ class Appliance:
         from rig.assembly import build_cameras, build_store, build_trigger, load_rig_calibration
         from rig.config import load_config
         from rig.store import Spill, default_spill_dir, lock_store
+        from simulation.asset import rig_simulation_table
 
         cfg = load_config(config_path)
         kiosk_pipeline_config(library_dir, preset, cfg, Path(config_path))  # a bad [registration] refuses here, before the rig opens
+        rig_simulation_table(config_path)  # and a bad [simulation] (its up goes into every capture)
         if cfg.calibration is None:
             raise ValueError(f'{config_path}: the kiosk needs the rig\'s calibration (set calibration = "calibration.json")')
         lock = lock_store(cfg.storage.root, "kiosk")  # one writer per store: a `rig watch` on it refuses the kiosk, and back

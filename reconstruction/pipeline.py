@@ -36,7 +36,7 @@ from reconstruction.registration import RegistrationConfig, RegistrationResult, 
 from reconstruction.splats import CanonicalSplats, init_splats, project_colors
 from reconstruction.surface import mask_overlap_offset, offset_along_normals, silhouette_surface, untangle
 from reconstruction.train import CheckpointStore, ProgressFn, SplatModel, TrainResult, Views, train
-from reconstruction.twin import Twin, TwinCamera, check_replaceable, save_twin, software_versions
+from reconstruction.twin import Twin, TwinCamera, check_replaceable, object_up, save_twin, software_versions
 from reconstruction.views import CaptureViews, capture_views
 
 Log = Callable[[str], None]
@@ -350,6 +350,8 @@ def reconstruct(
         config=config.to_dict(),
         training={"seed": seed, "views": list(views.indices), "inputs": None if inputs is None else asdict(inputs)},
     )
+    if "up_rig" in views.capture.meta:
+        twin.up_object = object_up(views.capture.meta["up_rig"], twin.sim3_rig_to_object)
     renders = {Path(c.file_path).name: straight_rgba(*render(twin.gaussians, *camera_batch(c.camera), background=None))[0] for c in cameras}
     deformed, twin.choices["surface"] = _deformed_surface(parts, model, twin.gaussians, [c.camera for c in cameras], views.masks)
     timings["export"] = time.perf_counter() - t

@@ -116,7 +116,7 @@ class Twin:
     config: dict = field(default_factory=dict)  # the whole resolved configuration (`presets.Preset.to_dict`)
     training: dict = field(default_factory=dict)  # seed, training views (capture indices), what the configuration was resolved from
     root: Path | None = None
-    up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source": what it was measured from}
+    up_object: dict | None = None  # {"vector": [3] unit, object frame, away from gravity; "source", "detail": what it was measured from}
 
     def __post_init__(self) -> None:
         g = self.gaussians
@@ -312,6 +312,18 @@ def _twin_document(twin: Twin) -> dict:
         "losses": twin.losses,
         "versions": twin.versions,
         **({"up_object": twin.up_object} if twin.up_object is not None else {}),
+    }
+
+
+def object_up(up_rig: dict, sim3_rig_to_object: Sim3) -> dict:
+    """A capture's rig-frame up (`up_rig`: {"vector" [3], "source", "detail"}, as its calibration measured it) in the
+    object frame of `sim3_rig_to_object`'s registration: the record `Twin.up_object` keeps, source and detail kept."""
+    v = sim3_rig_to_object.rotation @ np.asarray(up_rig["vector"], np.float64)
+    detail = up_rig.get("detail", "the capture's up_rig")
+    return {
+        "vector": [float(x) for x in v / np.linalg.norm(v)],
+        "source": str(up_rig.get("source", "calibration")),
+        "detail": f"{detail}, through the twin's registration",
     }
 
 

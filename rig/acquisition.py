@@ -156,6 +156,7 @@ class Acquisition:
     # The calibration's stated extrinsic uncertainty; the engine picks per-camera pose correction when it is large.
     calibration_uncertainty: dict | None = None
     units: str | None = None  # the calibration's, when metric: captures then state their scale
+    up_rig: dict | None = None  # the calibration's up (calibfile `up_rig`), when it measured one: captures carry it to the twin
     thresholds: Thresholds = field(default_factory=Thresholds)
     trigger_filter: TriggerFilter = field(default_factory=TriggerFilter)
     settings: CameraSettings | None = None
@@ -267,6 +268,8 @@ class Acquisition:
             meta["calibration_uncertainty"] = dict(self.calibration_uncertainty)
         if self.units is not None:
             meta["units"] = self.units
+        if self.up_rig is not None:
+            meta["up_rig"] = dict(self.up_rig)
         if self.backgrounds:
             meta["background_id"] = self.background_id or "unversioned"
         sizes = {c.camera_id: (c.camera.width, c.camera.height) for c in self.cameras}

@@ -81,6 +81,8 @@ class RigConfig:
     # [registration] as written: reconstruction.registration.RegistrationConfig.from_dict reads and checks it (the rig
     # itself never registers, and rig never imports reconstruction), so its keys and defaults live in one place.
     registration: dict = field(default_factory=dict)
+    # [simulation] as written, likewise: simulation.asset.rig_simulation_table checks it; captures carry its `up`.
+    simulation: dict = field(default_factory=dict)
     inspection: InspectionConfig | None = None
     max_image_pixels: int = MAX_IMAGE_PIXELS  # [limits]: no image declaring more is decoded (calibration.fileio)
 
@@ -124,6 +126,7 @@ def parse_config(doc: dict, *, base: Path = Path("."), name: str = "rig.toml") -
         thresholds=_thresholds(v, v.table(doc, "thresholds")),
         calibration=(base / calibration) if calibration else None,
         registration=dict(v.table(doc, "registration")),
+        simulation=dict(v.table(doc, "simulation")),
         inspection=_inspection(v, v.table(doc, "inspection")) if "inspection" in doc else None,
         max_image_pixels=max_image_pixels,
     )

@@ -254,7 +254,15 @@ def export_glb(
             raise TwinError(f"{twin.mesh_deformed_path}: the twin has no deformed mesh to export")
         p = twin.load_mesh_deformed()
         parts = MeshParts(p.vertices @ gltf_from_object[:3, :3].T, p.faces, p.face_part, p.part_names)
-    extras = {"up": up.to_dict(), "gltf_from_object": gltf_from_object.tolist(), "model_id": twin.model_id, "num_splats": twin.num_splats}
+    # eps2d: the screen-space dilation the splats were fitted with, which the extension has no field for and a viewer
+    # needs to draw them as trained (benchmarks/results/view_browser.md, Babylon's kernelSize).
+    extras = {
+        "up": up.to_dict(),
+        "gltf_from_object": gltf_from_object.tolist(),
+        "model_id": twin.model_id,
+        "num_splats": twin.num_splats,
+        "eps2d": twin.gaussians.eps2d,
+    }
     doc, blob = splats_gltf(twin.gaussians.transformed(gltf_from_object), parts, name=_body_name(Path(twin_dir)), extras=extras)
     return _write_atomic(glb_bytes(doc, blob), Path(out), "splats.glb")
 

@@ -16,7 +16,8 @@ kernel "ellipse", colorSpace "srgb_rec709_display" (the splats were fitted to sR
 Everything is written in glTF's frame, +Y up, the rotation from the object frame baked into the
 data (positions, orientations and SH turned together), because the extension only recommends that
 renderers turn SH with a node's rotation. The root node's `extras.cadsplat` records that rotation
-(`gltf_from_object`, [4, 4]) and where up came from.
+(`gltf_from_object`, [4, 4]), where up came from, and the screen-space dilation the splats were fitted with
+(`eps2d`, px^2), which the extension's kernel leaves out (a viewer adds it to draw them as trained).
 """
 
 from __future__ import annotations

@@ -3,9 +3,10 @@
 The object frame is the CAD model's own, and CAD models are drawn z-up or y-up (or any way) as their
 makers chose, so no export may assume one. Up is, first that applies:
 
-- "twin": recorded in the twin (twin.json `up_object`) by the reconstruction that knew it;
-- "calibration": the rig's up measured by the calibration (`board_up`: a board lying face-up on the
-  conveyor), taken into the object frame by the twin's registration;
+- the twin's record (twin.json `up_object`), made by the reconstruction from the up its capture carries
+  (`capture_up`: the calibration's, else rig.toml's, below), its source kept and said to be recorded in the twin;
+- "calibration": the rig's up measured by the calibration (`calibration.board.board_up`: its board lying
+  face up on the conveyor), taken into the object frame by the twin's registration;
 - "rig.toml": rig.toml's `[simulation] up` (the rig frame's up, e.g. [0, 0, 1]), taken likewise;
 - "cad": the CAD model's declared up axis (`[simulation] cad_up_axis`, or the `--cad-up-axis` flag:
   "+y", "z", "-x", ...);
@@ -25,8 +26,8 @@ AXES = {"x": 0, "y": 1, "z": 2}
 
 @dataclass(frozen=True)
 class Up:
-    """`vector` [3] unit, object frame, pointing away from gravity; `source` "twin", "rig.toml", "cad" or "default";
-    `detail` says in words what it was read from."""
+    """`vector` [3] unit, object frame, pointing away from gravity; `source` "calibration", "rig.toml", "cad" or
+    "default"; `detail` says in words what it was read from (and whether the twin recorded it)."""
 
     vector: np.ndarray
     source: str
@@ -57,10 +58,16 @@ def axis_vector(axis: str) -> np.ndarray:
     return v
 
 
-def board_up(board_to_rig: np.ndarray) -> np.ndarray:
-    """Up [3] in the rig frame from the pose [4, 4] of a calibration board lying face-up on the conveyor.
-    A board's z axis (OpenCV: x along its rows, y down its columns) points into the board, so up is -z."""
-    return -unit(np.asarray(board_to_rig, np.float64)[:3, 2], "the board's normal")
+def capture_up(calibration_up: dict | None, rig_up=None) -> dict | None:
+    """The rig-frame up a capture carries to its twin (capture meta `up_rig`, {"vector" [3], "source", "detail"}):
+    the calibration's measurement `calibration_up` (calibfile `up_rig`), else rig.toml's `[simulation] up` `rig_up`
+    [3], else None. ValueError when `rig_up` is not a non-zero vector of 3 finite numbers."""
+    if calibration_up is not None:
+        return dict(calibration_up)
+    if rig_up is None:
+        return None
+    v = unit(rig_up, "rig.toml's simulation.up")
+    return {"vector": [float(x) for x in v], "source": "rig.toml", "detail": f"rig.toml's [simulation] up {list(map(float, rig_up))}"}
 
 
 def resolve_up(
@@ -72,14 +79,19 @@ def resolve_up(
     cad_up_axis: str | None = None,
 ) -> Up:
     """The object frame's up by precedence (module docstring): the twin's record `twin_up`
-    ({"vector", "source"}), the calibration's rig-frame `calibration_up` [3], rig.toml's rig-frame
+    ({"vector", "source", "detail"}; its source kept), the calibration's rig-frame `calibration_up` [3], rig.toml's rig-frame
     `rig_up` [3] (both turned by `rotation_rig_to_object` [3, 3], the registration's rotation), the
     CAD model's declared `cad_up_axis`, else +z."""
     if twin_up is not None:
-        return Up(unit(twin_up["vector"], "the twin's up_object"), "twin", f"recorded in twin.json ({twin_up.get('source', 'unstated')})")
+        said = twin_up.get("detail") or twin_up.get("source") or "source unstated"
+        return Up(
+            unit(twin_up["vector"], "the twin's up_object"),
+            str(twin_up.get("source", "twin")),
+            f"recorded in twin.json by the reconstruction: {said}",
+        )
     if calibration_up is not None and rotation_rig_to_object is not None:
         up = np.asarray(rotation_rig_to_object, np.float64) @ unit(calibration_up, "the calibration's up")
-        return Up(unit(up), "calibration", "the calibration board lying on the conveyor, through the twin's registration")
+        return Up(unit(up), "calibration", "the calibration's board lying on the conveyor, through the twin's registration")
     if rig_up is not None and rotation_rig_to_object is not None:
         up = np.asarray(rotation_rig_to_object, np.float64) @ unit(rig_up, "rig.toml's simulation.up")
         return Up(

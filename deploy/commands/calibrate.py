@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from calibration.board import BoardSpecError, board_image_at_dpi, detect_board, parse_board, to_gray_u8
-from calibration.calibfile import CalibrationFileError, CalibrationStore, from_rig
+from calibration.calibfile import CONVEYOR_FRAME, CalibrationFileError, CalibrationStore, from_rig
 from calibration.capture import read_capture, read_image
 from calibration.drift import CHEAP, THOROUGH
 from calibration.fileio import atomic_write_bytes
@@ -86,8 +86,21 @@ def _image_folder(folder: Path) -> dict[str, Path]:
 )
 @click.option("--no-cross-validation", is_flag=True, help="skip the split-half uncertainty figures (faster)")
 @click.option("--force", is_flag=True, help="store a calibration that fails the quality gate (RMS, intrinsics, coverage), marked as forced")
+@click.option(
+    "--conveyor-frame",
+    default=None,
+    help=f"the frame (image name) showing the board lying face up on the conveyor: the rig's up is measured from it "
+    f"(default: the frame named '{CONVEYOR_FRAME}', when there is one)",
+)
 def board_cmd(
-    board: str, folders: tuple[Path, ...], names: str | None, out: Path, num_dist: str, no_cross_validation: bool, force: bool
+    board: str,
+    folders: tuple[Path, ...],
+    names: str | None,
+    out: Path,
+    num_dist: str,
+    no_cross_validation: bool,
+    force: bool,
+    conveyor_frame: str | None,
 ) -> None:
     """Calibrate intrinsics and rig extrinsics from board images."""
     spec = _spec(board)
@@ -111,11 +124,13 @@ def board_cmd(
     except CalibrationError as e:
         raise click.ClickException(str(e)) from None
     try:
-        doc = CalibrationStore(out).commit(from_rig(rig, board=str(spec)), force=force)
+        doc = CalibrationStore(out).commit(from_rig(rig, board=str(spec), conveyor_frame=conveyor_frame), force=force)
     except CalibrationFileError as e:
         raise click.ClickException(str(e)) from None
     forced = f"; FORCED past the quality gate: {'; '.join(doc.notes['forced'])}" if doc.notes.get("forced") else ""
     click.echo(f"{out}: version {doc.version} ({len(rig.cameras)} cameras, rig frame = camera '{rig.reference}'){forced}")
+    if doc.up_rig is not None:
+        click.echo(f"  up (rig frame): {', '.join(f'{x:+.3f}' for x in doc.up_rig['vector'])}, from the {doc.up_rig['detail']}")
     for n in rig.cameras:
         k = rig.cameras[n].K
         cv = rig.intrinsics_cv_px[n]

@@ -93,14 +93,17 @@ def _opened(
         cameras, synthetic = simulated_cameras(views, size[0], size[1], Path(mesh) if mesh else None)
         store = CaptureStore(root, min_free_bytes=int((1.0 if min_free_gb is None else min_free_gb) * 1e9))
         rig_id, calibration_id, thresholds, settings = "simulated", "synthetic-ring", Thresholds(), CameraSettings(size[0], size[1])
-        uncertainty, units = None, "m"
+        uncertainty, units, up_rig = None, "m", None
     else:
         from calibration.calibfile import CalibrationFileError, read_calibration
+        from simulation.up import capture_up
 
         try:
             calibration_id, calibration, uncertainty = load_rig_calibration(cfg.calibration)
-            units = read_calibration(cfg.calibration).units if cfg.calibration else None
-        except CalibrationFileError as e:
+            calibration_doc = read_calibration(cfg.calibration) if cfg.calibration else None
+            units = calibration_doc.units if calibration_doc else None
+            up_rig = capture_up(calibration_doc.up_rig if calibration_doc else None, cfg.simulation.get("up"))
+        except (CalibrationFileError, ValueError) as e:
             raise click.ClickException(f"the rig does not start: {e}") from None
         cameras = build_cameras(cfg, calibration)
         store = build_store(cfg, root)
@@ -130,6 +133,7 @@ def _opened(
         calibration_id=calibration_id,
         calibration_uncertainty=uncertainty,
         units=units,
+        up_rig=up_rig,
         thresholds=thresholds,
         settings=locked,
         spill=spill,

@@ -110,6 +110,8 @@ def corrupt(tmp_path, how):
     elif how == "json":
         (root / "transforms.json").write_text("{ not json")
         return root
+    elif how == "up":
+        doc["cadsplat"]["up_rig"] = {"vector": [0, 0, 0], "source": "calibration"}
     (root / "transforms.json").write_text(json.dumps(doc))
     return root
 
@@ -123,6 +125,7 @@ def corrupt(tmp_path, how):
         ("nan", r"frame 1 .*NaN"),
         ("nonrigid", r"frame 1 .*not rigid"),
         ("json", r"transforms\.json: invalid JSON"),
+        ("up", r"cadsplat\.up_rig\.vector"),
     ],
 )
 def test_bad_input_is_one_sentence_naming_file_and_problem(tmp_path, how, pattern):

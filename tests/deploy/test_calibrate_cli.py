@@ -43,9 +43,24 @@ def test_board_check_history(tmp_path, capsys):
     assert [c["name"] for c in doc["cameras"]] == ["cam0", "cam1", "cam2"] and doc["version"] == 1
     for c in doc["cameras"]:
         assert c["rms_px"] < 0.2 and np.asarray(c["c2r"]).shape == (4, 4) and "intrinsics_cv_px" in c["uncertainty"]
-    # A second calibration is a new version; the first is kept.
-    assert main(["calibrate", "board", "--board", SPEC, *folders, "--out", str(calib), "--no-cross-validation"]) == 0
+    assert "up_rig" not in doc  # no frame showed the board lying on the conveyor: nothing guessed
+    # A frame named as the board on the conveyor that no camera solved is refused in a sentence, nothing stored.
+    assert (
+        main(["calibrate", "board", "--board", SPEC, *folders, "--out", str(calib), "--no-cross-validation", "--conveyor-frame", "belt"])
+        != 0
+    )
+    assert "frame 'belt'" in capsys.readouterr().err
+    # A second calibration is a new version; the first is kept. Its up comes from the frame named (here one of the
+    # tilted board frames: the plumbing, not the physics, which tests/calibration/test_calibfile.py checks).
+    assert (
+        main(
+            ["calibrate", "board", "--board", SPEC, *folders, "--out", str(calib), "--no-cross-validation", "--conveyor-frame", "shared00"]
+        )
+        == 0
+    )
+    assert "up (rig frame)" in capsys.readouterr().out
     assert sorted(p.name for p in (tmp_path / "calibration.versions").iterdir()) == ["v0001.json", "v0002.json"]
+    up = json.loads(calib.read_text())["up_rig"]
 
     # Empty-rig capture as reference, then a capture with one camera knocked by 0.15 deg.
     planes, _ = rig_frame_scene(rng, fiducials=False)
@@ -71,6 +86,7 @@ def test_board_check_history(tmp_path, capsys):
     assert main(["calibrate", "check", str(knocked), "--calibration", str(calib), "--thorough"]) == 0
     out = capsys.readouterr().out
     assert "cam1: WARN" in out and "cam0: OK" in out and "corrected cam1 as calibration version 3" in out
+    assert json.loads(calib.read_text())["up_rig"] == up  # a drift correction keeps the rig frame, so its up
     plot = tmp_path / "drift.png"
     assert main(["calibrate", "history", "--calibration", str(calib), "--plot", str(plot)]) == 0
     out = capsys.readouterr().out

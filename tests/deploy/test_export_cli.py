@@ -89,6 +89,7 @@ def test_glb_and_spz_stand_the_part_up_whichever_way_its_cad_was_drawn(drawn_up,
     assert tallest_axis(mesh_points) == 1 and mesh_points[:, 1].min() == pytest.approx(0.0, abs=1e-7)
     cadsplat = doc["nodes"][0]["extras"]["cadsplat"]
     assert cadsplat["up"]["source"] == "rig.toml" and len(means) == cadsplat["num_splats"] == 800
+    assert cadsplat["eps2d"] == load_twin(twin).gaussians.eps2d  # the dilation a viewer draws them with
     issues = validate(tmp_path / "p.glb")
     assert errors_beyond_unknown_extension_semantics(issues) == [] and issues["numWarnings"] == 0, issues["messages"]
 

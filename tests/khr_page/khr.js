@@ -1,7 +1,19 @@
 // The browser tests' second third-party reader: Babylon.js's glTF loader reads the KHR_gaussian_splatting GLB
 // (/twin/splats.glb, +Y up) and draws it from training camera ?camera=N of /twin/twin.json, the GLB's frame
 // given by ?frame= (row-major [4, 4] glTF-from-object). Sets window.cadsplatReady once drawn.
+// ?kernel=K sets Babylon's kernelSize (default: the one that draws the GLB's eps2d, below; window.cadsplatKernelSize
+// says which it used); ?background=white clears to opaque white, so that Babylon composites the splats over white
+// itself (default: transparent).
 "use strict";
+
+// The dilation the splats were fitted with: the GLB's root extras.cadsplat.eps2d (simulation/export.py), else twin.json's.
+function eps2dOf(result, twin) {
+  for (const node of result.transformNodes.concat(result.meshes)) {
+    const eps2d = node.metadata?.gltf?.extras?.cadsplat?.eps2d;
+    if (typeof eps2d === "number") return eps2d;
+  }
+  return twin.eps2d ?? 0.3;
+}
 
 async function main() {
   const params = new URLSearchParams(location.search);
@@ -16,7 +28,7 @@ async function main() {
   engine.setHardwareScalingLevel(1);
   const scene = new BABYLON.Scene(engine);
   scene.useRightHandedSystem = true;
-  scene.clearColor = new BABYLON.Color4(0, 0, 0, 0);
+  scene.clearColor = params.get("background") === "white" ? new BABYLON.Color4(1, 1, 1, 1) : new BABYLON.Color4(0, 0, 0, 0);
 
   // Camera-to-glTF pose: T times the OpenCV camera-to-object pose; OpenCV looks down +z with y down.
   const M = (a) => (r, c) => a[4 * r + c];
@@ -42,9 +54,14 @@ async function main() {
   camera.freezeProjectionMatrix(BABYLON.Matrix.FromArray(P));
 
   const result = await BABYLON.ImportMeshAsync("/twin/splats.glb", scene);
+  // Babylon adds kernelSize to four times the splat's screen covariance (it builds the covariance from twice the
+  // scales, gaussianSplattingMeshBase.pure.ts _makeSplat, and draws its quad at invViewport = 1 / width), so the
+  // variance it dilates by is kernelSize / 4: 4 eps2d dilates by the engine's eps2d.
+  const kernel = params.has("kernel") ? Number(params.get("kernel")) : 4 * eps2dOf(result, twin);
   for (const mesh of result.meshes) {
-    if (mesh.material && "kernelSize" in mesh.material) mesh.material.kernelSize = twin.eps2d ?? 0.3;
+    if (mesh.material && "kernelSize" in mesh.material) mesh.material.kernelSize = kernel;
   }
+  window.cadsplatKernelSize = kernel;
   let frames = 0;
   engine.runRenderLoop(() => {
     scene.render();

@@ -231,14 +231,19 @@ def test_enospc_mid_capture_is_written_into_the_reserve_and_committed(store_root
 
 
 def test_captures_record_the_calibration_they_were_taken_under(store_root):
+    up = {"vector": [0.0, 0.0, 1.0], "source": "calibration", "detail": "board frame 'conveyor' lying face up on the conveyor"}
     acq = make_acquisition(
-        store_root, calibration_id="calibration-v0003", calibration_uncertainty={"rotation_deg": 0.04, "translation_mm": 0.4}
+        store_root,
+        calibration_id="calibration-v0003",
+        calibration_uncertainty={"rotation_deg": 0.04, "translation_mm": 0.4},
+        up_rig=up,
     )
     out = acq.handle(SoftwareTrigger().fire())
     acq.close()
     meta = acq.store.read(out.capture_id).meta
     assert meta["calibration_id"] == "calibration-v0003"
     assert meta["calibration_uncertainty"] == {"rotation_deg": 0.04, "translation_mm": 0.4}
+    assert meta["up_rig"] == up  # the twin stands the part up by it
 
 
 def test_the_loop_ends_at_max_captures_while_the_store_holds_none_of_them(store_root, tmp_path, monkeypatch):

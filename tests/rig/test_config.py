@@ -37,6 +37,15 @@ def test_registration_table_is_kept_as_written():
     assert cfg.registration == {"known_part": "bracket_v3", "scale_tolerance": 0.05}
 
 
+def test_simulation_table_is_kept_as_written():
+    # Its up goes into every capture when the calibration measured none (simulation.up.capture_up).
+    assert parse_config({**MINIMAL, "simulation": {"up": [0, 0, 1], "material": "steel"}}).simulation == {
+        "up": [0, 0, 1],
+        "material": "steel",
+    }
+    assert parse_config(MINIMAL).simulation == {}
+
+
 @pytest.mark.parametrize(
     "doc, message",
     [

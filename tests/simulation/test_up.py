@@ -6,18 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calibration.board import board_up
 from reconstruction.mesh_io import Z_UP_TO_Y_UP
-from simulation.up import axis_vector, board_up, resolve_up, rotation_between, standing, usd_up_axis
+from simulation.up import axis_vector, capture_up, resolve_up, rotation_between, standing, usd_up_axis
 
 
 def test_sources_in_order_twin_calibration_rig_toml_cad_then_default():
     turn = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # rig z -> object -y
-    assert (
-        resolve_up(
-            twin_up={"vector": [0, 2, 0], "source": "calibration"}, rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z"
-        ).source
-        == "twin"
-    )
+    up = resolve_up(twin_up={"vector": [0, 2, 0], "source": "calibration"}, rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z")
+    # The twin's record wins and keeps the source it was measured from.
+    assert up.source == "calibration" and up.vector == pytest.approx([0, 1, 0]) and "recorded in twin.json" in up.detail
     up = resolve_up(calibration_up=[0, 1, 0], rig_up=[0, 0, 1], rotation_rig_to_object=turn)
     assert up.source == "calibration" and up.vector == pytest.approx([0, 0, 1])
     up = resolve_up(rig_up=[0, 0, 1], rotation_rig_to_object=turn, cad_up_axis="z")
@@ -53,3 +51,13 @@ def test_bad_axes_are_refused_in_a_sentence():
             axis_vector(bad)
     with pytest.raises(ValueError, match="non-zero"):
         resolve_up(twin_up={"vector": [0, 0, 0]})
+
+
+def test_a_capture_carries_the_calibrations_up_else_rig_tomls_else_none():
+    measured = {"vector": [0.0, 0.0, 1.0], "source": "calibration", "detail": "board frame 'conveyor' lying face up on the conveyor"}
+    assert capture_up(measured, [0, 1, 0]) == measured
+    up = capture_up(None, [0, 0, 2])
+    assert up["source"] == "rig.toml" and up["vector"] == [0.0, 0.0, 1.0]
+    assert capture_up(None, None) is None
+    with pytest.raises(ValueError, match="simulation.up"):
+        capture_up(None, [0, 0, 0])
