@@ -61,9 +61,6 @@ class Appliance:
     ) -> None:
         from deploy.service import PipelineService
         from deploy.steps import make_step_runner
-        from rig.acquisition import Acquisition, open_cameras
-        from rig.camera import CameraSettings
-        from simulation.up import capture_up
 
         self.dir = Path(work_dir)
         self._own_dir = owns_dir
@@ -90,20 +87,7 @@ class Appliance:
         self._spill_problem = problem
         # Said on screen until the next capture.
         self._import_note = f"imported {len(imported)} capture(s) the read-only store could not take last time; " if imported else ""
-        first = self.drivers[0].camera
-        settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
-        self.acquisition = Acquisition(
-            self.drivers,
-            store,
-            rig_id=rig_id,
-            calibration_id=self._calibration_id(),
-            calibration_uncertainty=self._calibration_uncertainty(),
-            settings=settings,
-            units=self.keeper.store.load().units,
-            up_rig=capture_up(self.keeper.store.load().up_rig, (rig_config.simulation if rig_config else {}).get("up")),
-            backgrounds=dict(backgrounds or {}),
-            spill=spill,
-        )
+        self.acquisition = self._open_acquisition(store, rig_id, rig_config, backgrounds, spill)
         cfg = kiosk_pipeline_config(library_dir, preset, rig_config, rig_toml)
         self.service = PipelineService(
             store.root, self.dir / "work", make_step_runner(cfg, progress=self._on_progress), max_queue=4, on_event=self._on_service_event
@@ -119,6 +103,30 @@ class Appliance:
             self._message = "no empty-rig frames yet: clear the rig and press b; then t takes a capture"
         else:
             self._message = "ready: press t to take a capture, w to start watching the line"
+
+    def _open_acquisition(self, store, rig_id: str, rig_config, backgrounds, spill):
+        """The cameras opened at the first one's size, and the acquisition that files their captures with the current
+        calibration's id, uncertainty, units and up (rig.toml's `[simulation] up` where the calibration measured none)."""
+        from calibration.calibfile import extrinsics_uncertainty
+        from rig.acquisition import Acquisition, open_cameras
+        from rig.camera import CameraSettings
+        from simulation.up import capture_up
+
+        first = self.drivers[0].camera
+        settings = open_cameras(self.drivers, CameraSettings(first.width, first.height))
+        calibration = self.keeper.store.load()
+        return Acquisition(
+            self.drivers,
+            store,
+            rig_id=rig_id,
+            calibration_id=self._calibration_id(calibration),
+            calibration_uncertainty=extrinsics_uncertainty(calibration),
+            settings=settings,
+            units=calibration.units,
+            up_rig=capture_up(calibration.up_rig, (rig_config.simulation if rig_config else {}).get("up")),
+            backgrounds=dict(backgrounds or {}),
+            spill=spill,
+        )
 
     @classmethod
     def from_config(
@@ -223,13 +231,9 @@ class Appliance:
 
     # ---- rig and keeper ------------------------------------------------------------------------
 
-    def _calibration_id(self) -> str:
-        return f"calibration-v{self.keeper.store.load().version:04d}"
-
-    def _calibration_uncertainty(self) -> dict | None:
-        from calibration.calibfile import extrinsics_uncertainty
-
-        return extrinsics_uncertainty(self.keeper.store.load())
+    @staticmethod
+    def _calibration_id(calibration) -> str:
+        return f"calibration-v{calibration.version:04d}"
 
     def knock(self, camera: str, degrees: float, axis=(0.3, 1.0, 0.2)) -> None:
         """Turn a simulated camera physically (a bump during maintenance); its calibration stays."""
@@ -242,6 +246,7 @@ class Appliance:
         self.rig.knock(index, axis_angle_to_matrix(np.radians(degrees) * a / np.linalg.norm(a)))
 
     def _check_drift(self, capture_id: str) -> None:
+        from calibration.calibfile import extrinsics_uncertainty
         from calibration.keeper import capture_images
 
         views = self._monitor() if self._monitor else capture_images(self.store.read(capture_id))
@@ -254,8 +259,8 @@ class Appliance:
             if self.rig is not None:
                 for i, d in enumerate(self.drivers):
                     self.rig.set_calibration(i, calib.cameras[d.camera_id].c2w)
-            self.acquisition.calibration_id = self._calibration_id()
-            self.acquisition.calibration_uncertainty = self._calibration_uncertainty()
+            self.acquisition.calibration_id = self._calibration_id(calib)
+            self.acquisition.calibration_uncertainty = extrinsics_uncertainty(calib)
 
     def _acquire(self) -> None:
         def outcome(out) -> None:
