@@ -18,6 +18,8 @@ the object (each vertex over its own pixel footprint), of:
 - **bias removed** / **pose-like removed**: the map's signed error less its median (one offset along every normal,
   such as the alpha-1/2 and mask steps the pipeline adds), and less its least-squares fit by an offset plus the
   normal components of the 7 infinitesimal similarities (what a pose or scale error makes);
+- **map less its own best-fit rigid motion**: the reported map less its least-squares fit by the normal components
+  of the 6 rigid motions (no truth used: a metrology best-fit alignment), against the truth;
 - **cameras**: the twin's refined cameras against the true ones, RMS reprojection px of the true surface, as they
   are and after the one Sim(3) that best explains all of them (per-camera residual); the capture's recorded
   (noisy) cameras likewise; and the map's error with the deformed mesh carried by that Sim(3) into the true frame;
@@ -27,8 +29,11 @@ the object (each vertex over its own pixel footprint), of:
   the normals, at the twin's anchor count and fewer;
 - **chord**: the CAD's faces with their vertices on the true surface: how far face centres lie from it (the error
   a flat-faced mesh of this density makes even with perfect vertices);
-- **where**: the map's error by number of views, best angle, wall thickness (in pixels) and reported uncertainty,
-  with each bin's share of the vertices and of the p90 tail.
+- **smooth / rough part**: the signed error's mean over each vertex's 16 nearest same-side neighbours, and the
+  rest: a smooth error is a misplaced surface the views did not pin, a rough one noise from vertex to vertex;
+- **where**: the map's error by number of views, best angle, the number of views in which the vertex lies on the
+  object's outline (normal more than 75 deg from the line of sight), wall thickness (in pixels) and reported
+  uncertainty, with each bin's share of the vertices and of the p90 tail.
 
 Writes benchmarks/results/inspect_error_budget.md.
 """
@@ -49,6 +54,7 @@ from benchmarks._common import RESULTS, SHARED, load_line
 DATA = SHARED / "rig_scenes"
 ORACLE_ANCHORS = (64, 256)  # fewer anchors than the twin's, to see how many the truth's deformation needs
 FIT_POINTS = 2_000
+SMOOTH_NEIGHBOURS = 16  # the neighbourhood the error's smooth part is its mean over (as the map's local fit residual's)
 # A twin frame turned further than this from the true one is a near-symmetric part registered to another of its
 # symmetric poses (the map is still right in it): carrying its mesh by that turn would measure the symmetry.
 SYMMETRIC_TURN_DEG = 10.0
@@ -159,6 +165,40 @@ def wall_thickness(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray
     return np.where(t > 0, t, np.nan)
 
 
+def neighbour_mean(points: np.ndarray, normals: np.ndarray, values: np.ndarray, k: int = SMOOTH_NEIGHBOURS) -> np.ndarray:
+    """Mean [P] of `values` [P] over each point's k nearest other points (points [P, 3]) on its own side of the
+    surface (unit normals [P, 3] within 60 deg of its own, so a thin part's other wall is left out); the point's own
+    value where none is."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)
+    k = min(k + 1, len(p))
+    _, nb = cKDTree(p).query(p, k=k)
+    nb = nb[:, 1:]
+    same = np.einsum("pd,pkd->pk", normals, normals[nb]) >= 0.5
+    total = np.where(same, values[nb], 0.0).sum(1)
+    count = same.sum(1)
+    return np.where(count > 0, total / np.maximum(count, 1), values)
+
+
+def silhouette_views(points: np.ndarray, normals: np.ndarray, cameras, grazing_deg: float = 75.0) -> np.ndarray:
+    """[P] how many of `cameras` have each point (points [P, 3], unit normals [P, 3]) inside their image with its
+    normal more than `grazing_deg` from the line of sight: where it lies on (or next to) the object's outline in that
+    view, occlusion aside."""
+    from calibration.camera import project_points
+
+    out = np.zeros(len(points), np.int64)
+    sin_min = np.cos(np.radians(grazing_deg))
+    for cam in cameras:
+        uv, z = project_points(points, cam.K, cam.viewmat, near=1e-6)
+        inside = (z > 1e-6) & np.all(np.isfinite(uv), 1)
+        inside &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        to_cam = cam.center - points
+        cos = np.einsum("pd,pd->p", normals, to_cam) / np.linalg.norm(to_cam, axis=1)
+        out += inside & (np.abs(cos) < sin_min)
+    return out
+
+
 def chord_gap(vertices_on_truth: np.ndarray, faces: np.ndarray, true_v: np.ndarray, true_f: np.ndarray) -> np.ndarray:
     """Distance [F] of each face's centre to the true surface when the faces' vertices [V, 3] lie on it."""
     from reconstruction.inspect import surface_distance
@@ -208,8 +248,14 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
     twin_closest = closest_signed_deviation(cad_v, normals, twin_v, np.asarray(deformed.faces, np.int64))
     parts["map and truth by closest point"] = error_stats(1000.0 * (twin_closest - closest)[ok], fp)
     parts["bias removed"] = error_stats(err - np.median(err), fp)
+    smooth = neighbour_mean(cad_v[ok], normals[ok], err)
+    parts["smooth part (16-neighbour mean)"] = error_stats(smooth, fp)
+    parts["rough part (less that mean)"] = error_stats(err - smooth, fp)
     center = 0.5 * (cad_v.min(0) + cad_v.max(0))
     sim_basis = normal_similarity_basis(cad_v[ok], normals[ok], center, 0.5 * diameter)
+    rigid_basis = normal_similarity_basis(cad_v[ok], normals[ok], center, 0.5 * diameter, with_scale=False)
+    aligned = fit_residual(insp.deviation_mm[ok], rigid_basis)
+    parts["map less its own best-fit rigid motion"] = error_stats(aligned - 1000.0 * truth[ok], fp)
     parts["pose-like removed"] = error_stats(fit_residual(err, np.column_stack([np.ones(len(err)), sim_basis])), fp)
 
     # Cameras: the twin's against the true ones, through 2,000 points of the true surface.
@@ -273,6 +319,12 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
         "views": binned(err_px, insp.views[ok].astype(float), [1, 2, 3, 4, np.inf], ["1", "2", "3", ">= 4"]),
         "best angle deg": binned(err_px, insp.best_angle_deg[ok], [0, 30, 50, 65, 90], ["< 30", "30-50", "50-65", ">= 65"]),
         "wall thickness px": binned(err_px, thick_px, [0, 3, 10, np.inf], ["< 3", "3-10", ">= 10", "no wall found"]),
+        "outline in views": binned(
+            err_px,
+            silhouette_views(cad_v[ok], normals[ok], [c.camera for c in twin.cameras]).astype(float),
+            [0, 1, 2, 3, np.inf],
+            ["0", "1", "2", ">= 3"],
+        ),
         "uncertainty tercile": binned(err_px, u_rank, [0, 1 / 3, 2 / 3, 1.0 + 1e-9], ["low", "middle", "high"]),
     }
     row["uncertainty_vs_error_r"] = float(np.corrcoef(insp.uncertainty_mm[ok], np.abs(err))[0, 1])
@@ -290,8 +342,13 @@ def budget_table(rows: list[dict]) -> list[str]:
     """One line per scene and part: median / p90 in px and mm."""
     done = [r for r in rows if "parts" in r]
     names = list(done[0]["parts"]) if done else []
-    lines = ["| part | " + " | ".join(r["scene"] for r in done) + " |", "|---|" + "---:|" * len(done)]
+    lines = [
+        "| part | " + " | ".join(r["scene"] for r in done) + " | median over scenes, px |",
+        "|---|" + "---:|" * (len(done) + 1),
+    ]
     for name in names:
+        have = [r["parts"][name] for r in done if r["parts"].get(name) is not None]
+        over = f"{_f(float(np.median([p['median_px'] for p in have])))} / {_f(float(np.median([p['p90_px'] for p in have])))} ({len(have)})"
         cells = []
         for r in done:
             p = r["parts"].get(name)
@@ -300,7 +357,7 @@ def budget_table(rows: list[dict]) -> list[str]:
                 if p is None
                 else f"{_f(p['median_px'])} / {_f(p['p90_px'])} px ({_f(p['median_mm'])} / {_f(p['p90_mm'])} mm)"
             )
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {over} |")
     return lines
 
 
@@ -367,7 +424,7 @@ def write_markdown(rows: list[dict], twins: Path, load_at_end: str, reading: str
         "scene's 90th percentile).",
         "",
     ]
-    for key in ("views", "best angle deg", "wall thickness px", "uncertainty tercile"):
+    for key in ("views", "best angle deg", "outline in views", "wall thickness px", "uncertainty tercile"):
         text += [*where_table(rows, key), ""]
     if reading:
         text += ["## Reading", "", reading, ""]

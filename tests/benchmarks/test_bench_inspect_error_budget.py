@@ -14,8 +14,10 @@ from benchmarks.bench_inspect_error_budget import (
     closest_signed_deviation,
     error_stats,
     fit_residual,
+    neighbour_mean,
     oracle_normal_moves,
     rigid_projector,
+    silhouette_views,
     wall_thickness,
 )
 from reconstruction.inspect import vertex_normals
@@ -116,3 +118,33 @@ def test_chord_gap_is_zero_on_a_flat_face_and_the_sagitta_on_a_sphere(sphere):
     gap = chord_gap(v, f, np.asarray(fine.vertices), np.asarray(fine.faces))
     centres = v[f].mean(1)
     assert np.allclose(gap, 0.05 - np.linalg.norm(centres, axis=1), atol=2e-5)
+
+
+def test_neighbour_mean_keeps_a_smooth_field_and_averages_noise_away(sphere):
+    v, f = sphere
+    n = vertex_normals(v, f)
+    smooth = 0.001 * v[:, 2] / 0.05
+    noise = 0.001 * np.random.default_rng(1).choice([-1.0, 1.0], len(v))
+    assert np.abs(neighbour_mean(v, n, smooth) - smooth).max() < 2e-4
+    assert np.std(neighbour_mean(v, n, noise)) < 0.5 * np.std(noise)
+
+
+def test_neighbour_mean_leaves_out_the_other_wall_of_a_thin_part():
+    top = np.array([[x, y, 0.001] for x in range(4) for y in range(4)], float)
+    bottom = top * [1.0, 1.0, -1.0]
+    points = np.vstack([top, bottom])
+    normals = np.vstack([np.tile([0.0, 0.0, 1.0], (16, 1)), np.tile([0.0, 0.0, -1.0], (16, 1))])
+    values = np.r_[np.ones(16), -np.ones(16)]
+    assert np.allclose(neighbour_mean(points, normals, values, k=8), values)
+
+
+def test_silhouette_views_counts_the_cameras_that_see_the_point_on_the_outline():
+    from calibration.camera import Camera
+
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.0, 0.0, -1.0]  # looking along +z at the origin
+    cam = Camera(K, 100, 100, np.zeros(0), c2w)
+    points = np.zeros((2, 3))
+    normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # across the line of sight; facing the camera
+    assert silhouette_views(points, normals, [cam, cam]).tolist() == [2, 0]
