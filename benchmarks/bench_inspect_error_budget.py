@@ -1,6 +1,7 @@
 """What limits `cadsplat inspect`'s map? Its error |reported - true| on ../shared/data/rig_scenes, split into parts.
 
-    python -m benchmarks.bench_inspect_error_budget TWINS_DIR [--scenes A,B] [--out benchmarks/results/inspect_error_budget.md]
+    python -m benchmarks.bench_inspect_error_budget TWINS_DIR [--data-dir DIR] [--scenes A,B] [--reading FILE]
+        [--out benchmarks/results/inspect_error_budget.md] [--json FILE]
 
 TWINS_DIR holds one twin per scene (as for `bench_inspect_truth`); nothing is trained. Per scene, over the CAD
 vertices the map (`mesh`, today's default) calls seen and the truth reaches, median and p90 in mm and in pixels at
@@ -290,7 +291,8 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
         parts["mesh in true frame"] = None
 
     # Oracle fields: anchors as the twin's field chose them.
-    field_cfg = twin.config.get("field", {})
+    # Twins written before the whole configuration was recorded carry their field's in the choices.
+    field_cfg = twin.config.get("field") or twin.choices.get("deformation", {}).get("value", {})
     seed = int(twin.training.get("seed", 0))
     canon = np.asarray(twin.means_canonical, np.float64)
     c_field = 0.5 * (canon.min(0) + canon.max(0))
@@ -437,20 +439,23 @@ def write_markdown(rows: list[dict], twins: Path, load_at_end: str, reading: str
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("twins", type=Path, help="Directory with one twin per scene: TWINS/<scene>/twin.json")
+    ap.add_argument(
+        "--data-dir", type=Path, default=DATA, help="a dataset laid out as rig_scenes (DIR/scenes/<scene>), e.g. rig_scenes_640"
+    )
     ap.add_argument("--scenes", default="", help="Comma-separated scene names (default: every scene with a twin).")
     ap.add_argument("--out", type=Path, default=RESULTS / "inspect_error_budget.md")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows as JSON here")
     ap.add_argument("--reading", type=Path, default=None, help="a Markdown file whose text closes the results (the reading)")
     args = ap.parse_args()
-    if not DATA.exists():
-        raise SystemExit(f"needs the shared data folder ({DATA} is absent)")
-    scenes = [s for s in args.scenes.split(",") if s] or sorted(p.name for p in (DATA / "scenes").iterdir())
+    if not args.data_dir.exists():
+        raise SystemExit(f"needs the shared data folder ({args.data_dir} is absent)")
+    scenes = [s for s in args.scenes.split(",") if s] or sorted(p.name for p in (args.data_dir / "scenes").iterdir())
     rows = []
     for scene in scenes:
         if not (args.twins / scene / "twin.json").exists():
             print(f"{scene}: no twin in {args.twins / scene}, skipped")
             continue
-        row = scene_budget(scene, args.twins / scene)
+        row = scene_budget(scene, args.twins / scene, args.data_dir)
         print(json.dumps(row), flush=True)
         rows.append(row)
     if not rows:
