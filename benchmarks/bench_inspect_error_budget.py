@@ -28,11 +28,15 @@ the object (each vertex over its own pixel footprint), of:
   farthest-point anchors over its canonical splats, blended to the vertices with the field's inverse-distance
   weights, its rigid motion projected out as training does) fitted by least squares to the true deviation along
   the normals, at the twin's anchor count and fewer;
+- **twin's field alone**: the twin's smooth field recovered from its splats (the anchor offsets whose blend best
+  fits the splats' moves; the per-splat normal moves stay in the residual), read at the vertices plus the map's
+  median remainder (the uniform steps): is the map's rough part the per-splat moves?
 - **chord**: the CAD's faces with their vertices on the true surface: how far face centres lie from it (the error
   a flat-faced mesh of this density makes even with perfect vertices);
 - **smooth / rough part**: the signed error's mean over each vertex's 16 nearest same-side neighbours, and the
   rest: a smooth error is a misplaced surface the views did not pin, a rough one noise from vertex to vertex;
-- **where**: the map's error by number of views, best angle, the number of views in which the vertex lies on the
+- **where**: the map's error by number of views, best angle (the view most along the normal), the most oblique
+  view that sees the vertex, the number of views in which the vertex lies on the
   object's outline (normal more than 75 deg from the line of sight), wall thickness (in pixels) and reported
   uncertainty, with each bin's share of the vertices and of the p90 tail.
 
@@ -200,6 +204,14 @@ def silhouette_views(points: np.ndarray, normals: np.ndarray, cameras, grazing_d
     return out
 
 
+def most_oblique_deg(seen: np.ndarray, cos: np.ndarray) -> np.ndarray:
+    """[V] the largest angle (deg) between a vertex's normal and the line of sight of a camera that sees it (seen
+    [C, V] bool, cos [C, V]); NaN where none does. Small: every view looks along the normal, where a move along it
+    moves the point along every line of sight and no outline shows it."""
+    cos_min = np.where(seen, cos, np.inf).min(0)
+    return np.where(np.isfinite(cos_min), np.degrees(np.arccos(np.clip(cos_min, -1.0, 1.0))), np.nan)
+
+
 def chord_gap(vertices_on_truth: np.ndarray, faces: np.ndarray, true_v: np.ndarray, true_f: np.ndarray) -> np.ndarray:
     """Distance [F] of each face's centre to the true surface when the faces' vertices [V, 3] lie on it."""
     from reconstruction.inspect import surface_distance
@@ -217,7 +229,14 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
     from benchmarks.bench_rig_scenes import surface_points
     from calibration.sim3 import Sim3
     from reconstruction.deformation import farthest_point_indices, normal_similarity_basis
-    from reconstruction.inspect import inspect_twin, line_deviation, normal_deviation, surface_distance, vertex_normals
+    from reconstruction.inspect import (
+        inspect_twin,
+        line_deviation,
+        normal_deviation,
+        point_visibility,
+        surface_distance,
+        vertex_normals,
+    )
     from reconstruction.twin import load_twin
 
     gt = json.loads((data / "scenes" / scene / "gt.json").read_text())
@@ -307,13 +326,24 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
         fit = oracle_normal_moves(blend, normals[ok], truth[ok], project_rigid)
         parts[f"oracle field, {m} anchors"] = error_stats(1000.0 * (fit - truth[ok]), fp)
 
+    # The twin's own field, recovered from its splats: the anchor offsets that best blend to the splats' moves (the
+    # per-splat normal moves are left in the residual), blended to the vertices, plus the map's median remainder
+    # (the pipeline's uniform alpha-1/2 and mask steps).
+    anchors = canon[farthest_point_indices(canon, int(twin_anchors), seed)]
+    splat_moves = np.asarray(twin.gaussians.means, np.float64) - canon
+    at_splats = blend_matrix(canon, anchors, k)
+    anchor_moves = np.column_stack([lsqr(at_splats, splat_moves[:, d], atol=1e-10, btol=1e-10)[0] for d in range(3)])
+    field_dev = np.einsum("pd,pd->p", blend_matrix(cad_v, anchors, k) @ anchor_moves, normals)
+    field_map = 1000.0 * field_dev[ok] + np.median(insp.deviation_mm[ok] - 1000.0 * field_dev[ok])
+    parts["twin's field alone (+ uniform step)"] = error_stats(field_map - 1000.0 * truth[ok], fp)
     on_truth = cad_v + np.nan_to_num(truth)[:, None] * normals
     faces_ok = ok[cad_f].all(1)
     chord = chord_gap(on_truth, cad_f[faces_ok], true_v, true_f)
     face_fp = np.nanmedian(insp.footprint_mm[cad_f[faces_ok]], 1)
     parts["chord (face centres)"] = error_stats(1000.0 * chord, face_fp)
 
-    # Where the error lies.
+    # Where the error lies; visibility judged as the map judges it, on the deformed surface.
+    vis = point_visibility(twin_v, vertex_normals(twin_v, cad_f), twin_v, cad_f, [c.camera for c in twin.cameras])
     err_px = np.abs(err) / fp
     thick_px = 1000.0 * wall_thickness(cad_v, normals, cad_v, cad_f, diameter)[ok] / fp
     u_rank = np.argsort(np.argsort(insp.uncertainty_mm[ok])) / max(ok.sum() - 1, 1)
@@ -321,6 +351,9 @@ def scene_budget(scene: str, twin_dir: Path, data: Path = DATA) -> dict:
         "views": binned(err_px, insp.views[ok].astype(float), [1, 2, 3, 4, np.inf], ["1", "2", "3", ">= 4"]),
         "best angle deg": binned(err_px, insp.best_angle_deg[ok], [0, 30, 50, 65, 90], ["< 30", "30-50", "50-65", ">= 65"]),
         "wall thickness px": binned(err_px, thick_px, [0, 3, 10, np.inf], ["< 3", "3-10", ">= 10", "no wall found"]),
+        "most oblique seeing view deg": binned(
+            err_px, most_oblique_deg(vis.seen, vis.cos)[ok], [0, 45, 60, 90], ["< 45", "45-60", ">= 60"]
+        ),
         "outline in views": binned(
             err_px,
             silhouette_views(cad_v[ok], normals[ok], [c.camera for c in twin.cameras]).astype(float),
@@ -426,7 +459,7 @@ def write_markdown(rows: list[dict], twins: Path, load_at_end: str, reading: str
         "scene's 90th percentile).",
         "",
     ]
-    for key in ("views", "best angle deg", "outline in views", "wall thickness px", "uncertainty tercile"):
+    for key in ("views", "best angle deg", "most oblique seeing view deg", "outline in views", "wall thickness px", "uncertainty tercile"):
         text += [*where_table(rows, key), ""]
     if reading:
         text += ["## Reading", "", reading, ""]

@@ -14,6 +14,7 @@ from benchmarks.bench_inspect_error_budget import (
     closest_signed_deviation,
     error_stats,
     fit_residual,
+    most_oblique_deg,
     neighbour_mean,
     oracle_normal_moves,
     rigid_projector,
@@ -148,3 +149,10 @@ def test_silhouette_views_counts_the_cameras_that_see_the_point_on_the_outline()
     points = np.zeros((2, 3))
     normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # across the line of sight; facing the camera
     assert silhouette_views(points, normals, [cam, cam]).tolist() == [2, 0]
+
+
+def test_most_oblique_is_the_largest_angle_among_the_seeing_cameras():
+    seen = np.array([[True, False], [True, False], [False, False]])
+    cos = np.array([[1.0, 1.0], [0.5, 1.0], [0.0, 1.0]])  # 0, 60 and 90 deg; the third camera does not see vertex 0
+    out = most_oblique_deg(seen, cos)
+    assert np.isclose(out[0], 60.0) and np.isnan(out[1])
