@@ -462,7 +462,7 @@ def write_markdown(rows: list[dict], twins: Path, load_at_end: str, reading: str
     for key in ("views", "best angle deg", "most oblique seeing view deg", "outline in views", "wall thickness px", "uncertainty tercile"):
         text += [*where_table(rows, key), ""]
     if reading:
-        text += ["## Reading", "", reading, ""]
+        text += ["## Reading (written by hand, `--reading`)", "", reading, ""]
     out = "\n".join(text)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(out)
