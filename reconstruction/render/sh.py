@@ -87,7 +87,8 @@ class _SHValues(torch.autograd.Function):
     def backward(ctx, v_out):
         sh, points, origins = ctx.saved_tensors
         # The kernel writes the first n_bases coefficients; only those past them need zeros. Allocated by numpy: torch's
-        # zero fill of the whole array ran on its OpenMP workers, whose wake-up cost more than the fill.
+        # zero fill of the whole array ran on its OpenMP workers, whose wake-up cost more than the fill
+        # (benchmarks/results/rasterizer.md).
         v_sh = np.empty(sh.shape)
         v_sh[:, ctx.n_bases :] = 0.0
         v_points = torch.empty(points.shape, dtype=torch.float64)
