@@ -8,8 +8,9 @@ Every configuration runs in a fresh subprocess so its peak memory is its own; in
 rasterizer and a tiled pure-PyTorch pipeline (projection + tile binning + per-tile torch compositing,
 autograd for the backward) render the same scene, and their images are compared (the baseline is
 timed in float32 and compared in float64). A second table times the `cpu` preset's batched render
-(`run_production`), forward and backward apart. Prints the markdown tables and writes them to
-benchmarks/results/rasterizer.md.
+(`run_production`), forward and backward apart. Both tables state each time as a ratio to the speed anchor's step
+(`reconstruction.render.anchor.anchor_ms`, read before and after the rows; the mean of the two), the figure that
+carries from one machine to another. Prints the markdown tables and writes them to benchmarks/results/rasterizer.md.
 
 Subprocesses inherit the short OpenMP spin `benchmarks` sets, as the engine runs: under libgomp's
 default torch's workers spin for milliseconds after every op, and on a busy 2-core machine that
@@ -36,7 +37,7 @@ import torch
 from benchmarks._common import REPO, RESULTS, cpu_line
 from reconstruction.parallel import openmp_wait
 from reconstruction.render import rasterize
-from reconstruction.render.anchor import ANCHOR_MESH, TARGET_COVERAGE, diagonal_camera, torch_tiled_rasterize
+from reconstruction.render.anchor import ANCHOR_MESH, TARGET_COVERAGE, anchor_ms, diagonal_camera, torch_tiled_rasterize
 from reconstruction.render.anchor import fit_focal as anchor_focal
 from reconstruction.render.anchor import surface_gaussians as make_gaussians
 
@@ -263,6 +264,7 @@ def main() -> int:
         print(json.dumps(row), flush=True)
         return row
 
+    anchor_before = anchor_ms()
     rows = []
     for size in args.sizes:
         focal, coverage = fit_focal(mesh, size)
@@ -271,6 +273,9 @@ def main() -> int:
             torch_iters = 3 if n <= 20_000 else 1
             rows.append(subprocess_row("--one", str(size), str(n), str(focal), str(torch_iters)))
     production = [] if args.no_production else [subprocess_row("--production-one", v) for v in ("alpha", "sh2")]
+    anchor_after = anchor_ms()
+    anchor = 0.5 * (anchor_before + anchor_after)
+    print(json.dumps({"anchor_ms_before": anchor_before, "anchor_ms_after": anchor_after}), flush=True)
 
     peak, peak_how = machine_peak_gflops()
     cores = len(os.sched_getaffinity(0))
@@ -278,12 +283,14 @@ def main() -> int:
         f"Rasterizer forward+backward (loss = squared error to a random image), one camera, Gaussians sampled "
         f"on {mesh_name} covering ~{100 * TARGET_COVERAGE:.0f}% of the image; {rows[0]['threads']} threads, "
         f"{openmp_wait(env)}; {cpu_line()}; load average {os.getloadavg()[0]:.1f} at the end. Times are "
-        f"medians; CPU time sums all threads. Peak RSS is the whole process (Python, torch, the scene); in "
+        f"medians; CPU time sums all threads. The speed anchor's step (20k splats, 256², the tiled pure-torch rasterizer in "
+        f"a child process, `reconstruction.render.anchor`) read {anchor_before:.0f} ms before the rows and {anchor_after:.0f} ms "
+        f"after; `x anchor` is their mean over ours. Peak RSS is the whole process (Python, torch, the scene); in "
         f"brackets what the rasterizer's iterations added on top.",
         "",
-        "| image | N | ours ms/iter | ours CPU ms/iter | tiled torch ms/iter | speed-up | peak RSS MiB (rasterizer) "
+        "| image | N | ours ms/iter | ours CPU ms/iter | tiled torch ms/iter | speed-up | x anchor | peak RSS MiB (rasterizer) "
         "| coverage | tile isects | shaded pairs | GFLOP/s | max abs diff |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     best = 0.0
     for r in rows:
@@ -292,7 +299,7 @@ def main() -> int:
         best = max(best, r["pairs"] * FLOPS_PER_PAIR / (r["cpu_ms"] * 1e-3) / 1e9)
         lines.append(
             f"| {r['size']}² | {r['n'] // 1000}k | {r['ms']:.1f} | {r['cpu_ms']:.1f} | {r['torch_ms']:.0f} "
-            f"| {r['torch_ms'] / r['ms']:.0f}x "
+            f"| {r['torch_ms'] / r['ms']:.0f}x | {anchor / r['ms']:.0f}x "
             f"| {r['peak_rss_mib']:.0f} ({r['working_mib']:.0f}) | {100 * r['coverage']:.0f}% | {r['n_isects']:,} "
             f"| {r['pairs']:,} | {gflops:.2f} | {r['max_diff']:.1e} |"
         )
@@ -313,14 +320,14 @@ def main() -> int:
             f"{p['height']} on a ring 35° above {mesh_name}, {p['n'] // 1000}k splats, every view in one call, "
             f"loss = L1 to random targets. Stage I renders alpha only (no colour channel, as training renders it; a zero [N, 1] colour before 2026-11-27 11:00 UTC); "
             f"Stage II SH degree 2 with a random background per view. Forward and backward timed apart "
-            f"(medians); CPU time sums all threads.",
+            f"(medians); CPU time sums all threads; `x anchor`: the anchor step over forward + backward.",
             "",
-            "| stage | forward ms | backward ms | CPU ms/iter | tiles covered | tile isects |",
-            "|---|---|---|---|---|---|",
+            "| stage | forward ms | backward ms | CPU ms/iter | x anchor | tiles covered | tile isects |",
+            "|---|---|---|---|---|---|---|",
         ]
         for r in production:
             lines.append(
-                f"| {r['stage']} | {r['fwd_ms']:.1f} | {r['bwd_ms']:.1f} | {r['cpu_ms']:.1f} "
+                f"| {r['stage']} | {r['fwd_ms']:.1f} | {r['bwd_ms']:.1f} | {r['cpu_ms']:.1f} | {anchor / (r['fwd_ms'] + r['bwd_ms']):.1f}x "
                 f"| {100 * r['tile_coverage']:.0f}% | {r['n_isects']:,} |"
             )
     table = "\n".join(lines) + "\n"

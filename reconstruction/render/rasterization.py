@@ -88,74 +88,15 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
 
     Depths are compared in float64 (gsplat compares float32 depths, which merges near ties).
     """
-    fp = proj.footprints
-    tile_size = fp.tile_size
-    n_cams, n = proj.radii.shape[:2]
+    tile_size = proj.footprints.tile_size
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
-    tiles_per_cam = tiles_x * tiles_y
-    n_tiles = n_cams * tiles_per_cam
-    means2d_np, conics_np, opacities_np = to_numpy(proj.means2d), to_numpy(proj.conics), to_numpy(opacities)
-    slot_offsets = np.zeros(n_cams * n + 1, np.int64)
-    np.cumsum(fp.tile_counts, out=slot_offsets[1:])
-    n_isects = int(slot_offsets[-1])
-
-    # Counting sort of all slots by tile: the projection counted each chunk's slots per tile, each chunk scatters
-    # from its own cursors, then every tile's keys are sorted by (depth, index). Keys are unique within a tile, so
-    # the chunking does not change the result.
-    n_chunks = fp.hist.shape[0]
-    cursor = np.zeros(n_chunks * n_tiles, np.int64)
-    np.cumsum(fp.hist.T.reshape(-1)[:-1], out=cursor[1:])
-    tile_offsets = np.append(cursor[::n_chunks], n_isects)
-    cursor = np.ascontiguousarray(cursor.reshape(n_tiles, n_chunks).T)
-    # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
-    depths_np = to_numpy(proj.depths).reshape(-1)
-    depth_bits = depths_np.astype(np.float32).view(np.int32).astype(np.int64)
-    keys = np.empty(n_isects, np.int64)
-    parallel_for(
-        kernels.scatter_tile_keys,
-        n_chunks,
-        n_chunks,
-        fp.rects,
-        fp.tile_counts,
-        n,
-        depth_bits,
-        tile_size,
-        tiles_x,
-        tiles_per_cam,
-        cursor,
-        keys,
+    slot_offsets = np.zeros(proj.radii.shape[0] * proj.radii.shape[1] + 1, np.int64)
+    np.cumsum(proj.footprints.tile_counts, out=slot_offsets[1:])
+    keys, tile_offsets = _tile_keys(proj, tiles_x, tiles_y, int(slot_offsets[-1]))
+    slot_f, slot_i, slot_c, slot_at, pair_offsets = _gather_slots(
+        proj, opacities, colors, tiles_x, tiles_y, keys, tile_offsets, slot_offsets
     )
-    slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
-    slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
-    slot_c = np.empty((n_isects, colors.shape[2]))
-    slot_at = np.empty(n_isects, np.int64)
-    slot_areas = np.empty(n_isects, np.int64)
-    parallel_for(
-        kernels.tile_slots,
-        n_tiles,
-        tile_offsets,
-        keys,
-        depths_np,
-        n,
-        tile_size,
-        tiles_x,
-        tiles_per_cam,
-        fp.rects,
-        slot_offsets,
-        means2d_np,
-        conics_np,
-        opacities_np,
-        fp.two_logs,
-        to_numpy(colors),
-        slot_f,
-        slot_i,
-        slot_c,
-        slot_at,
-        slot_areas,
-    )
-    pair_offsets = np.zeros(n_isects + 1, np.int64)
-    np.cumsum(slot_areas, out=pair_offsets[1:])
     work, work_offsets = kernels.balance_tiles(tile_offsets, num_threads() * PARTS_PER_THREAD)
     return TileBins(
         tile_size,
@@ -171,6 +112,88 @@ def bin_gaussians(proj: Projection, opacities: Tensor, colors: Tensor, width: in
         work,
         work_offsets,
     )
+
+
+def _tile_keys(proj: Projection, tiles_x: int, tiles_y: int, n_isects: int) -> tuple[np.ndarray, np.ndarray]:
+    """Counting sort of all slots by tile: (keys [n_isect] int64 grouped by tile, tile_offsets [C * tiles + 1] int64).
+
+    The projection counted each chunk's slots per tile, each chunk scatters from its own cursors, then every tile's
+    keys are sorted by (depth, index). Keys are unique within a tile, so the chunking does not change the result.
+    """
+    fp = proj.footprints
+    n_cams, n = proj.radii.shape[:2]
+    tiles_per_cam = tiles_x * tiles_y
+    n_tiles = n_cams * tiles_per_cam
+    n_chunks = fp.hist.shape[0]
+    cursor = np.zeros(n_chunks * n_tiles, np.int64)
+    np.cumsum(fp.hist.T.reshape(-1)[:-1], out=cursor[1:])
+    tile_offsets = np.append(cursor[::n_chunks], n_isects)
+    cursor = np.ascontiguousarray(cursor.reshape(n_tiles, n_chunks).T)
+    # Visible depths are > near_plane > 0, whose float32 bit patterns sort like the values.
+    depth_bits = to_numpy(proj.depths).reshape(-1).astype(np.float32).view(np.int32).astype(np.int64)
+    keys = np.empty(n_isects, np.int64)
+    parallel_for(
+        kernels.scatter_tile_keys,
+        n_chunks,
+        n_chunks,
+        fp.rects,
+        fp.tile_counts,
+        n,
+        depth_bits,
+        fp.tile_size,
+        tiles_x,
+        tiles_per_cam,
+        cursor,
+        keys,
+    )
+    return keys, tile_offsets
+
+
+def _gather_slots(
+    proj: Projection,
+    opacities: Tensor,
+    colors: Tensor,
+    tiles_x: int,
+    tiles_y: int,
+    keys: np.ndarray,
+    tile_offsets: np.ndarray,
+    slot_offsets: np.ndarray,
+) -> tuple[np.ndarray, ...]:
+    """Sorts each tile's keys and gathers its slots: (slot_f, slot_i, slot_c, slot_at, pair_offsets) as in `TileBins`."""
+    fp = proj.footprints
+    n_cams, n = proj.radii.shape[:2]
+    n_isects = keys.shape[0]
+    slot_f = np.empty((n_isects, kernels.SF_COLUMNS))
+    slot_i = np.empty((n_isects, kernels.SI_COLUMNS), np.int32)
+    slot_c = np.empty((n_isects, colors.shape[2]))
+    slot_at = np.empty(n_isects, np.int64)
+    slot_areas = np.empty(n_isects, np.int64)
+    parallel_for(
+        kernels.tile_slots,
+        n_cams * tiles_x * tiles_y,
+        tile_offsets,
+        keys,
+        to_numpy(proj.depths).reshape(-1),
+        n,
+        fp.tile_size,
+        tiles_x,
+        tiles_x * tiles_y,
+        fp.rects,
+        slot_offsets,
+        to_numpy(proj.means2d),
+        to_numpy(proj.conics),
+        to_numpy(opacities),
+        fp.two_logs,
+        to_numpy(colors),
+        slot_f,
+        slot_i,
+        slot_c,
+        slot_at,
+        slot_areas,
+    )
+    pair_offsets = np.zeros(n_isects + 1, np.int64)
+    np.cumsum(slot_areas, out=pair_offsets[1:])
+    return slot_f, slot_i, slot_c, slot_at, pair_offsets
 
 
 def _composite(bins: TileBins, backgrounds: np.ndarray, width: int, height: int, dtype: torch.dtype) -> tuple:
@@ -410,35 +433,47 @@ def rasterize(
         tile_size = 16 if means.is_cuda else CPU_TILE_SIZE
     width, height, tile_size = int(width), int(height), int(tile_size)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, active)
+    _check_options(tile_size, near_plane, eps2d)
+    inputs = (means, quats, scales, opacities, colors, viewmats, Ks, width, height)
+    options = dict(near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds)
+    options |= dict(tile_size=tile_size, active=active, visibility_counts=visibility_counts)
+    if means.is_cuda:
+        from reconstruction.render._gsplat import rasterize_gsplat
+
+        return rasterize_gsplat(*inputs, **options)
+    return _rasterize_cpu(*inputs, **options)
+
+
+def _check_options(tile_size: int, near_plane: float, eps2d: float) -> None:
     if not 1 <= tile_size <= kernels.MAX_TILE_SIZE:
         raise ValueError(f"tile_size must be between 1 and {kernels.MAX_TILE_SIZE}, got {tile_size}")
     if not near_plane > 0.0:
         raise ValueError(f"near_plane must be positive, got {near_plane}")
     if not (math.isfinite(eps2d) and eps2d >= 0.0):
         raise ValueError(f"eps2d must be a finite screen-space variance >= 0 px^2, got {eps2d}")
-    if means.is_cuda:
-        from reconstruction.render._gsplat import rasterize_gsplat
 
-        return rasterize_gsplat(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmats,
-            Ks,
-            width,
-            height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            eps2d=eps2d,
-            sh_degree=sh_degree,
-            backgrounds=backgrounds,
-            tile_size=tile_size,
-            active=active,
-            visibility_counts=visibility_counts,
-        )
 
+def _rasterize_cpu(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    sh_degree: int | None,
+    backgrounds: Tensor | None,
+    tile_size: int,
+    active: Tensor | None,
+    visibility_counts: bool,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """`rasterize` of CPU tensors (checked) by the numba kernels."""
     # One float64 copy of each input feeds every use of it (projection, SH directions), so gradients
     # from all paths are summed in float64 and rounded once, when autograd casts them back.
     dtype = colors.dtype
@@ -475,17 +510,7 @@ def rasterize(
     # Without a graph to differentiate (no_grad, or nothing requires grad) the pairs go straight back to the pool.
     keep_pairs = torch.is_grad_enabled() and any(t.requires_grad for t in (proj.means2d, proj.conics, colors, opacities, backgrounds))
     render_colors, render_alphas, counts = _RasterizeToPixels.apply(
-        proj.means2d,
-        proj.conics,
-        colors,
-        opacities,
-        backgrounds,
-        bins,
-        width,
-        height,
-        out_dtype,
-        keep_pairs,
-        visibility_counts,
+        proj.means2d, proj.conics, colors, opacities, backgrounds, bins, width, height, out_dtype, keep_pairs, visibility_counts
     )
     meta = {
         "radii": proj.radii,

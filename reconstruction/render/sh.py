@@ -86,7 +86,11 @@ class _SHValues(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, v_out):
         sh, points, origins = ctx.saved_tensors
-        v_sh = torch.zeros(sh.shape, dtype=torch.float64)
+        # The kernel writes the first n_bases coefficients; only those past them need zeros. Allocated by numpy: torch's
+        # zero fill of the whole array ran on its OpenMP workers, whose wake-up cost more than the fill
+        # (benchmarks/results/rasterizer.md).
+        v_sh = np.empty(sh.shape)
+        v_sh[:, ctx.n_bases :] = 0.0
         v_points = torch.empty(points.shape, dtype=torch.float64)
         v_origins = np.empty((_blocks(sh), origins.shape[0], 3))
         parallel_for(
@@ -96,12 +100,12 @@ class _SHValues(torch.autograd.Function):
             *(t.detach().contiguous().numpy() for t in (sh, points, origins)),
             ctx.colour,
             v_out.contiguous().numpy(),
-            v_sh.numpy(),
+            v_sh,
             v_points.numpy(),
             v_origins,
             grain=_GRAIN,
         )
-        return None, None, v_sh, v_points, torch.from_numpy(v_origins.sum(axis=0))
+        return None, None, torch.from_numpy(v_sh), v_points, torch.from_numpy(v_origins.sum(axis=0))
 
 
 def _blocks(sh: Tensor) -> int:
