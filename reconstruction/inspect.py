@@ -146,11 +146,13 @@ def line_deviation(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray
     points [P, 3], normals [P, 3] unit. Positive: the surface lies outside, along the normal.
     """
     out = np.empty(len(points))
+    # Writable copies: numba types a read-only array (a twin's mesh as loaded) apart, which would compile the kernel
+    # again after the install-time warmup.
     _line_hits(
-        np.ascontiguousarray(points, np.float64),
-        np.ascontiguousarray(normals, np.float64),
-        np.ascontiguousarray(vertices, np.float64),
-        np.ascontiguousarray(faces, np.int64),
+        np.array(points, np.float64, order="C"),
+        np.array(normals, np.float64, order="C"),
+        np.array(vertices, np.float64, order="C"),
+        np.array(faces, np.int64, order="C"),
         float(max_distance),
         out,
     )
