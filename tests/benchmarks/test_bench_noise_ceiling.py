@@ -45,3 +45,15 @@ def test_heldout_iou_is_one_at_the_truth_and_falls_when_the_mesh_is_misplaced(bo
     assert heldout_iou(box.vertices, box.faces, cams, masks, truth) > 0.98
     off = Sim3(1.0, np.eye(3), np.array([0.01, 0.0, 0.0])) @ truth
     assert heldout_iou(box.vertices, box.faces, cams, masks, off) < 0.9
+
+
+def test_no_shape_reaches_the_scissors_heldout_iou_of_0975_under_its_unstated_calibration_noise():
+    """Issue 60 asks held-out IoU >= 0.975 at nominal poses on every rig scene. Held-out cameras inherit the rig
+    Sim(3), which the noisy training cameras fix only so far: the true mesh itself, placed by the best Sim(3) those
+    cameras allow, stays below 0.975 on the thin scissors (noise_ceiling.md)."""
+    from benchmarks.bench_noise_ceiling import scene_row
+    from tests.conftest import require_shared
+
+    row = scene_row(require_shared("rig_scenes", "scenes", "037_scissors"), "all", None, None)
+    assert row["iou_true"] > 0.995
+    assert row["iou_best"] < 0.975
