@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_rig_scenes [--scenes A,B] [--variant NAME] [--preset cpu]
         [--views all|5|3] [--pose-mode global|per_camera] [--override KEY=JSON ...] [--vanilla ITERS ...]
-        [--vanilla-eps2d PX2] [--refine-steps N] [--work DIR] [--report-only] [--plot VARIANT] [--rescore] [--exact-cameras]
+        [--vanilla-eps2d PX2] [--refine-steps N] [--work DIR] [--report-only] [--plot VARIANT] [--out FILE] [--rescore] [--exact-cameras]
 
 Each scene (8 YCB objects, 9-13 training views at 320x240, a metric rig frame, 0.1 deg / 1 mm
 calibration noise the capture does not state, a deformed and decimated CAD variant among 110
@@ -23,8 +23,9 @@ the calibration noise costs (name the variant apart). `--vanilla ITERS` also tra
 views for each iteration count given (`--vanilla-eps2d` draws it with another screen-space dilation than 3DGS's
 0.3 px^2, in training and in evaluation; its runs are named apart). Every run is cached as JSON under the work directory, keyed
 by variant, so interrupted sweeps resume and variants are compared paired, per scene.
-Writes benchmarks/results/rig_scenes.md and rig_scenes.png (the engine variant against vanilla 3DGS per
-scene and view count, and each variant's quality against its training time).
+Writes benchmarks/results/rig_scenes.md (`--out`: another file) and rig_scenes.png beside it (the engine variant against
+vanilla 3DGS per scene and view count, and each variant's quality against its training time). The report's tables are
+regenerated from every run under the work directory; the sections written by hand below them are kept.
 """
 
 from __future__ import annotations
@@ -349,13 +350,28 @@ def plot_against_vanilla(runs: dict[str, dict[str, dict]], engine: str, out: Pat
     return True
 
 
-def write_report(work: Path, refine_steps: int, plot_variant: str | None = None) -> str:
+def hand_written_sections(path: Path) -> str:
+    """The sections people wrote under the generated tables of the report at `path` (from its first `## ` heading on);
+    '' when there is no report yet. The generated part has no `## ` heading, so a run replaces only its own tables."""
+    if not path.exists():
+        return ""
+    text = path.read_text()
+    if text.startswith("## "):
+        return text
+    at = text.find("\n## ")
+    return text[at + 1 :] if at >= 0 else ""
+
+
+def write_report(work: Path, refine_steps: int, plot_variant: str | None = None, out: Path | None = None) -> str:
+    """The report of every run cached under `work` at `out` (default benchmarks/results/rig_scenes.md), its plot beside it;
+    the hand-written sections already below its tables are kept. Returns the text written."""
+    out = out or RESULTS / "rig_scenes.md"
     runs: dict[str, dict[str, dict]] = {}
     for path in sorted((work / "runs").glob(f"*/*-r{refine_steps}.json")):
         doc = json.loads(path.read_text())
         runs.setdefault(doc["variant"], {})[doc["scene"]] = doc
     if plot_variant:
-        plot_against_vanilla(runs, plot_variant, RESULTS / "rig_scenes.png")
+        plot_against_vanilla(runs, plot_variant, out.with_suffix(".png"))
     lines = [
         "# Reference benchmark: path-traced rig captures (`python -m benchmarks.bench_rig_scenes`)",
         "",
@@ -453,8 +469,11 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None)
             cells.append(cell)
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "rig_scenes.md").write_text(text)
+    hand = hand_written_sections(out)
+    if hand:
+        text += "\n" + hand
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
     return text
 
 
@@ -485,6 +504,12 @@ def main() -> None:
     ap.add_argument("--library", type=Path, default=None, help="built index of rig_scenes/library (built into --work when absent)")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--plot", default=None, help="engine variant drawn against vanilla in rig_scenes.png (default: --variant)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=RESULTS / "rig_scenes.md",
+        help="the report (its plot beside it); a scratch sweep names its own, the sections written by hand below the tables are kept",
+    )
     ap.add_argument("--rescore", action="store_true", help="score the pose and geometry of cached runs' twins again")
     args = ap.parse_args()
     if not RIG_SCENES.is_dir():
@@ -518,7 +543,7 @@ def main() -> None:
                     f"{name} {doc['variant']}: fgPSNR {_m(doc, 'fgpsnr'):.2f} IoU {_m(doc, 'iou'):.3f} ({doc['train_wall_s']:.0f} s)",
                     flush=True,
                 )
-    print(write_report(args.work, args.refine_steps, args.plot or args.variant))
+    print(write_report(args.work, args.refine_steps, args.plot or args.variant, args.out))
 
 
 if __name__ == "__main__":

@@ -76,3 +76,20 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
     cpus = next(line for line in text.splitlines() if line.startswith("CPUs the timed runs trained on"))
     assert "`new-cpu-vall` AMD EPYC, 2 cores, AVX2 (no AVX-512), no native bfloat16" in cpus and "old-cpu-vall" not in cpus
     assert (tmp_path / "results" / "rig_scenes.md").read_text() == text
+
+
+def test_a_new_report_replaces_only_its_tables_and_keeps_the_sections_written_below_them(tmp_path):
+    import benchmarks.bench_rig_scenes as bench
+
+    doc = {"scene": bench.SCENES[0], "variant": "a-cpu-vall", "train_wall_s": 50.0, "load": 1.0, "mean": {"fgpsnr": 27.0, "iou": 0.97}}
+    run = tmp_path / "runs" / "a-cpu-vall" / f"{bench.SCENES[0]}-r0.json"
+    run.parent.mkdir(parents=True)
+    run.write_text(json.dumps(doc))
+    out = tmp_path / "report.md"
+    hand = "## Issue 1: what a person measured\n\nA reading that no run regenerates.\n"
+    out.write_text("# old tables\n\n| a-cpu-vall | stale |\n\n" + hand)
+    text = bench.write_report(tmp_path, 0, out=out)
+    assert out.read_text() == text and text.endswith(hand)
+    assert "stale" not in text and text.startswith("# Reference benchmark") and text.count("## Issue 1") == 1
+    # Written again, the same: the kept sections are not stacked up.
+    assert bench.write_report(tmp_path, 0, out=out) == text
