@@ -1,6 +1,6 @@
 """What the benchmark scripts share: where the repository, its results and the shared data live, the
 machine reading their speed tables state (the anchor step, the CPU, the load) and the ratio of a time to
-that anchor, the CAD variants of the synthetic scenes (decimated, smoothly deformed)
+that anchor, how a results file is rewritten without losing what people wrote in it, the CAD variants of the synthetic scenes (decimated, smoothly deformed)
 and the engine switches of each evaluated method."""
 
 from __future__ import annotations
@@ -106,6 +106,21 @@ def median_x_anchor(runs: list[tuple[float, float | None]]) -> str:
         return "-"
     mid = len(ratios) // 2
     return x_anchor(ratios[mid] if len(ratios) % 2 else (ratios[mid - 1] + ratios[mid]) / 2, 1.0)
+
+
+def with_sections_written_by_hand(path: Path, generated: str) -> str:
+    """`generated`, then every `## ` section of the results file at `path` whose heading `generated` does not write itself:
+    a run replaces its own tables and keeps the readings people added below them (once, however often it runs)."""
+    if not path.exists():
+        return generated
+    own = {line for line in generated.splitlines() if line.startswith("## ")}
+    kept, keep = [], False
+    for line in path.read_text().splitlines(keepends=True):
+        if line.startswith("## "):
+            keep = line.rstrip("\n") not in own
+        if keep:
+            kept.append(line)
+    return generated.rstrip("\n") + "\n\n" + "".join(kept) if kept else generated
 
 
 def symmetric_surface_distance(

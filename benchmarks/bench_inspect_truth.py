@@ -17,6 +17,8 @@ rig_scenes/library --preset cpu`); twins are trained once and read here, inspect
 - the verdict's status, and the inspection's CPU time with its ratio to the speed anchor's step read at the start
   of this run (`x anchor`; `benchmarks._common.machine_reading`, its ms, CPU and load in the header). The twin's
   training seconds are its own record, timed in the run that trained it where no anchor was read: they carry none.
+
+A run rewrites the `## map` tables of `--out` and keeps the sections written by hand below them.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading
+from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading, with_sections_written_by_hand
 
 DATASETS = {"rig_scenes": SHARED / "rig_scenes", "rig_scenes_640": SHARED / "rig_scenes_640"}
 LIBRARY = SHARED / "rig_scenes" / "library"
@@ -197,7 +199,7 @@ def write_markdown(
     ]
     for name in maps:
         text += [f"## map `{name}`", "", *table(rows, name, machine), ""]
-    out = "\n".join(text)
+    out = with_sections_written_by_hand(path, "\n".join(text))
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(out)
     return out

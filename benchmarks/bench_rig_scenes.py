@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance
+from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance, with_sections_written_by_hand
 from reconstruction.render.anchor import anchor_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
@@ -350,18 +350,6 @@ def plot_against_vanilla(runs: dict[str, dict[str, dict]], engine: str, out: Pat
     return True
 
 
-def hand_written_sections(path: Path) -> str:
-    """The sections people wrote under the generated tables of the report at `path` (from its first `## ` heading on);
-    '' when there is no report yet. The generated part has no `## ` heading, so a run replaces only its own tables."""
-    if not path.exists():
-        return ""
-    text = path.read_text()
-    if text.startswith("## "):
-        return text
-    at = text.find("\n## ")
-    return text[at + 1 :] if at >= 0 else ""
-
-
 def write_report(work: Path, refine_steps: int, plot_variant: str | None = None, out: Path | None = None) -> str:
     """The report of every run cached under `work` at `out` (default benchmarks/results/rig_scenes.md), its plot beside it;
     the hand-written sections already below its tables are kept. Returns the text written."""
@@ -469,9 +457,7 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None,
             cells.append(cell)
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
-    hand = hand_written_sections(out)
-    if hand:
-        text += "\n" + hand
+    text = with_sections_written_by_hand(out, text)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     return text
