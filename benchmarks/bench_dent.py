@@ -10,7 +10,7 @@ of `radius`). Both parts are photographed by the synthetic rig (`cadsplat synth`
 the same cameras and pose), reconstructed against the nominal CAD with `preset`, and inspected at
 `tolerance`. Writes benchmarks/results/dent_<preset>.md: the verdicts, then the wall times, each with its
 ratio to the speed anchor's step read at the start of the run (`benchmarks._common.machine_reading`;
-the anchor ms, CPU and load stated there). Needs no shared data.
+the anchor ms, CPU and load stated there); the dated sections written by hand below are kept. Needs no shared data.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import REPO, RESULTS, MachineReading, load_line, machine_reading
+from benchmarks._common import REPO, RESULTS, MachineReading, load_line, machine_reading, with_sections_written_by_hand
 
 SOURCE = REPO / "sample" / "object" / "050_medium_clamp.obj"
 
@@ -232,6 +232,7 @@ def write_markdown(res: dict, machine: MachineReading, load_at_end: str, path: P
             "",
         ]
     )
+    text = with_sections_written_by_hand(path, text)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     return text
