@@ -268,8 +268,8 @@ class SerialTrigger(TriggerSource):
         *lines, self._buf = self._buf.split(b"\n")
         for line in lines:
             if self._skipping:
+                # The rest of a line already counted when it outgrew max_line: dropped, not counted again.
                 self._skipping = False
-                self.stats["garbage"] += 1
                 continue
             self._line(line)
         if len(self._buf) > self.max_line:

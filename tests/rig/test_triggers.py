@@ -86,6 +86,21 @@ def test_serial_loop_survives_garbage_and_split_lines():
     assert src.stats["garbage"] == 3  # the binary junk, the bad seq, the over-long line
 
 
+def test_an_over_long_line_counts_once_however_it_arrives_and_its_tail_is_never_a_trigger():
+    """How the reader's reads cut the stream must not change what it counts (a loaded host reads smaller pieces)."""
+    counts = []
+    for pieces in ([b"#" * 300 + b"TRIG,9,900\nTRIG,3,300\n"], [b"#" * 200, b"#" * 100 + b"TRIG,9,9", b"00\nTRIG,3,300\n"]):
+        src = SerialTrigger("loop://", open_port=lambda: None)
+        for piece in pieces:
+            src._feed(piece)
+        events = []
+        while (ev := src.get(timeout=0.01)) is not None:
+            events.append(ev)
+        assert [(e.seq, e.payload["encoder"]) for e in events] == [(3, 300)]
+        counts.append(src.stats["garbage"])
+    assert counts == [1, 1]
+
+
 class _LinePlc:
     """A photo-eye controller on TCP that can drop off the network and come back on the same port."""
 
