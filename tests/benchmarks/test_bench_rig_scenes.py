@@ -81,7 +81,8 @@ def test_the_report_reads_the_machine_beside_each_variant_and_leaves_what_a_run_
 def test_a_new_report_replaces_only_its_tables_and_keeps_the_sections_written_below_them(tmp_path):
     import benchmarks.bench_rig_scenes as bench
 
-    doc = {"scene": bench.SCENES[0], "variant": "a-cpu-vall", "train_wall_s": 50.0, "load": 1.0, "mean": {"fgpsnr": 27.0, "iou": 0.97}}
+    mean = {"fgpsnr": 27.0, "iou": 0.97, "psnr": 28.0, "ssim": 0.9, "lpips": 0.1}
+    doc = {"scene": bench.SCENES[0], "variant": "a-cpu-vall", "train_wall_s": 50.0, "load": 1.0, "mean": mean}
     run = tmp_path / "runs" / "a-cpu-vall" / f"{bench.SCENES[0]}-r0.json"
     run.parent.mkdir(parents=True)
     run.write_text(json.dumps(doc))
