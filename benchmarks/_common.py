@@ -108,19 +108,23 @@ def median_x_anchor(runs: list[tuple[float, float | None]]) -> str:
     return x_anchor(ratios[mid] if len(ratios) % 2 else (ratios[mid - 1] + ratios[mid]) / 2, 1.0)
 
 
-def with_sections_written_by_hand(path: Path, generated: str) -> str:
-    """`generated`, then every `## ` section of the results file at `path` whose heading `generated` does not write itself:
-    a run replaces its own tables and keeps the readings people added below them (once, however often it runs)."""
-    if not path.exists():
-        return generated
-    own = {line for line in generated.splitlines() if line.startswith("## ")}
-    kept, keep = [], False
-    for line in path.read_text().splitlines(keepends=True):
-        if line.startswith("## "):
-            keep = line.rstrip("\n") not in own
-        if keep:
-            kept.append(line)
-    return generated.rstrip("\n") + "\n\n" + "".join(kept) if kept else generated
+def write_results(path: Path, generated: str) -> str:
+    """Writes `generated` to the results file at `path`, then every `## ` section already there whose heading `generated`
+    does not write itself: a run replaces its own tables and keeps the readings people added below them (once, however
+    often it runs). Returns the text written."""
+    kept: list[str] = []
+    if path.exists():
+        own = {line for line in generated.splitlines() if line.startswith("## ")}
+        keep = False
+        for line in path.read_text().splitlines(keepends=True):
+            if line.startswith("## "):
+                keep = line.rstrip("\n") not in own
+            if keep:
+                kept.append(line)
+    text = generated.rstrip("\n") + "\n\n" + "".join(kept) if kept else generated
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return text
 
 
 def symmetric_surface_distance(

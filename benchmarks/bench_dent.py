@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import REPO, RESULTS, MachineReading, load_line, machine_reading, with_sections_written_by_hand
+from benchmarks._common import REPO, RESULTS, MachineReading, load_line, machine_reading, write_results
 
 SOURCE = REPO / "sample" / "object" / "050_medium_clamp.obj"
 
@@ -232,10 +232,7 @@ def write_markdown(res: dict, machine: MachineReading, load_at_end: str, path: P
             "",
         ]
     )
-    text = with_sections_written_by_hand(path, text)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    return text
+    return write_results(path, text)
 
 
 def main() -> None:

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading, with_sections_written_by_hand
+from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading, write_results
 
 DATASETS = {"rig_scenes": SHARED / "rig_scenes", "rig_scenes_640": SHARED / "rig_scenes_640"}
 LIBRARY = SHARED / "rig_scenes" / "library"
@@ -199,10 +199,7 @@ def write_markdown(
     ]
     for name in maps:
         text += [f"## map `{name}`", "", *table(rows, name, machine), ""]
-    out = with_sections_written_by_hand(path, "\n".join(text))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(out)
-    return out
+    return write_results(path, "\n".join(text))
 
 
 def main() -> None:

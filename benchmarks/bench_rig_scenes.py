@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance, with_sections_written_by_hand
+from benchmarks._common import RESULTS, SHARED, cpu_line, symmetric_surface_distance, write_results
 from reconstruction.render.anchor import anchor_ms
 
 RIG_SCENES = SHARED / "rig_scenes"
@@ -457,10 +457,7 @@ def write_report(work: Path, refine_steps: int, plot_variant: str | None = None,
             cells.append(cell)
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
-    text = with_sections_written_by_hand(out, text)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    return text
+    return write_results(out, text)
 
 
 def main() -> None:

@@ -49,12 +49,11 @@ def test_machine_reading_reads_the_load_before_the_anchor_and_states_all_three(m
 
 
 def test_a_results_file_rewritten_keeps_the_sections_people_wrote_once_and_replaces_its_own(tmp_path):
-    from benchmarks._common import with_sections_written_by_hand
+    from benchmarks._common import write_results
 
-    path = tmp_path / "r.md"
-    assert with_sections_written_by_hand(path, "# T\n\n## map `a`\n\nnew\n") == "# T\n\n## map `a`\n\nnew\n"
+    path = tmp_path / "results" / "r.md"
+    assert write_results(path, "# T\n\n## map `a`\n\nnew\n") == path.read_text() == "# T\n\n## map `a`\n\nnew\n"
     path.write_text("# T\n\nold intro\n\n## map `a`\n\nold table\n\n## Reading (by hand)\n\nkept\n\n### detail\n\nkept too\n")
-    text = with_sections_written_by_hand(path, "# T\n\n## map `a`\n\nnew table\n")
-    assert text == "# T\n\n## map `a`\n\nnew table\n\n## Reading (by hand)\n\nkept\n\n### detail\n\nkept too\n"
-    path.write_text(text)
-    assert with_sections_written_by_hand(path, "# T\n\n## map `a`\n\nnew table\n") == text
+    text = write_results(path, "# T\n\n## map `a`\n\nnew table\n")
+    assert text == path.read_text() == "# T\n\n## map `a`\n\nnew table\n\n## Reading (by hand)\n\nkept\n\n### detail\n\nkept too\n"
+    assert write_results(path, "# T\n\n## map `a`\n\nnew table\n") == text
