@@ -173,6 +173,7 @@ def labels() -> Iterator[None]:
     import reconstruction.adam as adam
     import reconstruction.deformation as deformation
     import reconstruction.losses as losses
+    import reconstruction.pipeline as pipeline
     import reconstruction.render.rasterization as rasterization
     import reconstruction.train as train
 
@@ -192,7 +193,7 @@ def labels() -> Iterator[None]:
         (train, "_grads_finite", "cs:optimizer"),
         (adam.Adam, "step", "cs:optimizer"),
         (adam.Adam, "zero_grad", "cs:optimizer"),
-        (train, "_save_checkpoint", "cs:checkpoint"),
+        (pipeline.FileCheckpoint, "save", "cs:checkpoint"),
         (torch.autograd, "backward", "cs:backward"),
     ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in targets]

@@ -83,3 +83,17 @@ def test_cores_busy_is_cpu_over_wall_per_stage_without_its_warm_up():
     # Iterations 1-2 of each stage are warm-up. Pose keeps 3 (1 CPU s in 1 s) and 4 (2 in 1); photo keeps 3 (2 in 1)
     # and 4 (3 in 2).
     assert steady_cores(marks) == pytest.approx({"pose": 3 / 2, "photo": 5 / 3})
+
+
+def test_every_labelled_engine_function_exists_and_is_restored():
+    """The labels name engine functions by attribute: one renamed or removed in the engine breaks the profile before it
+    runs (the checkpoint writer moved to the pipeline's `FileCheckpoint` once and the benchmark stopped at its start)."""
+    import reconstruction.pipeline as pipeline
+    import reconstruction.train as train
+    from benchmarks.bench_profile import labels
+
+    before = (train.rasterize, pipeline.FileCheckpoint.save)
+    with labels():
+        assert train.rasterize is not before[0]
+        assert pipeline.FileCheckpoint.save is not before[1]
+    assert (train.rasterize, pipeline.FileCheckpoint.save) == before
