@@ -8,7 +8,8 @@ TWINS_DIR holds one twin per scene, TWINS_DIR/<scene>/twin.json (`cadsplat recon
 rig_scenes/library --preset cpu`); twins are trained once and read here, inspection does not retrain. Per scene and map:
 
 - |reported - true| deviation at every CAD vertex the map calls seen and the truth reaches (the true deviation
-  is gt_mesh.ply against the CAD model along the CAD normal, `bench_inspect.true_deviation`): median and p90 in mm,
+  is gt_mesh.ply against the CAD model along the CAD normal, `bench_inspect.true_deviation`, read after the same
+  best-fit alignment as the map over the same seen surface; the `mesh, CAD frame` map reads both without it): median and p90 in mm,
   and in pixels at the object (each vertex's error over its pixel footprint, the median over the views that see it);
   Pearson r of reported against true;
 - at the tolerance: the in/out call against the truth's on the vertices the verdict calls certain (their
@@ -33,6 +34,8 @@ import numpy as np
 
 from benchmarks._common import RESULTS, SHARED, MachineReading, load_line, machine_reading, write_results
 
+# The map without its best-fit alignment, against the truth as the CAD frame holds it.
+CAD_FRAME = "mesh, CAD frame"
 DATASETS = {"rig_scenes": SHARED / "rig_scenes", "rig_scenes_640": SHARED / "rig_scenes_640"}
 LIBRARY = SHARED / "rig_scenes" / "library"
 
@@ -77,7 +80,7 @@ def map_scores(
 def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> dict:
     """Every map's scores for one scene's twin (keys: map name -> scores), plus the twin's facts."""
     from benchmarks.bench_inspect import load_mesh, true_deviation
-    from reconstruction.inspect import inspect_twin, verdict
+    from reconstruction.inspect import best_fit_surface, inspect_twin, verdict, vertex_normals
     from reconstruction.twin import load_twin
 
     gt = json.loads((data / "scenes" / scene / "gt.json").read_text())
@@ -94,7 +97,8 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
         return row
     cad = twin.load_mesh_cad()
     true_v, true_f = load_mesh(data / "scenes" / scene / "gt_mesh.ply")
-    truth_mm = 1000.0 * true_deviation(cad.vertices, cad.faces, true_v, true_f, 2.0 * gt["object"]["bounding_sphere_radius_m"])
+    diameter = 2.0 * gt["object"]["bounding_sphere_radius_m"]
+    truth_mm = 1000.0 * true_deviation(cad.vertices, cad.faces, true_v, true_f, diameter)
     t0 = time.process_time()
     insp = inspect_twin(twin, cad=cad)
     cpu = {"mesh": time.process_time() - t0}
@@ -102,11 +106,21 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
     t0 = time.process_time()
     refined = inspect_twin(twin, masks, cad=cad)
     cpu["mesh+masks"] = time.process_time() - t0
+    t0 = time.process_time()
+    in_cad_frame = inspect_twin(twin, cad=cad, aligned=False)
+    cpu[CAD_FRAME] = time.process_time() - t0
+    normals = vertex_normals(cad.vertices, cad.faces)
     row["maps"] = {}
-    for name, m in (("mesh", insp), ("mesh+masks", refined)):
+    for name, m in (("mesh", insp), ("mesh+masks", refined), (CAD_FRAME, in_cad_frame)):
         v = verdict(m, tolerance_mm, 25.0)
+        # The truth read as the map is: after the same best fit, over the vertices and weights of the map's own (or neither).
+        truth = truth_mm
+        if m.alignment is not None:
+            read = lambda v: true_deviation(cad.vertices, cad.faces, v, true_f, diameter)  # noqa: E731
+            true_aligned = best_fit_surface(cad.vertices, normals, true_v, read, m.fit_weight_mm2, m.alignment.kind)[0]
+            truth = 1000.0 * true_deviation(cad.vertices, cad.faces, true_aligned, true_f, diameter)
         row["maps"][name] = {
-            **map_scores(m.deviation_mm, m.uncertainty_mm, m.footprint_mm, truth_mm, m.seen, m.area_mm2, tolerance_mm),
+            **map_scores(m.deviation_mm, m.uncertainty_mm, m.footprint_mm, truth, m.seen, m.area_mm2, tolerance_mm),
             "status": v.status,
             "unseen_pct": m.unseen_pct(),
             "cpu_s": cpu[name],
@@ -188,7 +202,9 @@ def write_markdown(
         "",
         (
             f"Per CAD vertex the map calls seen and the truth reaches: |reported - true| deviation (true: gt_mesh.ply against the CAD "
-            "along the CAD normal), in mm and in pixels at the object (over the vertex's pixel footprint, the median over the views "
+            "along the CAD normal, after the same best-fit alignment over the same seen surface as the map, "
+            "`inspect.best_fit_surface`; `mesh, CAD frame`: neither aligned, the map as the twin placed the CAD against "
+            "the truth as the CAD frame holds it), in mm and in pixels at the object (over the vertex's pixel footprint, the median over the views "
             f"that see it; `pixel mm` is its median). At the {tolerance_mm:g} mm tolerance: the in/out call against the truth's on all "
             "vertices and on those the verdict calls certain (uncertainty not straddling the tolerance); uncertain %: the seen area "
             "whose uncertainty straddles it. Coverage: the share of vertices whose true error lies inside their k = 2 uncertainty "

@@ -290,11 +290,13 @@ def _settings_doc(tolerance_mm: float, max_unseen_pct: float, max_angle_deg: flo
         "max_angle_deg": max_angle_deg,
         "refined_by_masks": refined_by_masks,
         "deviation": "signed distance from the CAD surface to the twin's deformed surface along the outward "
-        "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent)",
+        "CAD vertex normal, mm; + outside the CAD (bulge), - inside (dent); read after the best-fit alignment of the seen "
+        "surface (surface.alignment: the small motion taken out, rigid on a metric rig, a similarity where the rig's "
+        "scale is not known), since where a loose part lies against its CAD frame is placement, not shape",
         "seen": f"projects inside a training image, unoccluded, normal within {max_angle_deg:g} deg of the line of sight",
         "in_view": "as seen, occluded or not: unseen surface in no camera's view is the rig's coverage",
         "uncertainty": "expanded (k = 2) uncertainty of the deviation, mm: the views that see the vertex (a move along "
-        "the normal shows by sin(angle) / pixel size per view, their information adds) and the map's "
+        "the normal shows by sin(angle) / pixel size per view; the best view decides) and the map's "
         "local fit residual; PASS needs every seen vertex inside the tolerance by more than it",
         "colour_range_mm": [-range_mm, range_mm],
     }
@@ -310,6 +312,7 @@ def _surface_doc(insp: Inspection, result: Verdict, *, num_cameras: int) -> dict
         "uncertain_pct": result.straddling_pct,
         "out_pct": result.out_pct,
         "uncertainty_median_mm": float(np.median(insp.uncertainty_mm[insp.seen])) if insp.seen.any() else None,
+        "alignment": insp.alignment.to_dict() if insp.alignment is not None else None,
         "views_per_vertex": {str(k): int(n) for k, n in enumerate(np.bincount(insp.views, minlength=num_cameras + 1))},
     }
 

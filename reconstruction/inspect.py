@@ -7,6 +7,9 @@ The twin's `mesh_deformed` is the CAD mesh with its vertices moved by the deform
 deviation is read where the CAD vertex's normal line meets the deformed surface (`line_deviation`),
 not from the vertex's own move, which also slides along the surface. Meshes that do not correspond
 vertex by vertex, and reference surfaces (a scan, the truth of a benchmark), are measured the same way.
+The map is then aligned: the small rigid motion (a similarity on a rig of unknown scale) that best fits the
+seen surface is taken out of it (`best_fit_surface`), since where a loose part lies against its CAD
+frame is placement, not shape; the motion removed is reported beside the map.
 
 Visibility. A vertex is seen by a training camera when it projects inside the image, its normal turns
 at most `max_angle_deg` away from the camera's line of sight, and nothing of the twin's surface lies in
@@ -32,13 +35,14 @@ inspect", as for every cadsplat command.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from calibration.camera import Camera, project_points
 from reconstruction.mesh_raster import rasterize_mesh
@@ -59,6 +63,11 @@ SIGMA_PX = 0.5
 COVERAGE_K = 2.0  # the uncertainty written is the expanded one, k = 2 (GUM): about 95 % coverage
 MIN_SIN = float(np.sin(np.radians(10.0)))  # a view looking straight down the normal still places the point by its texture
 RESIDUAL_NEIGHBOURS = 16  # seen vertices on the vertex's side the local fit residual is taken over (twice as many are looked at)
+BEST_FIT_KINDS = ("rigid", "similarity")
+# The best fit stops when a step moves the surface by less than these (a hundredth of any pixel here).
+BEST_FIT_TOL_DEG = 1e-3
+BEST_FIT_TOL_MM = 1e-3
+BEST_FIT_MAX_STEPS = 20
 NAMED_VERTICES = 5  # straddling vertices an UNCERTAIN line names (the JSON lists them all)
 _NEAR = 1e-6
 
@@ -162,6 +171,115 @@ def line_deviation(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray
 def normal_deviation(cad_vertices: np.ndarray, cad_normals: np.ndarray, moved_vertices: np.ndarray) -> np.ndarray:
     """Signed move of each vertex along its CAD normal [V]: (moved - cad) . n; all arrays [V, 3]."""
     return np.einsum("ij,ij->i", np.asarray(moved_vertices, np.float64) - cad_vertices, cad_normals)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A motion a best-fit alignment took out of a map: `kind` ("rigid" or "similarity"), rotation_deg [3] (a rotation
+    vector about `centre_mm` [3]), translation_mm [3] and the relative size change `scale` (0 for a rigid fit)."""
+
+    kind: str
+    rotation_deg: np.ndarray
+    translation_mm: np.ndarray
+    centre_mm: np.ndarray
+    scale: float
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": self.kind,
+            "rotation_deg": [round(float(x), 4) for x in self.rotation_deg],
+            "translation_mm": [round(float(x), 4) for x in self.translation_mm],
+            "centre_mm": [round(float(x), 3) for x in self.centre_mm],
+            "scale": round(float(self.scale), 6),
+        }
+
+
+def best_fit_step(points: np.ndarray, normals: np.ndarray, deviation: np.ndarray, weights: np.ndarray, kind: str) -> Alignment:
+    """The small motion (rigid, or a similarity: `kind`) whose normal moves best fit `deviation` [V]: the weighted
+    (`weights` [V]) least squares of deviation ~ n . (t + w x (p - c)) (+ s n . (p - c)) over points [V, 3] (mm) with
+    unit normals [V, 3], to first order in the motion; NaN deviations weigh nothing."""
+    if kind not in BEST_FIT_KINDS:
+        raise ValueError(f"best-fit alignment must be one of {', '.join(BEST_FIT_KINDS)}, got {kind!r}")
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    d = np.asarray(deviation, np.float64)
+    w = np.where(np.isfinite(d), np.clip(np.asarray(weights, np.float64), 0.0, None), 0.0)
+    total = w.sum()
+    if total <= 0:
+        return Alignment(kind, np.zeros(3), np.zeros(3), p.mean(0) if len(p) else np.zeros(3), 0.0)
+    centre = (w[:, None] * p).sum(0) / total
+    radius = max(float(np.sqrt((w * ((p - centre) ** 2).sum(1)).sum() / total)), 1e-12)
+    x = (p - centre) / radius  # every column about unit size
+    cols = [n, np.cross(x, n)] + ([np.einsum("ij,ij->i", n, x)[:, None]] if kind == "similarity" else [])
+    basis = np.concatenate(cols, 1)
+    sw = np.sqrt(w)
+    # The minimum-norm solution leaves a motion the surface cannot show (a sphere's rotation) at zero.
+    coef = np.linalg.lstsq(basis * sw[:, None], np.nan_to_num(d) * sw, rcond=1e-9)[0]
+    scale = float(coef[6] / radius) if kind == "similarity" else 0.0
+    return Alignment(kind, np.degrees(coef[3:6] / radius), coef[:3], centre, scale)
+
+
+def best_fit_surface(
+    cad_vertices: np.ndarray,
+    cad_normals: np.ndarray,
+    surface_vertices: np.ndarray,
+    read: Callable[[np.ndarray], np.ndarray],
+    weights: np.ndarray,
+    kind: str = "rigid",
+    *,
+    mm_per_unit: float = MM_PER_M,
+) -> tuple[np.ndarray, Alignment, np.ndarray]:
+    """`surface_vertices` [S, 3] moved by the rigid motion (or similarity, `kind`) that best fits the surface onto the
+    CAD (points [V, 3], unit normals [V, 3], same units as the surface; `mm_per_unit` to mm) along the CAD normals.
+    `read(vertices)` gives the surface's deviation [V] along them (NaN where it is not found); `weights` [V] (the seen
+    area) say which vertices speak.
+
+    A free part lies on the rig however it fell: where it lies against its CAD frame is placement, not shape, and
+    the registration that placed it could only fit it. So a map is read after a best fit, as inspection software
+    aligns a scan before it colours it: by least squares (their Gaussian best fit), so a dent pulls the part towards
+    it by its share of the seen area (a 4 mm dent over 3 % of a ball: 0.13 mm). Robust weights were measured and not
+    kept: on thin parts they let the fit turn about the long axis (benchmarks/results/inspect_truth.md). A step fits
+    the motion to first order and moves the surface by it; the surface is read again, since a motion of a few degrees slides a
+    curved surface along the normal lines by more than the first order says (benchmarks/results/inspect_truth.md).
+    Returns the moved vertices, the whole motion removed and each vertex's weight in the fit [V] (0 where the
+    surface was not found), by which a reference surface can be aligned the same way.
+    """
+    cad_v = np.asarray(cad_vertices, np.float64)
+    start = np.asarray(surface_vertices, np.float64)
+    moved = start.copy()
+    base = np.clip(np.asarray(weights, np.float64), 0.0, None)
+    fit_weight = np.zeros(len(cad_v))
+    for _ in range(BEST_FIT_MAX_STEPS):
+        deviation = read(moved) * mm_per_unit
+        speaks = (base > 0) & np.isfinite(deviation)
+        if not speaks.any():
+            break
+        fit_weight = np.where(speaks, base, 0.0)
+        step = best_fit_step(cad_v * mm_per_unit, cad_normals, deviation, fit_weight, kind)
+        rotation = Rotation.from_rotvec(-np.radians(step.rotation_deg)).as_matrix()
+        centre = step.centre_mm / mm_per_unit
+        moved = ((moved - centre) @ rotation.T) * (1.0 - step.scale) + centre - step.translation_mm / mm_per_unit
+        if np.linalg.norm(step.rotation_deg) < BEST_FIT_TOL_DEG and np.linalg.norm(step.translation_mm) < BEST_FIT_TOL_MM:
+            break
+    return moved, _motion_between(start, moved, kind, mm_per_unit), fit_weight
+
+
+def _motion_between(before: np.ndarray, after: np.ndarray, kind: str, mm_per_unit: float) -> Alignment:
+    """The similarity taking `before` [S, 3] to `after` (exact, as composed from the steps; Umeyama), as the motion
+    the alignment removed: rotation vector, translation at the centroid, relative scale."""
+    cb, ca = before.mean(0), after.mean(0)
+    u, sig, vt = np.linalg.svd((after - ca).T @ (before - cb))
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ fix @ vt
+    scale = float((sig * np.diag(fix)).sum() / max(((before - cb) ** 2).sum(), 1e-300)) if kind == "similarity" else 1.0
+    # Removed = the inverse of what was applied to the surface.
+    return Alignment(
+        kind,
+        -Rotation.from_matrix(rotation).as_rotvec(degrees=True),
+        (cb - ca) * mm_per_unit,
+        cb * mm_per_unit,
+        1.0 / scale - 1.0 if kind == "similarity" else 0.0,
+    )
 
 
 def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -308,7 +426,9 @@ class Inspection:
     area_mm2 [V], part [V] (index into part_names); in_view [V] (cameras that have the vertex in view,
     occluded or not; None when not known). uncertainty_mm [V]: the deviation's expanded (k = 2) uncertainty,
     NaN unseen (None: the map is taken as exact); footprint_mm [V]: a pixel's size at the vertex, median over the
-    views that see it; residual_mm [V]: the local fit residual that entered the uncertainty.
+    views that see it; residual_mm [V]: the local fit residual that entered the uncertainty; alignment: the best-fit
+    motion taken out of the deviation (None: read in the CAD frame as the twin placed it); fit_weight_mm2 [V]: each
+    vertex's weight in it (its seen area; 0 outside it).
     """
 
     vertices_mm: np.ndarray
@@ -322,6 +442,8 @@ class Inspection:
     uncertainty_mm: np.ndarray | None = None
     footprint_mm: np.ndarray | None = None
     residual_mm: np.ndarray | None = None
+    alignment: Alignment | None = None
+    fit_weight_mm2: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -344,6 +466,24 @@ class Inspection:
         return 0.0 if total <= 0 else float(100.0 * self.area_mm2[m & ~self.seen & (self.in_view == 0)].sum() / total)
 
 
+def _read_deviation(
+    cad_v: np.ndarray, normals: np.ndarray, surface_v: np.ndarray, surface_f: np.ndarray, same: bool, reach: float
+) -> np.ndarray:
+    """[V] the deviation of the surface from the CAD along each CAD vertex's normal line (model units).
+
+    Read where the line meets the surface, as a reference surface is measured: when the surface is the CAD with moved
+    vertices (`same`), a vertex's own move also slides along the surface, which is not a deviation
+    (benchmarks/results/inspect_error_budget.md). There a hit is the vertex's own surface only within its slide of
+    the projected move (the surface tilted at most 45 degrees); beyond that, or with no hit, the line found another
+    sheet and the projected move stands."""
+    line = line_deviation(cad_v, normals, surface_v, surface_f, reach)
+    if not same:
+        return line
+    moved = normal_deviation(cad_v, normals, surface_v)
+    slide = np.linalg.norm(surface_v - cad_v - moved[:, None] * normals, axis=1)
+    return np.where(np.abs(np.nan_to_num(line, nan=np.inf) - moved) <= slide, line, moved)
+
+
 def inspect_meshes(
     cad_vertices: np.ndarray,
     cad_faces: np.ndarray,
@@ -356,6 +496,7 @@ def inspect_meshes(
     masks: Sequence[np.ndarray] | None = None,
     mm_per_unit: float = MM_PER_M,
     max_angle_deg: float = MAX_ANGLE_DEG,
+    best_fit: str | None = "rigid",
 ) -> Inspection:
     """Deviation of the deformed surface from the CAD and its visibility from `cameras` (object frame).
 
@@ -366,35 +507,42 @@ def inspect_meshes(
     Visibility is judged on the deformed surface, the one the cameras photographed. With `masks` (one [H, W] bool
     per camera, at the camera's own resolution or any other), the map is corrected where the masks' outlines place
     the surface more finely (`inspect_silhouette.silhouette_correction`), and the outlines' residual enters the
-    uncertainty.
+    uncertainty. The deviation is read after the `best_fit` alignment of the seen surface ("rigid", "similarity"
+    where the rig's scale is not known, or None; `best_fit_surface`).
     """
     cad_v = np.asarray(cad_vertices, np.float64)
     normals = vertex_normals(cad_v, cad_faces)
-    same = np.shape(deformed_vertices) == cad_v.shape and np.array_equal(deformed_faces, cad_faces)
+    dv = np.asarray(deformed_vertices, np.float64)
+    same = np.shape(dv) == cad_v.shape and np.array_equal(deformed_faces, cad_faces)
     reach = 0.1 * float(np.linalg.norm(cad_v.max(0) - cad_v.min(0)))
+    deviation = _read_deviation(cad_v, normals, dv, deformed_faces, same, reach)
     if same:
-        # Read where the CAD normal line meets the deformed surface, as a reference surface is measured: a vertex's own
-        # move also slides along the surface, which is not a deviation (benchmarks/results/inspect_error_budget.md).
-        # A hit is the vertex's own surface only within its slide of the projected move (the surface there tilted
-        # at most 45 degrees); beyond that, or with no hit, the line found another sheet and the projected move stands.
-        moved = normal_deviation(cad_v, normals, deformed_vertices)
-        slide = np.linalg.norm(np.asarray(deformed_vertices, np.float64) - cad_v - moved[:, None] * normals, axis=1)
-        line = line_deviation(cad_v, normals, deformed_vertices, deformed_faces, reach)
-        deviation = np.where(np.abs(np.nan_to_num(line, nan=np.inf) - moved) <= slide, line, moved)
-        on_twin = np.asarray(deformed_vertices, np.float64)
-        vis = point_visibility(on_twin, vertex_normals(on_twin, cad_faces), on_twin, cad_faces, cameras, max_angle_deg=max_angle_deg)
+        vis = point_visibility(dv, vertex_normals(dv, cad_faces), dv, cad_faces, cameras, max_angle_deg=max_angle_deg)
     else:
-        deviation = line_deviation(cad_v, normals, deformed_vertices, deformed_faces, reach)
         # Each CAD vertex where its normal line meets the deformed surface (the CAD place where it missed).
         on_twin = cad_v + np.nan_to_num(deviation)[:, None] * normals
-        vis = point_visibility(on_twin, normals, deformed_vertices, deformed_faces, cameras, max_angle_deg=max_angle_deg)
+        vis = point_visibility(on_twin, normals, dv, deformed_faces, cameras, max_angle_deg=max_angle_deg)
+    areas = vertex_areas(cad_v, cad_faces)
+    alignment, fit_weight = None, None
+    if best_fit is not None:
+        # Visibility stays that of the surface the cameras photographed; the deviation is read on the aligned one.
+        weights = np.where((vis.views > 0) & np.isfinite(deviation), areas, 0.0)
+        aligned, alignment, fit_weight = best_fit_surface(
+            cad_v,
+            normals,
+            dv,
+            lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach),
+            weights,
+            best_fit,
+            mm_per_unit=mm_per_unit,
+        )
+        deviation = _read_deviation(cad_v, normals, aligned, deformed_faces, same, reach)
     rim_residual = np.full(len(cad_v), np.nan)
     if masks is not None:
         from scipy.spatial import cKDTree
 
         from reconstruction.inspect_silhouette import silhouette_correction
 
-        dv = np.asarray(deformed_vertices, np.float64)
         correction, rim_residual, _ = silhouette_correction(dv, deformed_faces, vertex_normals(dv, deformed_faces), cameras, masks)
         if not same:
             nearest = cKDTree(dv).query(on_twin)[1]
@@ -415,13 +563,15 @@ def inspect_meshes(
         deviation_mm=deviation * mm_per_unit,
         views=vis.views,
         best_angle_deg=vis.best_angle_deg,
-        area_mm2=vertex_areas(cad_v, cad_faces) * mm_per_unit**2,
+        area_mm2=areas * mm_per_unit**2,
         part=vertex_parts(len(cad_v), cad_faces, face_part),
         part_names=list(part_names),
         in_view=vis.in_view,
         uncertainty_mm=np.where(seen, expanded_uncertainty(sigma, residual), np.nan) * mm_per_unit,
         footprint_mm=footprint_all * mm_per_unit,
         residual_mm=residual * mm_per_unit,
+        alignment=alignment,
+        fit_weight_mm2=None if fit_weight is None else fit_weight * mm_per_unit**2,
     )
 
 
@@ -432,10 +582,13 @@ def inspect_twin(
     cad: MeshParts | None = None,
     deformed: MeshParts | None = None,
     max_angle_deg: float = MAX_ANGLE_DEG,
+    aligned: bool = True,
 ) -> Inspection:
     """`inspect_meshes` on a loaded twin: its CAD and deformed meshes (metres; `cad`, `deformed` when already read
     from it) from its trained cameras, refined by the capture's `masks` (one [H, W] bool per twin camera, in
-    `twin.cameras` order, at the capture's resolution) when given."""
+    `twin.cameras` order, at the capture's resolution) when given. The map is aligned by the best rigid fit, or by a
+    similarity where the twin's rig has no metric scale (`alignment_kind`); `aligned` False reads it in the CAD frame
+    as the twin placed it."""
     cad = twin.load_mesh_cad() if cad is None else cad
     deformed = twin.load_mesh_deformed() if deformed is None else deformed
     return inspect_meshes(
@@ -448,7 +601,14 @@ def inspect_twin(
         [c.camera for c in twin.cameras],
         masks=masks,
         max_angle_deg=max_angle_deg,
+        best_fit=alignment_kind(twin) if aligned else None,
     )
+
+
+def alignment_kind(twin: Twin) -> str:
+    """ "rigid" when the twin's rig is metric (a part larger than its drawing is a deviation), else "similarity" (no
+    photograph of an unscaled rig tells the part's size); a twin that does not record it is taken as metric."""
+    return "rigid" if twin.training.get("inputs", {}).get("metric", True) else "similarity"
 
 
 # ---------------------------------------------------------------------------------------- report

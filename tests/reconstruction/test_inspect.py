@@ -305,3 +305,56 @@ def test_the_signed_distance_field_crosses_zero_on_the_pixel_edge():
     mask = np.zeros((5, 8), bool)
     mask[:, :4] = True
     np.testing.assert_allclose(signed_distance(mask)[2], [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5])
+
+
+def ellipsoid(subdivisions=4):
+    """A part with no symmetry a rigid motion could hide in: semi-axes 50, 35, 25 mm (metres)."""
+    v, f = sphere(radius=1.0, subdivisions=subdivisions)
+    return v * [0.05, 0.035, 0.025], f
+
+
+def moved_by(v, rotvec_deg, translation_m, scale=1.0):
+    from scipy.spatial.transform import Rotation
+
+    return scale * v @ Rotation.from_rotvec(rotvec_deg, degrees=True).as_matrix().T + translation_m
+
+
+def test_where_a_loose_part_lies_is_taken_out_and_its_dent_is_measured_in_full():
+    v, f = ellipsoid()
+    normals = vertex_normals(v, f)
+    dent_at = np.argmax(v[:, 2])  # the top, which the ring sees
+    push = 0.002 * np.clip(1 - np.linalg.norm(v - v[dent_at], axis=1) / 0.012, 0, None)
+    part = moved_by(v - push[:, None] * normals, [2.0, -1.0, 1.5], [0.0015, -0.001, 0.0005])
+    plain = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["egg"], part, f, ring(), best_fit=None)
+    insp = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["egg"], part, f, ring())
+    far = insp.seen & (push == 0)
+    # As it lies, the part reads millimetres off everywhere; aligned, only the dent departs, by its full depth.
+    assert np.abs(plain.deviation_mm[far]).max() > 1.0
+    assert np.abs(insp.deviation_mm[far]).max() < 0.05
+    np.testing.assert_allclose(insp.deviation_mm[dent_at], -2.0, atol=0.05)
+    # The motion it took out is the inverse of the one that moved the part (to within the dent's pull on it).
+    np.testing.assert_allclose(np.linalg.norm(insp.alignment.rotation_deg), np.linalg.norm([2.0, -1.0, 1.5]), atol=0.05)
+    assert insp.alignment.kind == "rigid" and insp.alignment.scale == 0.0
+
+
+def test_a_part_larger_than_its_drawing_reads_its_size_on_a_metric_rig_and_nothing_where_scale_is_unknown():
+    v, f = ellipsoid(subdivisions=3)
+    grown = moved_by(v, [0.5, 0.0, 0.0], [0.0, 0.0, 0.001], scale=1.01)
+    rigid = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["egg"], grown, f, ring())
+    similarity = inspect_meshes(v, f, np.zeros(len(f), np.int64), ["egg"], grown, f, ring(), best_fit="similarity")
+    # 1 % of 25-50 mm semi-axes: 0.25-0.5 mm out, everywhere; a similarity takes it out as placement and size.
+    assert 0.2 < np.median(rigid.deviation_mm[rigid.seen]) < 0.55
+    assert np.abs(similarity.deviation_mm[similarity.seen]).max() < 0.02
+    np.testing.assert_allclose(similarity.alignment.scale, 0.01, atol=5e-4)
+    with pytest.raises(ValueError, match="rigid, similarity"):
+        inspect_meshes(v, f, np.zeros(len(f), np.int64), ["egg"], grown, f, ring(), best_fit="affine")
+
+
+def test_a_twin_whose_rig_has_no_metric_scale_is_aligned_by_a_similarity():
+    from types import SimpleNamespace
+
+    from reconstruction.inspect import alignment_kind
+
+    assert alignment_kind(SimpleNamespace(training={"inputs": {"metric": True}})) == "rigid"
+    assert alignment_kind(SimpleNamespace(training={"inputs": {"metric": False}})) == "similarity"
+    assert alignment_kind(SimpleNamespace(training={})) == "rigid"
