@@ -237,9 +237,8 @@ def best_fit_surface(
     A free part lies on the rig however it fell: where it lies against its CAD frame is placement, not shape, and
     the registration that placed it could only fit it. So a map is read after a best fit, as inspection software
     aligns a scan before it colours it: by least squares (their Gaussian best fit), so a dent pulls the part towards
-    it by its share of the seen area (a 4 mm dent over 3 % of a ball: 0.13 mm). Robust weights were measured and not
-    kept: on thin parts they let the fit turn about the long axis (benchmarks/results/inspect_truth.md). A step fits
-    the motion to first order and moves the surface by it; the surface is read again, since a motion of a few degrees slides a
+    it by its share of the seen area. Robust weights were measured and not kept: on thin parts they let the fit turn
+    about the long axis (benchmarks/results/inspect_truth.md). A step fits the motion to first order and moves the surface by it; the surface is read again, since a motion of a few degrees slides a
     curved surface along the normal lines by more than the first order says (benchmarks/results/inspect_truth.md).
     Returns the moved vertices, the whole motion removed and each vertex's weight in the fit [V] (0 where the
     surface was not found), by which a reference surface can be aligned the same way.
@@ -467,7 +466,7 @@ class Inspection:
 
 
 def _read_deviation(
-    cad_v: np.ndarray, normals: np.ndarray, surface_v: np.ndarray, surface_f: np.ndarray, same: bool, reach: float
+    cad_v: np.ndarray, normals: np.ndarray, surface_v: np.ndarray, surface_f: np.ndarray, same: bool, reach: float, guess: bool = True
 ) -> np.ndarray:
     """[V] the deviation of the surface from the CAD along each CAD vertex's normal line (model units).
 
@@ -475,13 +474,13 @@ def _read_deviation(
     vertices (`same`), a vertex's own move also slides along the surface, which is not a deviation
     (benchmarks/results/inspect_error_budget.md). There a hit is the vertex's own surface only within its slide of
     the projected move (the surface tilted at most 45 degrees); beyond that, or with no hit, the line found another
-    sheet and the projected move stands."""
+    sheet and the projected move stands (NaN with `guess` False: the surface was not found there)."""
     line = line_deviation(cad_v, normals, surface_v, surface_f, reach)
     if not same:
         return line
     moved = normal_deviation(cad_v, normals, surface_v)
     slide = np.linalg.norm(surface_v - cad_v - moved[:, None] * normals, axis=1)
-    return np.where(np.abs(np.nan_to_num(line, nan=np.inf) - moved) <= slide, line, moved)
+    return np.where(np.abs(np.nan_to_num(line, nan=np.inf) - moved) <= slide, line, moved if guess else np.nan)
 
 
 def inspect_meshes(
@@ -531,7 +530,8 @@ def inspect_meshes(
             cad_v,
             normals,
             dv,
-            lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach),
+            # Only where the surface is found along the normal line: a projected move is a guess, not a reading.
+            lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach, guess=False),
             weights,
             best_fit,
             mm_per_unit=mm_per_unit,
