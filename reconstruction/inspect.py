@@ -68,6 +68,7 @@ BEST_FIT_KINDS = ("rigid", "similarity")
 BEST_FIT_TOL_DEG = 1e-3
 BEST_FIT_TOL_MM = 1e-3
 BEST_FIT_MAX_STEPS = 20
+BEST_FIT_FRACTIONS = (1.0, 0.5, 0.25, 0.125)  # of a step tried in turn, until one lowers the squares
 NAMED_VERTICES = 5  # straddling vertices an UNCERTAIN line names (the JSON lists them all)
 _NEAR = 1e-6
 
@@ -227,38 +228,60 @@ def best_fit_surface(
     weights: np.ndarray,
     kind: str = "rigid",
     *,
+    read_found: Callable[[np.ndarray], np.ndarray] | None = None,
     mm_per_unit: float = MM_PER_M,
 ) -> tuple[np.ndarray, Alignment, np.ndarray]:
     """`surface_vertices` [S, 3] moved by the rigid motion (or similarity, `kind`) that best fits the surface onto the
     CAD (points [V, 3], unit normals [V, 3], same units as the surface; `mm_per_unit` to mm) along the CAD normals.
-    `read(vertices)` gives the surface's deviation [V] along them (NaN where it is not found); `weights` [V] (the seen
-    area) say which vertices speak.
+    `read(vertices)` gives the surface's deviation [V] along them (NaN where it has none); `read_found`, where it
+    differs, only where the surface is found along the normal line (a guessed value is no reading to fit); `weights`
+    [V] (the seen area) say which vertices speak.
 
     A free part lies on the rig however it fell: where it lies against its CAD frame is placement, not shape, and
     the registration that placed it could only fit it. So a map is read after a best fit, as inspection software
     aligns a scan before it colours it: by least squares (their Gaussian best fit), so a dent pulls the part towards
     it by its share of the seen area. Robust weights were measured and not kept: on thin parts they let the fit turn
-    about the long axis (benchmarks/results/inspect_truth.md). A step fits the motion to first order and moves the surface by it; the surface is read again, since a motion of a few degrees slides a
-    curved surface along the normal lines by more than the first order says (benchmarks/results/inspect_truth.md).
+    about the long axis (benchmarks/results/inspect_truth.md). A step fits the motion to first order and moves the
+    surface by it; the surface is read again, since a motion of a few degrees slides a curved surface along the
+    normal lines by more than the first order says. A step is taken only as far as it lowers the weighted squares of
+    `read` (a vertex with no reading counts as the line's reach): a part whose shape holds the motion weakly (a ball
+    beside a block of a few vertices) is never turned away from its drawing.
     Returns the moved vertices, the whole motion removed and each vertex's weight in the fit [V] (0 where the
     surface was not found), by which a reference surface can be aligned the same way.
     """
     cad_v = np.asarray(cad_vertices, np.float64)
     start = np.asarray(surface_vertices, np.float64)
-    moved = start.copy()
+    read_found = read if read_found is None else read_found
     base = np.clip(np.asarray(weights, np.float64), 0.0, None)
+    reach_mm = 0.1 * float(np.linalg.norm(cad_v.max(0) - cad_v.min(0))) * mm_per_unit
+
+    def cost(vertices: np.ndarray) -> float:
+        d = np.nan_to_num(read(vertices) * mm_per_unit, nan=reach_mm)
+        return float((base * np.minimum(d * d, reach_mm * reach_mm)).sum())
+
+    moved, current = start.copy(), cost(start)
     fit_weight = np.zeros(len(cad_v))
     for _ in range(BEST_FIT_MAX_STEPS):
-        deviation = read(moved) * mm_per_unit
+        deviation = read_found(moved) * mm_per_unit
         speaks = (base > 0) & np.isfinite(deviation)
         if not speaks.any():
             break
         fit_weight = np.where(speaks, base, 0.0)
         step = best_fit_step(cad_v * mm_per_unit, cad_normals, deviation, fit_weight, kind)
-        rotation = Rotation.from_rotvec(-np.radians(step.rotation_deg)).as_matrix()
-        centre = step.centre_mm / mm_per_unit
-        moved = ((moved - centre) @ rotation.T) * (1.0 - step.scale) + centre - step.translation_mm / mm_per_unit
-        if np.linalg.norm(step.rotation_deg) < BEST_FIT_TOL_DEG and np.linalg.norm(step.translation_mm) < BEST_FIT_TOL_MM:
+        for fraction in BEST_FIT_FRACTIONS:
+            rotation = Rotation.from_rotvec(-fraction * np.radians(step.rotation_deg)).as_matrix()
+            centre = step.centre_mm / mm_per_unit
+            trial = ((moved - centre) @ rotation.T) * (1.0 - fraction * step.scale) + centre - fraction * step.translation_mm / mm_per_unit
+            trial_cost = cost(trial)
+            if trial_cost < current:
+                moved, current = trial, trial_cost
+                break
+        else:
+            break
+        if (
+            fraction * np.linalg.norm(step.rotation_deg) < BEST_FIT_TOL_DEG
+            and fraction * np.linalg.norm(step.translation_mm) < BEST_FIT_TOL_MM
+        ):
             break
     return moved, _motion_between(start, moved, kind, mm_per_unit), fit_weight
 
@@ -530,10 +553,11 @@ def inspect_meshes(
             cad_v,
             normals,
             dv,
-            # Only where the surface is found along the normal line: a projected move is a guess, not a reading.
-            lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach, guess=False),
+            lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach),
             weights,
             best_fit,
+            # Fitted only where the surface is found along the normal line: a projected move is a guess, not a reading.
+            read_found=lambda v: _read_deviation(cad_v, normals, v, deformed_faces, same, reach, guess=False),
             mm_per_unit=mm_per_unit,
         )
         deviation = _read_deviation(cad_v, normals, aligned, deformed_faces, same, reach)

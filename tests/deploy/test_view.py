@@ -278,7 +278,9 @@ def test_the_heat_map_shows_the_inspection_colours_and_verdict(tmp_path, chromiu
     from deploy.inspection_report import inspect_twin_dir
     from reconstruction.inspect import rasterize_mesh
 
-    twin = make_twin(tmp_path / "twin", dent_m=0.003)
+    # The cap pushed in is a fifth of the ball: the map's least-squares best fit takes part of it as placement, and
+    # 4 mm leaves the cap out of the 1 mm tolerance by more than its uncertainty.
+    twin = make_twin(tmp_path / "twin", dent_m=0.004)
     doc = inspect_twin_dir(twin.root, twin.root / "inspection", tolerance_mm=1.0, max_unseen_pct=25.0, turntable=0, renders=False)
     assert doc["verdict"]["status"] == "FAIL"
     ply = PlyData.read(str(twin.root / "inspection" / "deviation.ply"))
