@@ -116,7 +116,7 @@ def scene_rows(data: Path, scene: str, twin_dir: Path, tolerance_mm: float) -> d
         # The truth read as the map is: after the same best fit, over the vertices and weights of the map's own (or neither).
         truth = truth_mm
         if m.alignment is not None:
-            read = lambda v: true_deviation(cad.vertices, cad.faces, v, true_f, diameter)  # noqa: E731
+            read = lambda vertices: true_deviation(cad.vertices, cad.faces, vertices, true_f, diameter)  # noqa: E731
             true_aligned = best_fit_surface(cad.vertices, normals, true_v, read, m.fit_weight_mm2, m.alignment.kind)[0]
             truth = 1000.0 * true_deviation(cad.vertices, cad.faces, true_aligned, true_f, diameter)
         row["maps"][name] = {
